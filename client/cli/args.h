@@ -1,0 +1,34 @@
+// Minimal command-line flag parsing shared by the streetsim subcommands: --name value,
+// --name=value and boolean --name. Unknown flags, missing values and repeated flags are errors.
+#pragma once
+
+#include <map>
+#include <optional>
+#include <set>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+
+namespace streetsim {
+
+struct FlagSpec {
+  std::string name;  // without the leading dashes
+  bool takes_value = true;
+};
+
+class ParsedArgs {
+ public:
+  static absl::StatusOr<ParsedArgs> Parse(const std::vector<std::string>& args,
+                                          const std::vector<FlagSpec>& specs);
+  std::optional<std::string> Get(const std::string& name) const;
+  bool Has(const std::string& name) const { return values_.count(name) > 0; }
+  absl::StatusOr<std::string> Required(const std::string& name) const;
+  const std::vector<std::string>& positional() const { return positional_; }
+
+ private:
+  std::map<std::string, std::string> values_;
+  std::vector<std::string> positional_;
+};
+
+}  // namespace streetsim

@@ -1,0 +1,14 @@
+// streetsim subcommands. Each returns the process exit code: 0 success, 1 runtime failure,
+// 2 bad arguments; errors are one line on stderr.
+#pragma once
+
+#include <string>
+#include <vector>
+
+namespace streetsim {
+
+int RunRenderCommand(const std::vector<std::string>& args);
+int RunPlyInfoCommand(const std::vector<std::string>& args);
+int RunDevicesCommand(const std::vector<std::string>& args);
+
+}  // namespace streetsim

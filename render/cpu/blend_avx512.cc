@@ -1,0 +1,3 @@
+#define STREETSIM_BLEND_NS simd_avx512
+#include "render/cpu/blend.h"
+#include "render/cpu/blend_simd.inc"

@@ -1,0 +1,152 @@
+#include "render/cpu/cpu_engine.h"
+
+#include <chrono>
+#include <thread>
+
+#include "absl/strings/str_cat.h"
+#include "render/common/thread_pool.h"
+#include "render/cpu/binning.h"
+#include "render/cpu/blend.h"
+#include "render/cpu/project.h"
+
+namespace streetsim {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+double MsSince(Clock::time_point t0) {
+  return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+}
+
+// The cpu backend's "device memory" is a host copy of the store: the caller may free or change
+// its own store after Upload without affecting renders.
+class CpuScene final : public DeviceScene {
+ public:
+  explicit CpuScene(GaussianStore store) : store_(std::move(store)) {}
+  size_t size() const override { return store_.size(); }
+  int sh_degree() const override { return store_.sh_degree; }
+  const GaussianStore& store() const { return store_; }
+
+ private:
+  GaussianStore store_;
+};
+
+class CpuEngine final : public Engine {
+ public:
+  explicit CpuEngine(const CpuEngineOptions& options)
+      : options_(options), pool_(options.num_threads) {}
+
+  Backend backend() const override { return Backend::kCpu; }
+  std::string device_name() const override {
+    const char* mode = options_.precision == CpuPrecision::kFloatSimd     ? cpu::BlendSimdIsa()
+                       : options_.precision == CpuPrecision::kFloatScalar ? "scalar float"
+                                                                          : "scalar double";
+    return absl::StrCat("cpu: ", pool_.num_threads(), " threads, ", mode);
+  }
+
+  absl::StatusOr<std::unique_ptr<DeviceScene>> Upload(const GaussianStore& store) override {
+    if (absl::Status s = store.Validate(); !s.ok()) return s;
+    if (store.size() > (1u << 30)) {
+      return absl::InvalidArgumentError(absl::StrCat("scene has ", store.size(),
+                                                     " Gaussians; the cpu backend takes <= 2^30"));
+    }
+    return std::make_unique<CpuScene>(store);
+  }
+
+  absl::Status Render(const DeviceScene& scene, const PinholeCamera& camera,
+                      const RenderOptions& options, RenderOutput* out) override {
+    const auto* cpu_scene = dynamic_cast<const CpuScene*>(&scene);
+    if (cpu_scene == nullptr) {
+      return absl::InvalidArgumentError("scene was not uploaded by the cpu backend");
+    }
+    if (absl::Status s = camera.Validate(); !s.ok()) return s;
+    if (!options.background.allFinite()) {
+      return absl::InvalidArgumentError("background colour is not finite");
+    }
+    if (options_.precision == CpuPrecision::kDouble) {
+      return RenderImpl<double>(cpu_scene->store(), camera, options, &frame_d_, out);
+    }
+    return RenderImpl<float>(cpu_scene->store(), camera, options, &frame_f_, out);
+  }
+
+ private:
+  template <typename Real>
+  absl::Status RenderImpl(const GaussianStore& store, const PinholeCamera& camera,
+                          const RenderOptions& options, cpu::Frame<Real>* frame,
+                          RenderOutput* out) {
+    const auto t_start = Clock::now();
+    const auto cam = cpu::MakeCameraParams<Real>(camera);
+    frame->width = camera.width;
+    frame->height = camera.height;
+    frame->tiles_x = cam.tiles_x;
+    frame->tiles_y = cam.tiles_y;
+
+    auto t0 = Clock::now();
+    cpu::ProjectGaussians<Real>(pool_, store, cam, frame);
+    out->timings.projection_ms = MsSince(t0);
+
+    t0 = Clock::now();
+    cpu::SortByDepth(frame);
+    cpu::BinTiles(pool_, frame);
+    out->timings.sort_ms = MsSince(t0);
+
+    const size_t pixels = static_cast<size_t>(camera.width) * camera.height;
+    out->width = camera.width;
+    out->height = camera.height;
+    frame->final_T.resize(pixels);
+    frame->n_contrib.resize(pixels);
+
+    t0 = Clock::now();
+    if constexpr (std::is_same_v<Real, float>) {
+      out->rgb.resize(pixels * 3);
+      out->depth.resize(options.want_depth ? pixels : 0);
+      out->alpha.resize(options.want_alpha ? pixels : 0);
+      cpu::BlendArgs<float> args;
+      args.frame = frame;
+      for (int c = 0; c < 3; ++c) args.background[c] = options.background[c];
+      args.rgb = out->rgb.data();
+      args.depth = options.want_depth ? out->depth.data() : nullptr;
+      args.alpha = options.want_alpha ? out->alpha.data() : nullptr;
+      args.final_T = frame->final_T.data();
+      args.n_contrib = frame->n_contrib.data();
+      if (options_.precision == CpuPrecision::kFloatSimd) {
+        cpu::BlendSimd(pool_, args);
+      } else {
+        cpu::BlendScalar<float>(pool_, args);
+      }
+    } else {
+      std::vector<double> rgb(pixels * 3), depth(pixels), alpha(pixels);
+      cpu::BlendArgs<double> args;
+      args.frame = frame;
+      for (int c = 0; c < 3; ++c) args.background[c] = options.background[c];
+      args.rgb = rgb.data();
+      args.depth = depth.data();
+      args.alpha = alpha.data();
+      args.final_T = frame->final_T.data();
+      args.n_contrib = frame->n_contrib.data();
+      cpu::BlendScalar<double>(pool_, args);
+      out->rgb.assign(rgb.begin(), rgb.end());
+      if (options.want_depth) out->depth.assign(depth.begin(), depth.end()); else out->depth.clear();
+      if (options.want_alpha) out->alpha.assign(alpha.begin(), alpha.end()); else out->alpha.clear();
+    }
+    out->timings.blend_ms = MsSince(t0);
+
+    out->stats.num_gaussians = store.size();
+    out->stats.num_visible = frame->visible_ids.size();
+    out->stats.num_tile_instances = frame->tile_ids.size();
+    out->timings.total_ms = MsSince(t_start);
+    return absl::OkStatus();
+  }
+
+  CpuEngineOptions options_;
+  ThreadPool pool_;
+  cpu::Frame<float> frame_f_;
+  cpu::Frame<double> frame_d_;
+};
+
+}  // namespace
+
+std::unique_ptr<Engine> CreateCpuEngine(const CpuEngineOptions& options) {
+  return std::make_unique<CpuEngine>(options);
+}
+
+}  // namespace streetsim

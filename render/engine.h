@@ -1,0 +1,91 @@
+// The rendering engine interface: one interface, two backends (cpu, vulkan).
+//
+// A scene is uploaded once into the backend's own memory (host arrays for cpu, device buffers for
+// vulkan) and then rendered from any number of cameras without per-frame copies of the Gaussians.
+#pragma once
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "absl/status/statusor.h"
+#include "render/camera.h"
+#include "scene/gaussians/gaussian_store.h"
+
+namespace streetsim {
+
+enum class Backend { kAuto, kCpu, kVulkan };
+absl::StatusOr<Backend> ParseBackend(std::string_view name);  // "auto" | "cpu" | "vulkan"
+std::string_view BackendName(Backend backend);
+
+// Constants of the 3DGS forward pass that both backends share (kept together so they agree).
+struct RasterConstants {
+  static constexpr int kTileSize = 16;
+  static constexpr float kNearPlaneM = 0.2f;       // cull Gaussians with camera z <= this
+  static constexpr float kLowPassPx = 0.3f;        // added to the 2D covariance diagonal
+  static constexpr float kFrustumClamp = 1.3f;     // EWA Jacobian: |x/z| <= 1.3 * tan(half fov)
+  static constexpr float kMaxAlpha = 0.99f;
+  static constexpr float kMinAlpha = 1.0f / 255.0f;
+  static constexpr float kMinTransmittance = 1e-4f;
+};
+
+struct RenderOptions {
+  Eigen::Vector3f background = Eigen::Vector3f::Zero();  // linear RGB added with weight T
+  bool want_depth = true;
+  bool want_alpha = true;
+};
+
+// Wall-clock milliseconds per stage of the last render (device time for vulkan when the device
+// reports timestamps). upload and readback are not included in the stages.
+struct StageTimings {
+  double projection_ms = 0;  // projection + SH to RGB (+ visibility compaction)
+  double sort_ms = 0;        // depth sort, tile binning, tile sort, tile ranges
+  double blend_ms = 0;       // per-tile front-to-back blending
+  double total_ms = 0;       // whole frame as seen by the caller, readback included
+};
+
+struct RenderStats {
+  size_t num_gaussians = 0;
+  size_t num_visible = 0;       // passed the near plane / frustum / degeneracy culls
+  size_t num_tile_instances = 0;  // (Gaussian, tile) pairs blended
+};
+
+struct RenderOutput {
+  int width = 0;
+  int height = 0;
+  std::vector<float> rgb;    // [H*W*3] row-major, linear, background included
+  std::vector<float> depth;  // [H*W] sum(z * alpha * T), metres (not normalised by alpha)
+  std::vector<float> alpha;  // [H*W] 1 - final transmittance
+  StageTimings timings;
+  RenderStats stats;
+};
+
+// A scene living in a backend's memory. Opaque; created by Engine::Upload.
+class DeviceScene {
+ public:
+  virtual ~DeviceScene() = default;
+  virtual size_t size() const = 0;
+  virtual int sh_degree() const = 0;
+};
+
+class Engine {
+ public:
+  virtual ~Engine() = default;
+  virtual Backend backend() const = 0;
+  // Human-readable device description, e.g. "cpu: 2 threads, avx512" or "vulkan: llvmpipe (...)".
+  virtual std::string device_name() const = 0;
+
+  // Validates the store and copies it into backend memory.
+  virtual absl::StatusOr<std::unique_ptr<DeviceScene>> Upload(const GaussianStore& store) = 0;
+
+  // Renders one frame. `out` buffers are reused across calls when sizes match.
+  virtual absl::Status Render(const DeviceScene& scene, const PinholeCamera& camera,
+                              const RenderOptions& options, RenderOutput* out) = 0;
+};
+
+// Creates an engine. kAuto: vulkan when a real (non-CPU) Vulkan GPU is present, else cpu.
+absl::StatusOr<std::unique_ptr<Engine>> CreateEngine(Backend backend);
+
+}  // namespace streetsim

@@ -1,0 +1,92 @@
+// The vulkan Engine and DeviceScene classes (internal: the public API is vulkan_engine.h; tests
+// reach in through testing.h).
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <string>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "render/engine.h"
+#include "render/vulkan/buffer.h"
+#include "render/vulkan/context.h"
+#include "render/vulkan/pipeline.h"
+#include "render/vulkan/stages.h"
+
+namespace streetsim::vulkan {
+
+inline constexpr size_t kMaxGaussians = size_t{1} << 26;
+
+// A scene in device memory: the parameters (uploaded once) and the per-Gaussian working buffers
+// of a frame, sized at Upload. Holds the Context so that its buffers never outlive the device.
+class VulkanScene : public DeviceScene {
+ public:
+  VulkanScene(std::shared_ptr<const Context> ctx, uint64_t engine_id, uint32_t n, int sh_degree)
+      : ctx_(std::move(ctx)), engine_id_(engine_id), n_(n), sh_degree_(sh_degree) {}
+  size_t size() const override { return n_; }
+  int sh_degree() const override { return sh_degree_; }
+  uint64_t engine_id() const { return engine_id_; }
+  SceneBuffers view() const;
+
+  Buffer gauss, sh, splats, rects, flags, touched, touched_sorted;
+  std::array<Buffer, 2> depth_keys, ids;
+
+ private:
+  std::shared_ptr<const Context> ctx_;
+  uint64_t engine_id_;
+  uint32_t n_;
+  int sh_degree_;
+};
+
+class VulkanEngine : public Engine {
+ public:
+  static absl::StatusOr<std::unique_ptr<VulkanEngine>> Create(VulkanDevicePreference preference);
+  ~VulkanEngine() override;
+
+  Backend backend() const override { return Backend::kVulkan; }
+  std::string device_name() const override { return ctx_->description(); }
+  absl::StatusOr<std::unique_ptr<DeviceScene>> Upload(const GaussianStore& store) override;
+  absl::Status Render(const DeviceScene& scene, const PinholeCamera& camera,
+                      const RenderOptions& options, RenderOutput* out) override;
+
+  // For testing.cc.
+  const Context& context() const { return *ctx_; }
+  const Kernels& kernels() const { return *kernels_; }
+  int rerenders() const { return rerenders_; }
+  uint64_t instance_capacity() const { return instance_capacity_; }
+  const Buffer& final_t() const { return final_t_; }
+  const Buffer& n_contrib() const { return n_contrib_; }
+
+ private:
+  VulkanEngine() = default;
+  absl::Status EnsureFrameResources(uint32_t n, uint32_t width, uint32_t height,
+                                    uint64_t capacity, const RenderOptions& options);
+  // Records, submits and waits for one frame; fills `counts` (kNumCounts) from the readback.
+  absl::Status RenderOnce(const VulkanScene& scene, const PinholeCamera& camera,
+                          const RenderOptions& options, uint32_t* counts);
+  absl::Status Readback(const PinholeCamera& camera, const RenderOptions& options,
+                        RenderOutput* out);
+
+  std::shared_ptr<Context> ctx_;
+  std::unique_ptr<Kernels> kernels_;
+  std::unique_ptr<DescriptorArena> arena_;
+  uint64_t id_ = 0;
+  VkCommandBuffer cmd_ = VK_NULL_HANDLE;
+  VkFence fence_ = VK_NULL_HANDLE;
+  VkQueryPool query_pool_ = VK_NULL_HANDLE;
+
+  ScanScratch scratch_;
+  Buffer counts_, args_, hist_, ranges_;
+  std::array<Buffer, 2> inst_keys_, inst_vals_;
+  Buffer rgb_, depth_, alpha_, final_t_, n_contrib_;
+  Buffer readback_;
+  uint64_t instance_capacity_ = 0;
+  uint64_t last_instances_ = 0;
+  int rerenders_ = 0;
+  std::mutex mu_;  // Render/Upload share the frame resources
+};
+
+}  // namespace streetsim::vulkan

@@ -1,0 +1,229 @@
+#include "render/vulkan/pipeline.h"
+
+#include <algorithm>
+#include <vector>
+
+#include "absl/strings/str_cat.h"
+
+namespace streetsim::vulkan {
+
+absl::StatusOr<std::unique_ptr<ComputePipeline>> ComputePipeline::Create(
+    const Context& ctx, std::string name, std::span<const uint32_t> spirv, int num_buffers,
+    uint32_t push_constant_bytes, std::span<const SpecConstant> spec_constants) {
+  auto p = std::unique_ptr<ComputePipeline>(new ComputePipeline());
+  p->device_ = ctx.device();
+  p->name_ = std::move(name);
+  p->num_buffers_ = num_buffers;
+  p->push_constant_bytes_ = push_constant_bytes;
+  if (push_constant_bytes > ctx.limits().maxPushConstantsSize) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "vulkan: ", p->name_, " needs ", push_constant_bytes, " B of push constants, device has ",
+        ctx.limits().maxPushConstantsSize));
+  }
+
+  std::vector<VkDescriptorSetLayoutBinding> bindings(num_buffers);
+  for (int i = 0; i < num_buffers; ++i) {
+    bindings[i] = VkDescriptorSetLayoutBinding{static_cast<uint32_t>(i),
+                                               VK_DESCRIPTOR_TYPE_STORAGE_BUFFER, 1,
+                                               VK_SHADER_STAGE_COMPUTE_BIT, nullptr};
+  }
+  VkDescriptorSetLayoutCreateInfo set_info{VK_STRUCTURE_TYPE_DESCRIPTOR_SET_LAYOUT_CREATE_INFO};
+  set_info.bindingCount = static_cast<uint32_t>(bindings.size());
+  set_info.pBindings = bindings.data();
+  STREETSIM_VK_RETURN_IF_ERROR(
+      vkCreateDescriptorSetLayout(p->device_, &set_info, nullptr, &p->set_layout_),
+      "vkCreateDescriptorSetLayout");
+
+  VkPushConstantRange range{VK_SHADER_STAGE_COMPUTE_BIT, 0, push_constant_bytes};
+  VkPipelineLayoutCreateInfo layout_info{VK_STRUCTURE_TYPE_PIPELINE_LAYOUT_CREATE_INFO};
+  layout_info.setLayoutCount = 1;
+  layout_info.pSetLayouts = &p->set_layout_;
+  layout_info.pushConstantRangeCount = push_constant_bytes > 0 ? 1 : 0;
+  layout_info.pPushConstantRanges = &range;
+  STREETSIM_VK_RETURN_IF_ERROR(
+      vkCreatePipelineLayout(p->device_, &layout_info, nullptr, &p->layout_),
+      "vkCreatePipelineLayout");
+
+  VkShaderModuleCreateInfo module_info{VK_STRUCTURE_TYPE_SHADER_MODULE_CREATE_INFO};
+  module_info.codeSize = spirv.size_bytes();
+  module_info.pCode = spirv.data();
+  VkShaderModule module = VK_NULL_HANDLE;
+  STREETSIM_VK_RETURN_IF_ERROR(vkCreateShaderModule(p->device_, &module_info, nullptr, &module),
+                               absl::StrCat("vkCreateShaderModule(", p->name_, ")"));
+
+  std::vector<VkSpecializationMapEntry> entries;
+  std::vector<uint32_t> values;
+  for (const SpecConstant& c : spec_constants) {
+    entries.push_back({c.id, static_cast<uint32_t>(values.size() * sizeof(uint32_t)),
+                       sizeof(uint32_t)});
+    values.push_back(c.value);
+  }
+  VkSpecializationInfo spec{static_cast<uint32_t>(entries.size()), entries.data(),
+                            values.size() * sizeof(uint32_t), values.data()};
+  VkComputePipelineCreateInfo info{VK_STRUCTURE_TYPE_COMPUTE_PIPELINE_CREATE_INFO};
+  info.stage = VkPipelineShaderStageCreateInfo{VK_STRUCTURE_TYPE_PIPELINE_SHADER_STAGE_CREATE_INFO};
+  info.stage.stage = VK_SHADER_STAGE_COMPUTE_BIT;
+  info.stage.module = module;
+  info.stage.pName = "main";
+  info.stage.pSpecializationInfo = entries.empty() ? nullptr : &spec;
+  info.layout = p->layout_;
+  const VkResult r =
+      vkCreateComputePipelines(p->device_, VK_NULL_HANDLE, 1, &info, nullptr, &p->pipeline_);
+  vkDestroyShaderModule(p->device_, module, nullptr);
+  STREETSIM_VK_RETURN_IF_ERROR(r, absl::StrCat("vkCreateComputePipelines(", p->name_, ")"));
+  return p;
+}
+
+ComputePipeline::~ComputePipeline() {
+  if (pipeline_ != VK_NULL_HANDLE) vkDestroyPipeline(device_, pipeline_, nullptr);
+  if (layout_ != VK_NULL_HANDLE) vkDestroyPipelineLayout(device_, layout_, nullptr);
+  if (set_layout_ != VK_NULL_HANDLE) vkDestroyDescriptorSetLayout(device_, set_layout_, nullptr);
+}
+
+// ---------------------------------------------------------------------------------------------
+
+namespace {
+constexpr uint32_t kSetsPerPool = 256;
+constexpr uint32_t kBuffersPerPool = kSetsPerPool * 8;
+}  // namespace
+
+DescriptorArena::~DescriptorArena() {
+  for (VkDescriptorPool pool : pools_) vkDestroyDescriptorPool(device_, pool, nullptr);
+}
+
+absl::Status DescriptorArena::AddPool() {
+  VkDescriptorPoolSize size{VK_DESCRIPTOR_TYPE_STORAGE_BUFFER, kBuffersPerPool};
+  VkDescriptorPoolCreateInfo info{VK_STRUCTURE_TYPE_DESCRIPTOR_POOL_CREATE_INFO};
+  info.maxSets = kSetsPerPool;
+  info.poolSizeCount = 1;
+  info.pPoolSizes = &size;
+  VkDescriptorPool pool = VK_NULL_HANDLE;
+  STREETSIM_VK_RETURN_IF_ERROR(vkCreateDescriptorPool(device_, &info, nullptr, &pool),
+                               "vkCreateDescriptorPool");
+  pools_.push_back(pool);
+  return absl::OkStatus();
+}
+
+absl::StatusOr<VkDescriptorSet> DescriptorArena::Allocate(VkDescriptorSetLayout layout) {
+  for (;;) {
+    if (current_ == pools_.size()) {
+      if (absl::Status s = AddPool(); !s.ok()) return s;
+    }
+    VkDescriptorSetAllocateInfo info{VK_STRUCTURE_TYPE_DESCRIPTOR_SET_ALLOCATE_INFO};
+    info.descriptorPool = pools_[current_];
+    info.descriptorSetCount = 1;
+    info.pSetLayouts = &layout;
+    VkDescriptorSet set = VK_NULL_HANDLE;
+    const VkResult r = vkAllocateDescriptorSets(device_, &info, &set);
+    if (r == VK_SUCCESS) return set;
+    if (r != VK_ERROR_OUT_OF_POOL_MEMORY && r != VK_ERROR_FRAGMENTED_POOL) {
+      return VkStatus(r, "vkAllocateDescriptorSets");
+    }
+    ++current_;  // this pool is full: move on to the next (created on demand)
+  }
+}
+
+absl::Status DescriptorArena::Reset() {
+  for (VkDescriptorPool pool : pools_) {
+    STREETSIM_VK_RETURN_IF_ERROR(vkResetDescriptorPool(device_, pool, 0),
+                                 "vkResetDescriptorPool");
+  }
+  current_ = 0;
+  return absl::OkStatus();
+}
+
+// ---------------------------------------------------------------------------------------------
+
+Grid GridFor(uint64_t groups) {
+  if (groups <= kMaxGridX) return Grid{static_cast<uint32_t>(groups), 1};
+  return Grid{kMaxGridX, static_cast<uint32_t>((groups + kMaxGridX - 1) / kMaxGridX)};
+}
+
+void Recorder::DispatchImpl(const ComputePipeline& p, std::initializer_list<const Buffer*> buffers,
+                            const void* push, size_t push_size, Grid grid, const Buffer* args,
+                            VkDeviceSize args_offset) {
+  if (!status_.ok()) return;
+  if (static_cast<int>(buffers.size()) != p.num_buffers() || push_size != p.push_constant_bytes()) {
+    Fail(absl::InternalError(absl::StrCat("vulkan: ", p.name(), ": bound ", buffers.size(),
+                                          " buffers / ", push_size, " B push constants, expects ",
+                                          p.num_buffers(), " / ", p.push_constant_bytes())));
+    return;
+  }
+  if (args == nullptr && (grid.x == 0 || grid.y == 0)) return;  // nothing to do
+  auto set = arena_->Allocate(p.set_layout());
+  if (!set.ok()) {
+    Fail(set.status());
+    return;
+  }
+  std::vector<VkDescriptorBufferInfo> infos;
+  std::vector<VkWriteDescriptorSet> writes;
+  infos.reserve(buffers.size());
+  for (const Buffer* b : buffers) {
+    infos.push_back(VkDescriptorBufferInfo{b->handle(), 0, VK_WHOLE_SIZE});
+  }
+  for (size_t i = 0; i < infos.size(); ++i) {
+    VkWriteDescriptorSet w{VK_STRUCTURE_TYPE_WRITE_DESCRIPTOR_SET};
+    w.dstSet = *set;
+    w.dstBinding = static_cast<uint32_t>(i);
+    w.descriptorCount = 1;
+    w.descriptorType = VK_DESCRIPTOR_TYPE_STORAGE_BUFFER;
+    w.pBufferInfo = &infos[i];
+    writes.push_back(w);
+  }
+  vkUpdateDescriptorSets(ctx_.device(), static_cast<uint32_t>(writes.size()), writes.data(), 0,
+                         nullptr);
+  vkCmdBindPipeline(cmd_, VK_PIPELINE_BIND_POINT_COMPUTE, p.pipeline());
+  vkCmdBindDescriptorSets(cmd_, VK_PIPELINE_BIND_POINT_COMPUTE, p.layout(), 0, 1, &*set, 0,
+                          nullptr);
+  if (push_size > 0) {
+    vkCmdPushConstants(cmd_, p.layout(), VK_SHADER_STAGE_COMPUTE_BIT, 0,
+                       static_cast<uint32_t>(push_size), push);
+  }
+  if (args != nullptr) {
+    vkCmdDispatchIndirect(cmd_, args->handle(), args_offset);
+  } else {
+    vkCmdDispatch(cmd_, grid.x, grid.y, 1);
+  }
+}
+
+void Recorder::Barrier() {
+  if (!status_.ok()) return;
+  VkMemoryBarrier barrier{VK_STRUCTURE_TYPE_MEMORY_BARRIER};
+  barrier.srcAccessMask = VK_ACCESS_SHADER_WRITE_BIT | VK_ACCESS_TRANSFER_WRITE_BIT;
+  barrier.dstAccessMask = VK_ACCESS_SHADER_READ_BIT | VK_ACCESS_SHADER_WRITE_BIT |
+                          VK_ACCESS_INDIRECT_COMMAND_READ_BIT | VK_ACCESS_TRANSFER_READ_BIT |
+                          VK_ACCESS_TRANSFER_WRITE_BIT;
+  vkCmdPipelineBarrier(cmd_, VK_PIPELINE_STAGE_COMPUTE_SHADER_BIT | VK_PIPELINE_STAGE_TRANSFER_BIT,
+                       VK_PIPELINE_STAGE_COMPUTE_SHADER_BIT | VK_PIPELINE_STAGE_DRAW_INDIRECT_BIT |
+                           VK_PIPELINE_STAGE_TRANSFER_BIT,
+                       0, 1, &barrier, 0, nullptr, 0, nullptr);
+}
+
+void Recorder::HostReadBarrier() {
+  if (!status_.ok()) return;
+  VkMemoryBarrier barrier{VK_STRUCTURE_TYPE_MEMORY_BARRIER};
+  barrier.srcAccessMask = VK_ACCESS_TRANSFER_WRITE_BIT;
+  barrier.dstAccessMask = VK_ACCESS_HOST_READ_BIT;
+  vkCmdPipelineBarrier(cmd_, VK_PIPELINE_STAGE_TRANSFER_BIT, VK_PIPELINE_STAGE_HOST_BIT, 0, 1,
+                       &barrier, 0, nullptr, 0, nullptr);
+}
+
+void Recorder::Fill(const Buffer& buffer, VkDeviceSize offset, VkDeviceSize size, uint32_t value) {
+  if (!status_.ok() || size == 0) return;
+  vkCmdFillBuffer(cmd_, buffer.handle(), offset, size, value);
+}
+
+void Recorder::Update(const Buffer& buffer, VkDeviceSize offset,
+                      std::span<const uint32_t> words) {
+  if (!status_.ok() || words.empty()) return;
+  vkCmdUpdateBuffer(cmd_, buffer.handle(), offset, words.size_bytes(), words.data());
+}
+
+void Recorder::Copy(const Buffer& src, VkDeviceSize src_offset, const Buffer& dst,
+                    VkDeviceSize dst_offset, VkDeviceSize size) {
+  if (!status_.ok() || size == 0) return;
+  VkBufferCopy region{src_offset, dst_offset, size};
+  vkCmdCopyBuffer(cmd_, src.handle(), dst.handle(), 1, &region);
+}
+
+}  // namespace streetsim::vulkan

@@ -1,0 +1,136 @@
+// Compute pipelines from embedded SPIR-V, and the recorder that binds buffers and records
+// dispatches into a frame's command buffer (internal).
+#pragma once
+
+#include <vulkan/vulkan.h>
+
+#include <cstdint>
+#include <initializer_list>
+#include <memory>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "render/vulkan/buffer.h"
+#include "render/vulkan/context.h"
+
+namespace streetsim::vulkan {
+
+struct SpecConstant {
+  uint32_t id;
+  uint32_t value;
+};
+
+// One compute shader: its descriptor set layout (bindings 0..num_buffers-1, all storage buffers),
+// push constant range and pipeline.
+class ComputePipeline {
+ public:
+  static absl::StatusOr<std::unique_ptr<ComputePipeline>> Create(
+      const Context& ctx, std::string name, std::span<const uint32_t> spirv, int num_buffers,
+      uint32_t push_constant_bytes, std::span<const SpecConstant> spec_constants = {});
+  ~ComputePipeline();
+  ComputePipeline(const ComputePipeline&) = delete;
+  ComputePipeline& operator=(const ComputePipeline&) = delete;
+
+  const std::string& name() const { return name_; }
+  VkPipeline pipeline() const { return pipeline_; }
+  VkPipelineLayout layout() const { return layout_; }
+  VkDescriptorSetLayout set_layout() const { return set_layout_; }
+  int num_buffers() const { return num_buffers_; }
+  uint32_t push_constant_bytes() const { return push_constant_bytes_; }
+
+ private:
+  ComputePipeline() = default;
+  VkDevice device_ = VK_NULL_HANDLE;
+  std::string name_;
+  VkDescriptorSetLayout set_layout_ = VK_NULL_HANDLE;
+  VkPipelineLayout layout_ = VK_NULL_HANDLE;
+  VkPipeline pipeline_ = VK_NULL_HANDLE;
+  int num_buffers_ = 0;
+  uint32_t push_constant_bytes_ = 0;
+};
+
+// Descriptor sets for one frame: allocated per dispatch and released together by Reset() once
+// the frame's fence has signalled. Buffers are reallocated on growth, so sets are never cached.
+class DescriptorArena {
+ public:
+  explicit DescriptorArena(VkDevice device) : device_(device) {}
+  ~DescriptorArena();
+  DescriptorArena(const DescriptorArena&) = delete;
+  DescriptorArena& operator=(const DescriptorArena&) = delete;
+
+  absl::StatusOr<VkDescriptorSet> Allocate(VkDescriptorSetLayout layout);
+  absl::Status Reset();
+
+ private:
+  absl::Status AddPool();
+  VkDevice device_;
+  std::vector<VkDescriptorPool> pools_;
+  size_t current_ = 0;
+};
+
+// Dispatch grid for `groups` workgroups: 1D when it fits maxComputeWorkGroupCount[0], else 2D;
+// kernels linearise (common.glsl: linear_group_id) and early-out past their count.
+struct Grid {
+  uint32_t x = 0, y = 1;
+};
+Grid GridFor(uint64_t groups);
+inline constexpr uint32_t kMaxGridX = 32768;
+
+// Records a sequence of compute dispatches. The first error sticks (status()), later calls are
+// no-ops, so stage code reads straight through and the frame checks once.
+class Recorder {
+ public:
+  Recorder(const Context& ctx, VkCommandBuffer cmd, DescriptorArena* arena)
+      : ctx_(ctx), cmd_(cmd), arena_(arena) {}
+
+  VkCommandBuffer cmd() const { return cmd_; }
+  const Context& ctx() const { return ctx_; }
+  const absl::Status& status() const { return status_; }
+  void Fail(absl::Status s) {
+    if (status_.ok()) status_ = std::move(s);
+  }
+
+  template <typename Push>
+  void Dispatch(const ComputePipeline& p, std::initializer_list<const Buffer*> buffers,
+                const Push& push, Grid grid) {
+    DispatchImpl(p, buffers, &push, sizeof(Push), grid, nullptr, 0);
+  }
+  void Dispatch(const ComputePipeline& p, std::initializer_list<const Buffer*> buffers, Grid grid) {
+    DispatchImpl(p, buffers, nullptr, 0, grid, nullptr, 0);
+  }
+  // Grid read from `args` at `args_offset` (a VkDispatchIndirectCommand written on the device).
+  template <typename Push>
+  void DispatchIndirect(const ComputePipeline& p, std::initializer_list<const Buffer*> buffers,
+                        const Push& push, const Buffer& args, VkDeviceSize args_offset) {
+    DispatchImpl(p, buffers, &push, sizeof(Push), Grid{}, &args, args_offset);
+  }
+
+  void DispatchIndirect(const ComputePipeline& p, std::initializer_list<const Buffer*> buffers,
+                        const Buffer& args, VkDeviceSize args_offset) {
+    DispatchImpl(p, buffers, nullptr, 0, Grid{}, &args, args_offset);
+  }
+
+  // Orders every earlier compute/transfer write before every later compute/indirect/transfer
+  // access. Stages are a chain, so one global barrier between them is all that is needed.
+  void Barrier();
+  // Makes transfer writes (readback copies) visible to the host after the fence.
+  void HostReadBarrier();
+  void Fill(const Buffer& buffer, VkDeviceSize offset, VkDeviceSize size, uint32_t value);
+  void Update(const Buffer& buffer, VkDeviceSize offset, std::span<const uint32_t> words);
+  void Copy(const Buffer& src, VkDeviceSize src_offset, const Buffer& dst,
+            VkDeviceSize dst_offset, VkDeviceSize size);
+
+ private:
+  void DispatchImpl(const ComputePipeline& p, std::initializer_list<const Buffer*> buffers,
+                    const void* push, size_t push_size, Grid grid, const Buffer* args,
+                    VkDeviceSize args_offset);
+  const Context& ctx_;
+  VkCommandBuffer cmd_;
+  DescriptorArena* arena_;
+  absl::Status status_;
+};
+
+}  // namespace streetsim::vulkan

@@ -1,0 +1,167 @@
+// The frame's stages as recording functions over a Recorder (internal). One function per stage
+// file: project.cc (a, b), scan.cc, radix_sort.cc (c, f), binning.cc (d, e, g), blend.cc (h).
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <memory>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "render/camera.h"
+#include "render/vulkan/buffer.h"
+#include "render/vulkan/context.h"
+#include "render/vulkan/pipeline.h"
+
+namespace streetsim::vulkan {
+
+// Mirrors shaders/common.glsl; change both together.
+inline constexpr uint32_t kWorkgroupSize = 256;
+inline constexpr uint32_t kScanBlock = 1024;
+inline constexpr uint32_t kSortBlock = 4096;
+inline constexpr uint32_t kRadix = 16;
+inline constexpr uint32_t kRadixBits = 4;
+inline constexpr uint32_t kTileSize = 16;
+inline constexpr uint32_t kMaxScanLevels = 4;
+
+enum CountIndex : uint32_t {
+  kCountN = 0,
+  kCountV = 1,
+  kCountI = 2,
+  kCountIc = 3,
+  kCountDepthHist = 4,
+  kCountTileHist = 5,
+  kCountSink = 6,
+  kNumCounts = 16,
+};
+enum ArgsSlot : uint32_t {
+  kArgsVScan = 0,
+  kArgsDepthSort = 4,
+  kArgsDepthHistScan = 5,
+  kArgsVThreads = 9,
+  kArgsTileSort = 10,
+  kArgsTileHistScan = 11,
+  kArgsIcThreads = 15,
+  kNumArgs = 16,
+};
+inline constexpr VkDeviceSize kArgsSlotBytes = 16;  // uvec4: VkDispatchIndirectCommand + pad
+
+inline uint64_t DivUp(uint64_t a, uint64_t b) { return (a + b - 1) / b; }
+
+// Every compute pipeline of the frame, built once per engine.
+struct Kernels {
+  std::unique_ptr<ComputePipeline> project, compact, setup_args;
+  std::unique_ptr<ComputePipeline> scan_block, scan_block_saturating, scan_add, scan_add_saturating;
+  std::unique_ptr<ComputePipeline> radix_hist, radix_scatter;
+  std::unique_ptr<ComputePipeline> gather_touched, emit, tile_ranges, blend;
+
+  static absl::StatusOr<std::unique_ptr<Kernels>> Create(const Context& ctx);
+};
+
+// How a stage learns its grid: from the host (element count known at record time) or from a slot
+// of the args buffer written on the device by setup_args.
+struct Launch {
+  const Buffer* args = nullptr;  // null: direct
+  uint32_t slot = 0;             // first args slot (scans use slot + level)
+  uint64_t n = 0;                // direct: element count
+};
+
+// Scratch for the block sums of the upper scan levels, shared by every scan of a frame (they run
+// one after another).
+class ScanScratch {
+ public:
+  // Sizes the levels for scans of up to `max_elements`.
+  absl::Status Ensure(const Context& ctx, uint64_t max_elements);
+  const Buffer& level(int k) const { return levels_[k - 1]; }  // k = 1..kMaxScanLevels-1
+
+ private:
+  std::array<Buffer, kMaxScanLevels - 1> levels_;
+};
+
+// Number of scan levels for up to `capacity` elements (the top level is a single block).
+int ScanLevels(uint64_t capacity);
+
+// --- scan.cc -------------------------------------------------------------------------------------
+// Exclusive prefix sum in place over data[0, counts[n_index]); the total goes to
+// counts[total_index]. `capacity` bounds counts[n_index] and fixes the number of levels.
+void RecordScan(Recorder& rec, const Kernels& k, const ScanScratch& scratch, const Buffer& data,
+                const Buffer& counts, uint32_t n_index, uint64_t capacity, uint32_t total_index,
+                bool saturate, const Launch& launch);
+
+// --- radix_sort.cc -------------------------------------------------------------------------------
+struct SortBuffers {
+  const Buffer* keys[2];
+  const Buffer* vals[2];
+  const Buffer* hist;  // >= kRadix * DivUp(capacity, kSortBlock) uints
+};
+// Stable LSD sort of (keys[0], vals[0])[0, counts[n_index]) by the low `bits` bits of the keys,
+// 4 bits per pass. Returns which pair holds the result (0 or 1). `blocks` gives the grid of the
+// histogram and scatter kernels, `hist_scan` that of the histogram scan (over
+// counts[hist_n_index] = 16 * blocks elements).
+int RecordRadixSort(Recorder& rec, const Kernels& k, const ScanScratch& scratch,
+                    const SortBuffers& bufs, const Buffer& counts, uint32_t n_index,
+                    uint32_t hist_n_index, uint64_t capacity, int bits, const Launch& blocks,
+                    const Launch& hist_scan);
+int RadixPasses(int bits);
+
+// --- project.cc ----------------------------------------------------------------------------------
+struct ProjectPush {
+  float R[9];
+  float t[3];
+  float c[3];
+  float fx, fy, cx, cy;
+  int32_t width, height, tiles_x, tiles_y;
+  uint32_t n;
+  int32_t sh_degree;
+};
+static_assert(sizeof(ProjectPush) == 100);
+ProjectPush MakeProjectPush(const PinholeCamera& camera, uint32_t n, int sh_degree);
+
+struct SceneBuffers {
+  const Buffer* gauss;          // 3 vec4 per Gaussian
+  const Buffer* sh;             // N * K * 3 floats
+  const Buffer* splats;         // 3 vec4 per Gaussian
+  const Buffer* rects;          // uvec2 per Gaussian
+  const Buffer* flags;          // uint per Gaussian: visibility, scanned in place to offsets
+  const Buffer* touched;        // uint per Gaussian
+  const Buffer* depth_keys[2];  // uint per Gaussian (sort ping-pong)
+  const Buffer* ids[2];         // uint per Gaussian (sort ping-pong)
+  const Buffer* touched_sorted; // uint per Gaussian: touched in depth order, scanned to offsets
+};
+// Stages a + b: projection, visibility scan, compaction (V -> counts[kCountV]), then setup_args
+// mode 0 (the dispatch sizes that depend on V).
+void RecordProjectAndCompact(Recorder& rec, const Kernels& k, const ScanScratch& scratch,
+                             const SceneBuffers& scene, const Buffer& counts, const Buffer& args,
+                             const ProjectPush& push);
+
+// --- binning.cc ----------------------------------------------------------------------------------
+struct BinningBuffers {
+  const Buffer* inst_keys[2];
+  const Buffer* inst_vals[2];
+  const Buffer* hist;
+  const Buffer* ranges;  // uvec2 per tile
+};
+// Stages c..g: depth sort, touched-tiles scan (I -> counts[kCountI]), emit, tile sort, tile
+// ranges. Returns which instance pair holds the tile-sorted list.
+int RecordSortAndBin(Recorder& rec, const Kernels& k, const ScanScratch& scratch,
+                     const SceneBuffers& scene, const BinningBuffers& bins, const Buffer& counts,
+                     const Buffer& args, uint32_t num_gaussians, uint64_t instance_capacity,
+                     uint32_t tiles_x, uint32_t tiles_y);
+int TileBits(uint32_t num_tiles);
+
+// --- blend.cc ------------------------------------------------------------------------------------
+struct ImageBuffers {
+  const Buffer* rgb;        // 3 floats per pixel
+  const Buffer* depth;      // float per pixel
+  const Buffer* alpha;      // float per pixel
+  const Buffer* final_t;    // float per pixel
+  const Buffer* n_contrib;  // uint per pixel
+};
+struct BlendParams {
+  uint32_t width, height, tiles_x, tiles_y;
+  float background[3];
+};
+void RecordBlend(Recorder& rec, const Kernels& k, const Buffer& ranges, const Buffer& inst_vals,
+                 const Buffer& splats, const ImageBuffers& image, const BlendParams& params);
+
+}  // namespace streetsim::vulkan

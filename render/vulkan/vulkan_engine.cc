@@ -1,0 +1,400 @@
+// The vulkan engine: uploads scenes and records each frame into one command buffer (one submit,
+// one fence wait). Stage recording lives in project.cc, binning.cc (with scan.cc and
+// radix_sort.cc) and blend.cc.
+#include "render/vulkan/vulkan_engine.h"
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cstring>
+
+#include "absl/strings/str_cat.h"
+#include "render/common/log.h"
+#include "render/vulkan/engine_impl.h"
+#include "streetsim_spirv.h"
+
+namespace streetsim {
+namespace vulkan {
+namespace {
+
+constexpr uint64_t kMinInstanceCapacity = 1 << 14;
+constexpr uint32_t kNumTimestamps = 4;
+constexpr VkDeviceSize kCountsBytes = kNumCounts * sizeof(uint32_t);
+
+std::atomic<uint64_t> next_engine_id{1};
+
+absl::Status EnsureBuffer(const Context& ctx, Buffer* buffer, VkDeviceSize bytes,
+                          Buffer::Kind kind, const char* name) {
+  if (!buffer->valid()) {
+    auto created = Buffer::Create(ctx, bytes, kind, name);
+    if (!created.ok()) return created.status();
+    *buffer = *std::move(created);
+    return absl::OkStatus();
+  }
+  return buffer->EnsureSize(ctx, bytes);
+}
+
+double MsSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
+      .count();
+}
+
+}  // namespace
+
+absl::StatusOr<std::unique_ptr<Kernels>> Kernels::Create(const Context& ctx) {
+  auto k = std::make_unique<Kernels>();
+  const SpecConstant saturate[] = {{0, 1}};
+  struct Spec {
+    std::unique_ptr<ComputePipeline>* out;
+    const char* name;
+    std::span<const uint32_t> spirv;
+    int buffers;
+    uint32_t push_bytes;
+    std::span<const SpecConstant> spec;
+  };
+  const Spec specs[] = {
+      {&k->project, "project", spirv::project, 6, sizeof(ProjectPush), {}},
+      {&k->compact, "compact", spirv::compact, 6, 0, {}},
+      {&k->setup_args, "setup_args", spirv::setup_args, 2, 8, {}},
+      {&k->scan_block, "scan_block", spirv::scan_block, 3, 16, {}},
+      {&k->scan_block_saturating, "scan_block_saturating", spirv::scan_block, 3, 16, saturate},
+      {&k->scan_add, "scan_add", spirv::scan_add, 3, 16, {}},
+      {&k->scan_add_saturating, "scan_add_saturating", spirv::scan_add, 3, 16, saturate},
+      {&k->radix_hist, "radix_hist", spirv::radix_hist, 3, 8, {}},
+      {&k->radix_scatter, "radix_scatter", spirv::radix_scatter, 6, 8, {}},
+      {&k->gather_touched, "gather_touched", spirv::gather_touched, 4, 0, {}},
+      {&k->emit, "emit", spirv::emit, 6, 8, {}},
+      {&k->tile_ranges, "tile_ranges", spirv::tile_ranges, 3, 0, {}},
+      {&k->blend, "blend", spirv::blend, 8, 24, {}},
+  };
+  for (const Spec& s : specs) {
+    auto p = ComputePipeline::Create(ctx, s.name, s.spirv, s.buffers, s.push_bytes, s.spec);
+    if (!p.ok()) return p.status();
+    *s.out = *std::move(p);
+  }
+  return k;
+}
+
+SceneBuffers VulkanScene::view() const {
+  return SceneBuffers{&gauss,
+                      &sh,
+                      &splats,
+                      &rects,
+                      &flags,
+                      &touched,
+                      {&depth_keys[0], &depth_keys[1]},
+                      {&ids[0], &ids[1]},
+                      &touched_sorted};
+}
+
+absl::StatusOr<std::unique_ptr<VulkanEngine>> VulkanEngine::Create(
+    VulkanDevicePreference preference) {
+  auto engine = std::unique_ptr<VulkanEngine>(new VulkanEngine());
+  auto ctx = Context::Create(preference);
+  if (!ctx.ok()) return ctx.status();
+  engine->ctx_ = std::shared_ptr<Context>(std::move(*ctx));
+  const Context& c = *engine->ctx_;
+  engine->id_ = next_engine_id.fetch_add(1);
+  auto kernels = Kernels::Create(c);
+  if (!kernels.ok()) return kernels.status();
+  engine->kernels_ = *std::move(kernels);
+  engine->arena_ = std::make_unique<DescriptorArena>(c.device());
+
+  VkCommandBufferAllocateInfo alloc{VK_STRUCTURE_TYPE_COMMAND_BUFFER_ALLOCATE_INFO};
+  alloc.commandPool = c.command_pool();
+  alloc.level = VK_COMMAND_BUFFER_LEVEL_PRIMARY;
+  alloc.commandBufferCount = 1;
+  STREETSIM_VK_RETURN_IF_ERROR(vkAllocateCommandBuffers(c.device(), &alloc, &engine->cmd_),
+                               "vkAllocateCommandBuffers");
+  VkFenceCreateInfo fence_info{VK_STRUCTURE_TYPE_FENCE_CREATE_INFO};
+  STREETSIM_VK_RETURN_IF_ERROR(vkCreateFence(c.device(), &fence_info, nullptr, &engine->fence_),
+                               "vkCreateFence");
+  if (c.has_timestamps()) {
+    VkQueryPoolCreateInfo query_info{VK_STRUCTURE_TYPE_QUERY_POOL_CREATE_INFO};
+    query_info.queryType = VK_QUERY_TYPE_TIMESTAMP;
+    query_info.queryCount = kNumTimestamps;
+    STREETSIM_VK_RETURN_IF_ERROR(
+        vkCreateQueryPool(c.device(), &query_info, nullptr, &engine->query_pool_),
+        "vkCreateQueryPool");
+  }
+  for (auto [buffer, bytes, name] :
+       {std::tuple{&engine->counts_, kCountsBytes, "counts"},
+        std::tuple{&engine->args_, VkDeviceSize{kNumArgs * kArgsSlotBytes}, "args"}}) {
+    if (absl::Status s = EnsureBuffer(c, buffer, bytes, Buffer::Kind::kDevice, name); !s.ok()) {
+      return s;
+    }
+  }
+  return engine;
+}
+
+VulkanEngine::~VulkanEngine() {
+  if (!ctx_) return;
+  VkDevice device = ctx_->device();
+  vkDeviceWaitIdle(device);
+  if (query_pool_ != VK_NULL_HANDLE) vkDestroyQueryPool(device, query_pool_, nullptr);
+  if (fence_ != VK_NULL_HANDLE) vkDestroyFence(device, fence_, nullptr);
+  if (cmd_ != VK_NULL_HANDLE) vkFreeCommandBuffers(device, ctx_->command_pool(), 1, &cmd_);
+}
+
+absl::StatusOr<std::unique_ptr<DeviceScene>> VulkanEngine::Upload(const GaussianStore& store) {
+  if (absl::Status s = store.Validate(); !s.ok()) return s;
+  const size_t n = store.size();
+  if (n > kMaxGaussians) {
+    return absl::InvalidArgumentError(absl::StrCat("vulkan: ", n, " Gaussians exceed the limit of ",
+                                                   kMaxGaussians, " (2^26)"));
+  }
+  if (store.sh_degree < 0 || store.sh_degree > kMaxShDegree) {
+    return absl::InvalidArgumentError(absl::StrCat("vulkan: sh_degree ", store.sh_degree));
+  }
+  std::lock_guard<std::mutex> lock(mu_);
+  const Context& c = *ctx_;
+  auto scene = std::make_unique<VulkanScene>(ctx_, id_, static_cast<uint32_t>(n), store.sh_degree);
+  const VkDeviceSize n64 = n;
+  const VkDeviceSize sh_floats = n64 * store.sh_coeffs() * 3;
+  struct Alloc {
+    Buffer* buffer;
+    VkDeviceSize bytes;
+    const char* name;
+  };
+  for (const Alloc& a : {Alloc{&scene->gauss, n64 * 48, "gauss"},
+                         Alloc{&scene->sh, sh_floats * 4, "sh"},
+                         Alloc{&scene->splats, n64 * 48, "splats"},
+                         Alloc{&scene->rects, n64 * 8, "rects"},
+                         Alloc{&scene->flags, n64 * 4, "flags"},
+                         Alloc{&scene->touched, n64 * 4, "touched"},
+                         Alloc{&scene->touched_sorted, n64 * 4, "touched_sorted"},
+                         Alloc{&scene->depth_keys[0], n64 * 4, "depth_keys0"},
+                         Alloc{&scene->depth_keys[1], n64 * 4, "depth_keys1"},
+                         Alloc{&scene->ids[0], n64 * 4, "ids0"},
+                         Alloc{&scene->ids[1], n64 * 4, "ids1"}}) {
+    if (absl::Status s = EnsureBuffer(c, a.buffer, a.bytes, Buffer::Kind::kDevice, a.name);
+        !s.ok()) {
+      return s;
+    }
+  }
+  // Pack (mean, logit), (log-scale, 0), quaternion as 3 vec4 per Gaussian: aligned loads.
+  absl::Status s = UploadWith(c, scene->gauss, n * 48, 48,
+                              [&](size_t begin, size_t end, std::byte* out) {
+                                float* dst = reinterpret_cast<float*>(out);
+                                for (size_t i = begin / 48; i < end / 48; ++i, dst += 12) {
+                                  std::memcpy(dst, &store.means[i * 3], 12);
+                                  dst[3] = store.opacity_logits[i];
+                                  std::memcpy(dst + 4, &store.log_scales[i * 3], 12);
+                                  dst[7] = 0.0f;
+                                  std::memcpy(dst + 8, &store.rotations[i * 4], 16);
+                                }
+                              });
+  if (!s.ok()) return s;
+  s = UploadBytes(c, scene->sh, store.sh.data(), sh_floats * 4);
+  if (!s.ok()) return s;
+  return std::unique_ptr<DeviceScene>(std::move(scene));
+}
+
+absl::Status VulkanEngine::EnsureFrameResources(uint32_t n, uint32_t width, uint32_t height,
+                                                uint64_t capacity,
+                                                const RenderOptions& options) {
+  const Context& c = *ctx_;
+  const uint64_t max_elements = c.limits().maxStorageBufferRange / 4;
+  if (capacity > max_elements) {
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "vulkan: ", capacity, " tile instances exceed the device's storage buffer range (",
+        max_elements, " elements)"));
+  }
+  for (int i = 0; i < 2; ++i) {
+    for (Buffer* b : {&inst_keys_[i], &inst_vals_[i]}) {
+      if (absl::Status s = EnsureBuffer(c, b, capacity * 4, Buffer::Kind::kDevice, "instances");
+          !s.ok()) {
+        return s;
+      }
+    }
+  }
+  instance_capacity_ = std::min<uint64_t>(
+      {inst_keys_[0].size(), inst_keys_[1].size(), inst_vals_[0].size(), inst_vals_[1].size()});
+  instance_capacity_ = std::min(instance_capacity_ / 4, max_elements);
+  const uint64_t sort_max = std::max<uint64_t>(n, instance_capacity_);
+  const uint64_t hist_elements = kRadix * DivUp(sort_max, kSortBlock);
+  if (absl::Status s = EnsureBuffer(c, &hist_, hist_elements * 4, Buffer::Kind::kDevice, "hist");
+      !s.ok()) {
+    return s;
+  }
+  if (absl::Status s = scratch_.Ensure(c, std::max<uint64_t>(n, hist_elements)); !s.ok()) return s;
+
+  const uint64_t pixels = uint64_t{width} * height;
+  const uint64_t tiles = DivUp(width, kTileSize) * DivUp(height, kTileSize);
+  for (auto [buffer, bytes, name] :
+       {std::tuple{&ranges_, tiles * 8, "ranges"}, std::tuple{&rgb_, pixels * 12, "rgb"},
+        std::tuple{&depth_, pixels * 4, "depth"}, std::tuple{&alpha_, pixels * 4, "alpha"},
+        std::tuple{&final_t_, pixels * 4, "final_t"},
+        std::tuple{&n_contrib_, pixels * 4, "n_contrib"}}) {
+    if (absl::Status s = EnsureBuffer(c, buffer, bytes, Buffer::Kind::kDevice, name); !s.ok()) {
+      return s;
+    }
+  }
+  return EnsureBuffer(c, &readback_, kCountsBytes + pixels * 20, Buffer::Kind::kReadback,
+                      "readback");
+}
+
+absl::Status VulkanEngine::RenderOnce(const VulkanScene& scene, const PinholeCamera& camera,
+                                      const RenderOptions& options, uint32_t* counts) {
+  const Context& c = *ctx_;
+  const uint32_t n = static_cast<uint32_t>(scene.size());
+  const uint32_t width = camera.width, height = camera.height;
+  const uint32_t tiles_x = DivUp(width, kTileSize), tiles_y = DivUp(height, kTileSize);
+  const VkDeviceSize pixels = VkDeviceSize{width} * height;
+
+  STREETSIM_VK_RETURN_IF_ERROR(vkResetCommandBuffer(cmd_, 0), "vkResetCommandBuffer");
+  if (absl::Status s = arena_->Reset(); !s.ok()) return s;
+  VkCommandBufferBeginInfo begin{VK_STRUCTURE_TYPE_COMMAND_BUFFER_BEGIN_INFO};
+  begin.flags = VK_COMMAND_BUFFER_USAGE_ONE_TIME_SUBMIT_BIT;
+  STREETSIM_VK_RETURN_IF_ERROR(vkBeginCommandBuffer(cmd_, &begin), "vkBeginCommandBuffer");
+
+  Recorder rec(c, cmd_, arena_.get());
+  auto timestamp = [&](uint32_t index) {
+    if (query_pool_ != VK_NULL_HANDLE) {
+      vkCmdWriteTimestamp(cmd_, VK_PIPELINE_STAGE_BOTTOM_OF_PIPE_BIT, query_pool_, index);
+    }
+  };
+  if (query_pool_ != VK_NULL_HANDLE) vkCmdResetQueryPool(cmd_, query_pool_, 0, kNumTimestamps);
+  uint32_t initial_counts[kNumCounts] = {};
+  initial_counts[kCountN] = n;
+  rec.Update(counts_, 0, initial_counts);
+  rec.Fill(ranges_, 0, VkDeviceSize{tiles_x} * tiles_y * 8, 0);
+  rec.Barrier();
+  timestamp(0);
+
+  const SceneBuffers sb = scene.view();
+  RecordProjectAndCompact(rec, *kernels_, scratch_, sb, counts_, args_,
+                          MakeProjectPush(camera, n, scene.sh_degree()));
+  timestamp(1);
+  const BinningBuffers bins{{&inst_keys_[0], &inst_keys_[1]},
+                            {&inst_vals_[0], &inst_vals_[1]},
+                            &hist_,
+                            &ranges_};
+  const int sorted = RecordSortAndBin(rec, *kernels_, scratch_, sb, bins, counts_, args_, n,
+                                      instance_capacity_, tiles_x, tiles_y);
+  timestamp(2);
+  const BlendParams blend{width, height, tiles_x, tiles_y,
+                          {options.background.x(), options.background.y(),
+                           options.background.z()}};
+  RecordBlend(rec, *kernels_, ranges_, inst_vals_[sorted], *sb.splats,
+              ImageBuffers{&rgb_, &depth_, &alpha_, &final_t_, &n_contrib_}, blend);
+  timestamp(3);
+
+  // Readback layout: counts | rgb | depth | alpha; only what the caller wants is copied.
+  rec.Copy(counts_, 0, readback_, 0, kCountsBytes);
+  rec.Copy(rgb_, 0, readback_, kCountsBytes, pixels * 12);
+  if (options.want_depth) rec.Copy(depth_, 0, readback_, kCountsBytes + pixels * 12, pixels * 4);
+  if (options.want_alpha) rec.Copy(alpha_, 0, readback_, kCountsBytes + pixels * 16, pixels * 4);
+  rec.HostReadBarrier();
+  if (!rec.status().ok()) {
+    vkEndCommandBuffer(cmd_);
+    return rec.status();
+  }
+  STREETSIM_VK_RETURN_IF_ERROR(vkEndCommandBuffer(cmd_), "vkEndCommandBuffer");
+
+  STREETSIM_VK_RETURN_IF_ERROR(vkResetFences(c.device(), 1, &fence_), "vkResetFences");
+  VkSubmitInfo submit{VK_STRUCTURE_TYPE_SUBMIT_INFO};
+  submit.commandBufferCount = 1;
+  submit.pCommandBuffers = &cmd_;
+  STREETSIM_VK_RETURN_IF_ERROR(vkQueueSubmit(c.queue(), 1, &submit, fence_), "vkQueueSubmit");
+  STREETSIM_VK_RETURN_IF_ERROR(vkWaitForFences(c.device(), 1, &fence_, VK_TRUE, UINT64_MAX),
+                               "vkWaitForFences");
+  if (absl::Status s = readback_.InvalidateForHost(); !s.ok()) return s;
+  std::memcpy(counts, readback_.mapped(), kCountsBytes);
+  return absl::OkStatus();
+}
+
+absl::Status VulkanEngine::Render(const DeviceScene& scene, const PinholeCamera& camera,
+                                  const RenderOptions& options, RenderOutput* out) {
+  const auto start = std::chrono::steady_clock::now();
+  if (out == nullptr) return absl::InvalidArgumentError("vulkan: Render: out is null");
+  if (absl::Status s = camera.Validate(); !s.ok()) return s;
+  const auto* vscene = dynamic_cast<const VulkanScene*>(&scene);
+  if (vscene == nullptr || vscene->engine_id() != id_) {
+    return absl::InvalidArgumentError(
+        "vulkan: Render: the scene was not uploaded by this vulkan engine");
+  }
+  std::lock_guard<std::mutex> lock(mu_);
+  const uint32_t n = static_cast<uint32_t>(vscene->size());
+  // Instance capacity from an estimate; the device clamps its writes to it, and the rare frame
+  // that needs more is rendered again with room for all of them.
+  uint64_t capacity = std::max<uint64_t>({uint64_t{4} * n, last_instances_ + last_instances_ / 4,
+                                          kMinInstanceCapacity, instance_capacity_});
+  uint32_t counts[kNumCounts] = {};
+  for (int attempt = 0;; ++attempt) {
+    if (absl::Status s = EnsureFrameResources(n, camera.width, camera.height, capacity, options);
+        !s.ok()) {
+      return s;
+    }
+    if (absl::Status s = RenderOnce(*vscene, camera, options, counts); !s.ok()) return s;
+    const uint64_t instances = counts[kCountI];
+    if (instances <= instance_capacity_) break;
+    if (instances == UINT32_MAX) {
+      return absl::ResourceExhaustedError("vulkan: more than 2^32 tile instances in one frame");
+    }
+    if (attempt > 0) {
+      return absl::InternalError(absl::StrCat("vulkan: ", instances,
+                                              " tile instances still exceed the capacity ",
+                                              instance_capacity_, " after growing"));
+    }
+    LOG(INFO) << "vulkan: " << instances << " tile instances exceed the capacity "
+              << instance_capacity_ << "; growing and rendering the frame again";
+    capacity = instances + instances / 4;
+    ++rerenders_;
+  }
+  last_instances_ = counts[kCountI];
+
+  if (absl::Status s = Readback(camera, options, out); !s.ok()) return s;
+  out->stats.num_gaussians = n;
+  out->stats.num_visible = counts[kCountV];
+  out->stats.num_tile_instances = counts[kCountI];
+  out->timings = StageTimings{};
+  if (query_pool_ != VK_NULL_HANDLE) {
+    uint64_t ticks[kNumTimestamps] = {};
+    const VkResult r = vkGetQueryPoolResults(ctx_->device(), query_pool_, 0, kNumTimestamps,
+                                             sizeof(ticks), ticks, sizeof(uint64_t),
+                                             VK_QUERY_RESULT_64_BIT | VK_QUERY_RESULT_WAIT_BIT);
+    if (r == VK_SUCCESS) {
+      const uint32_t bits = ctx_->timestamp_valid_bits();
+      const uint64_t mask = bits >= 64 ? ~uint64_t{0} : (uint64_t{1} << bits) - 1;
+      auto ms = [&](int a, int b) {
+        return static_cast<double>((ticks[b] - ticks[a]) & mask) * ctx_->timestamp_period_ns() *
+               1e-6;
+      };
+      out->timings.projection_ms = ms(0, 1);
+      out->timings.sort_ms = ms(1, 2);
+      out->timings.blend_ms = ms(2, 3);
+    }
+  }
+  out->timings.total_ms = MsSince(start);
+  return absl::OkStatus();
+}
+
+absl::Status VulkanEngine::Readback(const PinholeCamera& camera, const RenderOptions& options,
+                                    RenderOutput* out) {
+  const size_t pixels = size_t{static_cast<size_t>(camera.width)} * camera.height;
+  const auto* base = static_cast<const std::byte*>(readback_.mapped());
+  out->width = camera.width;
+  out->height = camera.height;
+  out->rgb.resize(pixels * 3);
+  std::memcpy(out->rgb.data(), base + kCountsBytes, pixels * 12);
+  out->depth.resize(options.want_depth ? pixels : 0);
+  if (options.want_depth) {
+    std::memcpy(out->depth.data(), base + kCountsBytes + pixels * 12, pixels * 4);
+  }
+  out->alpha.resize(options.want_alpha ? pixels : 0);
+  if (options.want_alpha) {
+    std::memcpy(out->alpha.data(), base + kCountsBytes + pixels * 16, pixels * 4);
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace vulkan
+
+absl::StatusOr<std::unique_ptr<Engine>> CreateVulkanEngine(VulkanDevicePreference pref) {
+  auto engine = vulkan::VulkanEngine::Create(pref);
+  if (!engine.ok()) return engine.status();
+  return std::unique_ptr<Engine>(std::move(*engine));
+}
+
+}  // namespace streetsim
