@@ -72,12 +72,16 @@ void SortByDepth(Frame<Real>* frame) {
   frame->depth_sorted_ids = frame->visible_ids;
   RadixSortPairs(&keys, &frame->depth_sorted_ids, &frame->sort_scratch_keys,
                  &frame->sort_scratch_values);
+  // Binning reads every rect twice (count, scatter); one gather here makes both passes stream.
+  frame->depth_sorted_rects.resize(n);
+  for (size_t j = 0; j < n; ++j) frame->depth_sorted_rects[j] = frame->rects[frame->depth_sorted_ids[j]];
 }
 
 template <typename Real>
 void BinTiles(ThreadPool& pool, Frame<Real>* frame) {
   const int num_tiles = frame->tiles_x * frame->tiles_y;
   const std::vector<uint32_t>& order = frame->depth_sorted_ids;
+  const std::vector<projection::TileRect>& rects = frame->depth_sorted_rects;
   const int64_t n = static_cast<int64_t>(order.size());
   const int threads = pool.num_threads();
   // Contiguous chunks of the depth order per worker keep each tile's entries in depth order after
@@ -90,7 +94,7 @@ void BinTiles(ThreadPool& pool, Frame<Real>* frame) {
     for (int64_t c = c0; c < c1; ++c) {
       uint32_t* cnt = &counts[c * num_tiles];
       for (int64_t j = c * chunk_len; j < std::min(n, (c + 1) * chunk_len); ++j) {
-        const projection::TileRect& r = frame->rects[order[j]];
+        const projection::TileRect& r = rects[j];
         for (int ty = r.y0; ty < r.y1; ++ty)
           for (int tx = r.x0; tx < r.x1; ++tx) ++cnt[ty * frame->tiles_x + tx];
       }
@@ -116,7 +120,7 @@ void BinTiles(ThreadPool& pool, Frame<Real>* frame) {
       uint32_t* cursor = &counts[c * num_tiles];
       for (int64_t j = c * chunk_len; j < std::min(n, (c + 1) * chunk_len); ++j) {
         const uint32_t id = order[j];
-        const projection::TileRect& r = frame->rects[id];
+        const projection::TileRect& r = rects[j];
         for (int ty = r.y0; ty < r.y1; ++ty)
           for (int tx = r.x0; tx < r.x1; ++tx) frame->tile_ids[cursor[ty * frame->tiles_x + tx]++] = id;
       }

@@ -81,8 +81,8 @@ void BlendScalar(ThreadPool& pool, const BlendArgs<Real>& args) {
           for (int c = 0; c < 3; ++c) args.rgb[pix * 3 + c] = C[c] + T * args.background[c];
           if (args.depth) args.depth[pix] = D;
           if (args.alpha) args.alpha[pix] = 1 - T;
-          args.final_T[pix] = T;
-          args.n_contrib[pix] = last;
+          if (args.final_T) args.final_T[pix] = T;
+          if (args.n_contrib) args.n_contrib[pix] = last;
         }
       }
     }

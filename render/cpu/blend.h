@@ -22,8 +22,8 @@ struct BlendArgs {
   Real* rgb = nullptr;    // [H*W*3]
   Real* depth = nullptr;  // [H*W] or null
   Real* alpha = nullptr;  // [H*W] or null
-  Real* final_T = nullptr;          // [H*W]
-  uint32_t* n_contrib = nullptr;    // [H*W]
+  Real* final_T = nullptr;          // [H*W] or null
+  uint32_t* n_contrib = nullptr;    // [H*W] or null: only the backward pass needs it
 };
 
 void BlendSimd(ThreadPool& pool, const BlendArgs<float>& args);

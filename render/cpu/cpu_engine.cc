@@ -17,17 +17,28 @@ double MsSince(Clock::time_point t0) {
   return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
 }
 
-// The cpu backend's "device memory" is a host copy of the store: the caller may free or change
-// its own store after Upload without affecting renders.
+// The cpu backend's "device memory": a host copy of the scene, so the caller may free or change
+// its own store after Upload. The vectorised path keeps it as one array per parameter
+// (SceneSoa); the scalar reference paths keep the store layout they index directly.
 class CpuScene final : public DeviceScene {
  public:
-  explicit CpuScene(GaussianStore store) : store_(std::move(store)) {}
-  size_t size() const override { return store_.size(); }
-  int sh_degree() const override { return store_.sh_degree; }
+  CpuScene(const GaussianStore& store, bool soa) : sh_degree_(store.sh_degree), size_(store.size()) {
+    if (soa) {
+      soa_ = cpu::SceneSoa::FromStore(store);
+    } else {
+      store_ = store;
+    }
+  }
+  size_t size() const override { return size_; }
+  int sh_degree() const override { return sh_degree_; }
   const GaussianStore& store() const { return store_; }
+  const cpu::SceneSoa& soa() const { return soa_; }
 
  private:
+  int sh_degree_;
+  size_t size_;
   GaussianStore store_;
+  cpu::SceneSoa soa_;
 };
 
 class CpuEngine final : public Engine {
@@ -49,7 +60,7 @@ class CpuEngine final : public Engine {
       return absl::InvalidArgumentError(absl::StrCat("scene has ", store.size(),
                                                      " Gaussians; the cpu backend takes <= 2^30"));
     }
-    return std::make_unique<CpuScene>(store);
+    return std::make_unique<CpuScene>(store, options_.precision == CpuPrecision::kFloatSimd);
   }
 
   absl::Status Render(const DeviceScene& scene, const PinholeCamera& camera,
@@ -63,14 +74,14 @@ class CpuEngine final : public Engine {
       return absl::InvalidArgumentError("background colour is not finite");
     }
     if (options_.precision == CpuPrecision::kDouble) {
-      return RenderImpl<double>(cpu_scene->store(), camera, options, &frame_d_, out);
+      return RenderImpl<double>(*cpu_scene, camera, options, &frame_d_, out);
     }
-    return RenderImpl<float>(cpu_scene->store(), camera, options, &frame_f_, out);
+    return RenderImpl<float>(*cpu_scene, camera, options, &frame_f_, out);
   }
 
  private:
   template <typename Real>
-  absl::Status RenderImpl(const GaussianStore& store, const PinholeCamera& camera,
+  absl::Status RenderImpl(const CpuScene& scene, const PinholeCamera& camera,
                           const RenderOptions& options, cpu::Frame<Real>* frame,
                           RenderOutput* out) {
     const auto t_start = Clock::now();
@@ -81,7 +92,15 @@ class CpuEngine final : public Engine {
     frame->tiles_y = cam.tiles_y;
 
     auto t0 = Clock::now();
-    cpu::ProjectGaussians<Real>(pool_, store, cam, frame);
+    if constexpr (std::is_same_v<Real, float>) {
+      if (options_.precision == CpuPrecision::kFloatSimd) {
+        cpu::ProjectGaussiansSimd(pool_, scene.soa(), cam, frame);
+      } else {
+        cpu::ProjectGaussians<Real>(pool_, scene.store(), cam, frame);
+      }
+    } else {
+      cpu::ProjectGaussians<Real>(pool_, scene.store(), cam, frame);
+    }
     out->timings.projection_ms = MsSince(t0);
 
     t0 = Clock::now();
@@ -107,7 +126,9 @@ class CpuEngine final : public Engine {
       args.depth = options.want_depth ? out->depth.data() : nullptr;
       args.alpha = options.want_alpha ? out->alpha.data() : nullptr;
       args.final_T = frame->final_T.data();
-      args.n_contrib = frame->n_contrib.data();
+      // The backward pass (training) will ask for the per-pixel contributor counts; plain
+      // rendering skips them (one store less per pixel and splat in the blend).
+      args.n_contrib = nullptr;
       if (options_.precision == CpuPrecision::kFloatSimd) {
         cpu::BlendSimd(pool_, args);
       } else {
@@ -130,7 +151,7 @@ class CpuEngine final : public Engine {
     }
     out->timings.blend_ms = MsSince(t0);
 
-    out->stats.num_gaussians = store.size();
+    out->stats.num_gaussians = scene.size();
     out->stats.num_visible = frame->visible_ids.size();
     out->stats.num_tile_instances = frame->tile_ids.size();
     out->timings.total_ms = MsSince(t_start);

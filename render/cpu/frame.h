@@ -39,6 +39,7 @@ struct Frame {
   // Visible ids in index order, then sorted front to back by (depth, id).
   std::vector<uint32_t> visible_ids;
   std::vector<uint32_t> depth_sorted_ids;
+  std::vector<projection::TileRect> depth_sorted_rects;  // rects[depth_sorted_ids[j]], gathered once
   std::vector<uint32_t> sort_keys, sort_scratch_keys, sort_scratch_values;  // radix sort scratch
 
   // Tile lists: tile t holds tile_ids[tile_offsets[t] .. tile_offsets[t+1]), front to back.

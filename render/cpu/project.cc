@@ -27,6 +27,17 @@ projection::CameraParams<Real> MakeCameraParams(const PinholeCamera& camera) {
   return p;
 }
 
+namespace {
+// Visible ids in index order: the order the depth sort breaks ties by, on every backend.
+template <typename Real>
+void CollectVisible(Frame<Real>* frame) {
+  frame->visible_ids.clear();
+  for (size_t i = 0; i < frame->visible.size(); ++i) {
+    if (frame->visible[i]) frame->visible_ids.push_back(static_cast<uint32_t>(i));
+  }
+}
+}  // namespace
+
 template <typename Real>
 void ProjectGaussians(ThreadPool& pool, const GaussianStore& store,
                       const projection::CameraParams<Real>& cam, Frame<Real>* frame) {
@@ -79,10 +90,28 @@ void ProjectGaussians(ThreadPool& pool, const GaussianStore& store,
     }
   });
 
-  frame->visible_ids.clear();
-  for (size_t i = 0; i < n; ++i) {
-    if (frame->visible[i]) frame->visible_ids.push_back(static_cast<uint32_t>(i));
-  }
+  CollectVisible(frame);
+}
+
+void ProjectGaussiansSimd(ThreadPool& pool, const SceneSoa& scene,
+                          const projection::CameraParams<float>& cam, Frame<float>* frame) {
+  frame->splats.resize(scene.n);
+  frame->rects.resize(scene.n);
+  frame->visible.resize(scene.n);
+  static const auto range_fn = [] {
+#if defined(__x86_64__)
+    __builtin_cpu_init();
+    if (__builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw") &&
+        __builtin_cpu_supports("avx512dq") && __builtin_cpu_supports("avx512vl")) {
+      return &project_avx512::ProjectRange;
+    }
+#endif
+    return &project_avx2::ProjectRange;
+  }();
+  pool.ParallelFor(static_cast<int64_t>(scene.n), 4096, [&](int64_t begin, int64_t end, int) {
+    range_fn(scene, cam, begin, end, frame);
+  });
+  CollectVisible(frame);
 }
 
 template projection::CameraParams<float> MakeCameraParams<float>(const PinholeCamera&);
