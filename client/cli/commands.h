@@ -10,5 +10,7 @@ namespace streetsim {
 int RunRenderCommand(const std::vector<std::string>& args);
 int RunPlyInfoCommand(const std::vector<std::string>& args);
 int RunDevicesCommand(const std::vector<std::string>& args);
+int RunLogCommand(const std::vector<std::string>& args);   // log info|preview|poses|camera
+int RunInitCommand(const std::vector<std::string>& args);
 
 }  // namespace streetsim

@@ -20,7 +20,14 @@ void PrintUsage(FILE* out) {
                "  ply-info  print a scene's size, SH degree and bounds; optionally write a camera\n"
                "            that frames it: streetsim ply-info SCENE.ply [--camera-out CAMERA.json]\n"
                "              [--width W] [--height H] [--view front|back|left|right|top]\n"
-               "  devices   list the render backends and Vulkan devices of this machine\n");
+               "  devices   list the render backends and Vulkan devices of this machine\n"
+               "  log       inspect a driving log (KITTI raw/odometry, COLMAP; docs/logs.md):\n"
+               "            streetsim log info PATH\n"
+               "            streetsim log preview PATH --frame N --out F.png [--camera NAME] [--max-depth M]\n"
+               "            streetsim log poses PATH [--from-lidar] [--frames A:B] [--out POSES.txt]\n"
+               "            streetsim log camera PATH --frame N --out CAMERA.json [--camera NAME]\n"
+               "  init      initial Gaussians of a log: streetsim init PATH --out SCENE.ply [--frames A:B[:S]]\n"
+               "              [--voxel M] [--max-range M] [--sky] [--drop-dynamic] [--random-points N]\n");
 }
 
 }  // namespace
@@ -36,6 +43,8 @@ int main(int argc, char** argv) {
   if (command == "render") return streetsim::RunRenderCommand(args);
   if (command == "ply-info") return streetsim::RunPlyInfoCommand(args);
   if (command == "devices") return streetsim::RunDevicesCommand(args);
+  if (command == "log") return streetsim::RunLogCommand(args);
+  if (command == "init") return streetsim::RunInitCommand(args);
   std::fprintf(stderr, "streetsim: unknown command '%s' (try streetsim --help)\n", command.c_str());
   return 2;
 }

@@ -16,10 +16,9 @@ absl::StatusOr<Buffer> Buffer::Create(const Context& ctx, VkDeviceSize size_byte
   b.name_ = std::move(name);
   b.size_ = std::max<VkDeviceSize>(16, (size_bytes + 15) / 16 * 16);
   if (kind == Kind::kDevice && b.size_ > ctx.limits().maxStorageBufferRange) {
-    return absl::ResourceExhaustedError(
-        absl::StrCat("vulkan: buffer '", b.name_, "' needs ", b.size_,
-                     " bytes, more than maxStorageBufferRange ",
-                     ctx.limits().maxStorageBufferRange));
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "vulkan: buffer '", b.name_, "' needs ", b.size_,
+        " bytes, more than maxStorageBufferRange ", ctx.limits().maxStorageBufferRange));
   }
 
   VkBufferCreateInfo info{VK_STRUCTURE_TYPE_BUFFER_CREATE_INFO};

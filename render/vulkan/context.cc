@@ -53,7 +53,8 @@ bool HasInstanceExtension(const char* name) {
 }
 
 SubgroupInfo QuerySubgroup(VkPhysicalDevice device) {
-  VkPhysicalDeviceSubgroupProperties subgroup{VK_STRUCTURE_TYPE_PHYSICAL_DEVICE_SUBGROUP_PROPERTIES};
+  VkPhysicalDeviceSubgroupProperties subgroup{
+      VK_STRUCTURE_TYPE_PHYSICAL_DEVICE_SUBGROUP_PROPERTIES};
   VkPhysicalDeviceProperties2 props2{VK_STRUCTURE_TYPE_PHYSICAL_DEVICE_PROPERTIES_2};
   props2.pNext = &subgroup;
   vkGetPhysicalDeviceProperties2(device, &props2);
@@ -80,11 +81,16 @@ std::optional<uint32_t> PickComputeQueue(VkPhysicalDevice device, uint32_t* time
 
 std::string DeviceTypeName(VkPhysicalDeviceType type) {
   switch (type) {
-    case VK_PHYSICAL_DEVICE_TYPE_DISCRETE_GPU: return "discrete";
-    case VK_PHYSICAL_DEVICE_TYPE_INTEGRATED_GPU: return "integrated";
-    case VK_PHYSICAL_DEVICE_TYPE_VIRTUAL_GPU: return "virtual";
-    case VK_PHYSICAL_DEVICE_TYPE_CPU: return "cpu";
-    default: return "other";
+    case VK_PHYSICAL_DEVICE_TYPE_DISCRETE_GPU:
+      return "discrete";
+    case VK_PHYSICAL_DEVICE_TYPE_INTEGRATED_GPU:
+      return "integrated";
+    case VK_PHYSICAL_DEVICE_TYPE_VIRTUAL_GPU:
+      return "virtual";
+    case VK_PHYSICAL_DEVICE_TYPE_CPU:
+      return "cpu";
+    default:
+      return "other";
   }
 }
 
@@ -113,8 +119,8 @@ std::string ListForError(const std::vector<VkPhysicalDevice>& devices) {
   for (size_t i = 0; i < devices.size(); ++i) {
     VkPhysicalDeviceProperties props;
     vkGetPhysicalDeviceProperties(devices[i], &props);
-    parts.push_back(absl::StrCat("[", i, "] ", props.deviceName, " (",
-                                 DeviceTypeName(props.deviceType), ")"));
+    parts.push_back(
+        absl::StrCat("[", i, "] ", props.deviceName, " (", DeviceTypeName(props.deviceType), ")"));
   }
   return parts.empty() ? "no devices" : absl::StrJoin(parts, ", ");
 }
@@ -149,9 +155,8 @@ absl::StatusOr<VkPhysicalDevice> PickDevice(const std::vector<VkPhysicalDevice>&
     }
     const std::string missing = MissingRequirements(devices[*chosen]);
     if (!missing.empty()) {
-      return absl::FailedPreconditionError(
-          absl::StrCat("vulkan: device [", *chosen, "] chosen by STREETSIM_VK_DEVICE lacks ",
-                       missing));
+      return absl::FailedPreconditionError(absl::StrCat(
+          "vulkan: device [", *chosen, "] chosen by STREETSIM_VK_DEVICE lacks ", missing));
     }
     return devices[*chosen];
   }
@@ -169,8 +174,8 @@ absl::StatusOr<VkPhysicalDevice> PickDevice(const std::vector<VkPhysicalDevice>&
     }
   }
   if (usable.empty()) {
-    return absl::FailedPreconditionError(absl::StrCat(
-        "vulkan: no usable device: ", absl::StrJoin(problems, "; ")));
+    return absl::FailedPreconditionError(
+        absl::StrCat("vulkan: no usable device: ", absl::StrJoin(problems, "; ")));
   }
   auto first_of = [&](VkPhysicalDeviceType type) -> std::optional<VkPhysicalDevice> {
     for (VkPhysicalDevice d : usable) {
@@ -195,29 +200,45 @@ absl::StatusOr<VkPhysicalDevice> PickDevice(const std::vector<VkPhysicalDevice>&
 
 const char* VkResultName(VkResult result) {
   switch (result) {
-    case VK_SUCCESS: return "VK_SUCCESS";
-    case VK_NOT_READY: return "VK_NOT_READY";
-    case VK_TIMEOUT: return "VK_TIMEOUT";
-    case VK_INCOMPLETE: return "VK_INCOMPLETE";
-    case VK_ERROR_OUT_OF_HOST_MEMORY: return "VK_ERROR_OUT_OF_HOST_MEMORY";
-    case VK_ERROR_OUT_OF_DEVICE_MEMORY: return "VK_ERROR_OUT_OF_DEVICE_MEMORY";
-    case VK_ERROR_INITIALIZATION_FAILED: return "VK_ERROR_INITIALIZATION_FAILED";
-    case VK_ERROR_DEVICE_LOST: return "VK_ERROR_DEVICE_LOST";
-    case VK_ERROR_MEMORY_MAP_FAILED: return "VK_ERROR_MEMORY_MAP_FAILED";
-    case VK_ERROR_LAYER_NOT_PRESENT: return "VK_ERROR_LAYER_NOT_PRESENT";
-    case VK_ERROR_EXTENSION_NOT_PRESENT: return "VK_ERROR_EXTENSION_NOT_PRESENT";
-    case VK_ERROR_FEATURE_NOT_PRESENT: return "VK_ERROR_FEATURE_NOT_PRESENT";
-    case VK_ERROR_INCOMPATIBLE_DRIVER: return "VK_ERROR_INCOMPATIBLE_DRIVER";
-    case VK_ERROR_TOO_MANY_OBJECTS: return "VK_ERROR_TOO_MANY_OBJECTS";
-    case VK_ERROR_OUT_OF_POOL_MEMORY: return "VK_ERROR_OUT_OF_POOL_MEMORY";
-    default: return "VkResult";
+    case VK_SUCCESS:
+      return "VK_SUCCESS";
+    case VK_NOT_READY:
+      return "VK_NOT_READY";
+    case VK_TIMEOUT:
+      return "VK_TIMEOUT";
+    case VK_INCOMPLETE:
+      return "VK_INCOMPLETE";
+    case VK_ERROR_OUT_OF_HOST_MEMORY:
+      return "VK_ERROR_OUT_OF_HOST_MEMORY";
+    case VK_ERROR_OUT_OF_DEVICE_MEMORY:
+      return "VK_ERROR_OUT_OF_DEVICE_MEMORY";
+    case VK_ERROR_INITIALIZATION_FAILED:
+      return "VK_ERROR_INITIALIZATION_FAILED";
+    case VK_ERROR_DEVICE_LOST:
+      return "VK_ERROR_DEVICE_LOST";
+    case VK_ERROR_MEMORY_MAP_FAILED:
+      return "VK_ERROR_MEMORY_MAP_FAILED";
+    case VK_ERROR_LAYER_NOT_PRESENT:
+      return "VK_ERROR_LAYER_NOT_PRESENT";
+    case VK_ERROR_EXTENSION_NOT_PRESENT:
+      return "VK_ERROR_EXTENSION_NOT_PRESENT";
+    case VK_ERROR_FEATURE_NOT_PRESENT:
+      return "VK_ERROR_FEATURE_NOT_PRESENT";
+    case VK_ERROR_INCOMPATIBLE_DRIVER:
+      return "VK_ERROR_INCOMPATIBLE_DRIVER";
+    case VK_ERROR_TOO_MANY_OBJECTS:
+      return "VK_ERROR_TOO_MANY_OBJECTS";
+    case VK_ERROR_OUT_OF_POOL_MEMORY:
+      return "VK_ERROR_OUT_OF_POOL_MEMORY";
+    default:
+      return "VkResult";
   }
 }
 
 absl::Status VkStatus(VkResult result, absl::string_view what) {
   if (result == VK_SUCCESS) return absl::OkStatus();
-  const std::string message =
-      absl::StrCat("vulkan: ", what, " failed: ", VkResultName(result), " (", static_cast<int>(result), ")");
+  const std::string message = absl::StrCat("vulkan: ", what, " failed: ", VkResultName(result),
+                                           " (", static_cast<int>(result), ")");
   if (result == VK_ERROR_OUT_OF_HOST_MEMORY || result == VK_ERROR_OUT_OF_DEVICE_MEMORY) {
     return absl::ResourceExhaustedError(message);
   }
@@ -271,9 +292,9 @@ absl::StatusOr<std::unique_ptr<Instance>> Instance::Create(bool enable_validatio
   const VkResult result = vkCreateInstance(&info, nullptr, &instance->instance_);
   if (result != VK_SUCCESS) {
     instance->instance_ = VK_NULL_HANDLE;
-    return absl::FailedPreconditionError(absl::StrCat(
-        "vulkan: vkCreateInstance failed (", VkResultName(result),
-        "): no Vulkan driver available (for lavapipe install mesa-vulkan-drivers)"));
+    return absl::FailedPreconditionError(
+        absl::StrCat("vulkan: vkCreateInstance failed (", VkResultName(result),
+                     "): no Vulkan driver available (for lavapipe install mesa-vulkan-drivers)"));
   }
   if (validation) {
     auto create = reinterpret_cast<PFN_vkCreateDebugUtilsMessengerEXT>(
@@ -380,8 +401,7 @@ std::string Context::description() const {
                       instance_->validation_enabled() ? ", validation" : "", ")");
 }
 
-absl::StatusOr<uint32_t> Context::FindMemoryType(uint32_t type_bits,
-                                                 VkMemoryPropertyFlags required,
+absl::StatusOr<uint32_t> Context::FindMemoryType(uint32_t type_bits, VkMemoryPropertyFlags required,
                                                  VkMemoryPropertyFlags preferred) const {
   std::optional<uint32_t> fallback;
   for (uint32_t i = 0; i < memory_properties_.memoryTypeCount; ++i) {

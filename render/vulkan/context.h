@@ -11,11 +11,11 @@
 #include <functional>
 #include <memory>
 #include <string>
-#include "absl/strings/string_view.h"
 #include <vector>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
 #include "render/vulkan/vulkan_engine.h"
 
 namespace streetsim::vulkan {
@@ -24,12 +24,12 @@ namespace streetsim::vulkan {
 absl::Status VkStatus(VkResult result, absl::string_view what);
 const char* VkResultName(VkResult result);
 
-#define STREETSIM_VK_RETURN_IF_ERROR(expr, what)                     \
-  do {                                                               \
-    const VkResult streetsim_vk_result_ = (expr);                    \
-    if (streetsim_vk_result_ != VK_SUCCESS) {                        \
+#define STREETSIM_VK_RETURN_IF_ERROR(expr, what)                        \
+  do {                                                                  \
+    const VkResult streetsim_vk_result_ = (expr);                       \
+    if (streetsim_vk_result_ != VK_SUCCESS) {                           \
       return ::streetsim::vulkan::VkStatus(streetsim_vk_result_, what); \
-    }                                                                \
+    }                                                                   \
   } while (false)
 
 // Subgroup capabilities of the compute stage, from VkPhysicalDeviceSubgroupProperties.

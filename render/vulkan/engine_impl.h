@@ -31,7 +31,8 @@ class VulkanScene : public DeviceScene {
   uint64_t engine_id() const { return engine_id_; }
   SceneBuffers view() const;
 
-  Buffer gauss, sh, splats, rects, flags, touched, touched_sorted;
+  Buffer gauss, splats, sorted_splats, rects, flags, touched, touched_sorted;
+  std::array<Buffer, kMaxShGroups> sh;  // groups past the degree's stay empty
   std::array<Buffer, 2> depth_keys, ids;
 
  private:
@@ -59,11 +60,14 @@ class VulkanEngine : public Engine {
   uint64_t instance_capacity() const { return instance_capacity_; }
   const Buffer& final_t() const { return final_t_; }
   const Buffer& n_contrib() const { return n_contrib_; }
+  void set_force_pair_mode(bool force) { force_pair_mode_ = force; }
 
  private:
   VulkanEngine() = default;
-  absl::Status EnsureFrameResources(uint32_t n, uint32_t width, uint32_t height,
-                                    uint64_t capacity, const RenderOptions& options);
+  uint32_t rank_bits(uint32_t n, uint32_t width, uint32_t height) const {
+    return force_pair_mode_ ? 0 : RankBits(n, DivUp(width, kTileSize) * DivUp(height, kTileSize));
+  }
+  absl::Status EnsureFrameResources(uint32_t n, uint32_t width, uint32_t height, uint64_t capacity);
   // Records, submits and waits for one frame; fills `counts` (kNumCounts) from the readback.
   absl::Status RenderOnce(const VulkanScene& scene, const PinholeCamera& camera,
                           const RenderOptions& options, uint32_t* counts);
@@ -86,7 +90,9 @@ class VulkanEngine : public Engine {
   uint64_t instance_capacity_ = 0;
   uint64_t last_instances_ = 0;
   int rerenders_ = 0;
-  std::mutex mu_;  // Render/Upload share the frame resources
+  bool force_pair_mode_ = false;
+  std::unique_ptr<Profiler> profiler_;  // STREETSIM_VK_PROFILE=1
+  std::mutex mu_;                       // Render/Upload share the frame resources
 };
 
 }  // namespace streetsim::vulkan

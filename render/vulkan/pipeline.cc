@@ -1,9 +1,11 @@
 #include "render/vulkan/pipeline.h"
 
 #include <algorithm>
+#include <map>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "render/common/log.h"
 
 namespace streetsim::vulkan {
 
@@ -16,16 +18,16 @@ absl::StatusOr<std::unique_ptr<ComputePipeline>> ComputePipeline::Create(
   p->num_buffers_ = num_buffers;
   p->push_constant_bytes_ = push_constant_bytes;
   if (push_constant_bytes > ctx.limits().maxPushConstantsSize) {
-    return absl::FailedPreconditionError(absl::StrCat(
-        "vulkan: ", p->name_, " needs ", push_constant_bytes, " B of push constants, device has ",
-        ctx.limits().maxPushConstantsSize));
+    return absl::FailedPreconditionError(
+        absl::StrCat("vulkan: ", p->name_, " needs ", push_constant_bytes,
+                     " B of push constants, device has ", ctx.limits().maxPushConstantsSize));
   }
 
   std::vector<VkDescriptorSetLayoutBinding> bindings(num_buffers);
   for (int i = 0; i < num_buffers; ++i) {
-    bindings[i] = VkDescriptorSetLayoutBinding{static_cast<uint32_t>(i),
-                                               VK_DESCRIPTOR_TYPE_STORAGE_BUFFER, 1,
-                                               VK_SHADER_STAGE_COMPUTE_BIT, nullptr};
+    bindings[i] =
+        VkDescriptorSetLayoutBinding{static_cast<uint32_t>(i), VK_DESCRIPTOR_TYPE_STORAGE_BUFFER, 1,
+                                     VK_SHADER_STAGE_COMPUTE_BIT, nullptr};
   }
   VkDescriptorSetLayoutCreateInfo set_info{VK_STRUCTURE_TYPE_DESCRIPTOR_SET_LAYOUT_CREATE_INFO};
   set_info.bindingCount = static_cast<uint32_t>(bindings.size());
@@ -54,8 +56,8 @@ absl::StatusOr<std::unique_ptr<ComputePipeline>> ComputePipeline::Create(
   std::vector<VkSpecializationMapEntry> entries;
   std::vector<uint32_t> values;
   for (const SpecConstant& c : spec_constants) {
-    entries.push_back({c.id, static_cast<uint32_t>(values.size() * sizeof(uint32_t)),
-                       sizeof(uint32_t)});
+    entries.push_back(
+        {c.id, static_cast<uint32_t>(values.size() * sizeof(uint32_t)), sizeof(uint32_t)});
     values.push_back(c.value);
   }
   VkSpecializationInfo spec{static_cast<uint32_t>(entries.size()), entries.data(),
@@ -125,8 +127,7 @@ absl::StatusOr<VkDescriptorSet> DescriptorArena::Allocate(VkDescriptorSetLayout 
 
 absl::Status DescriptorArena::Reset() {
   for (VkDescriptorPool pool : pools_) {
-    STREETSIM_VK_RETURN_IF_ERROR(vkResetDescriptorPool(device_, pool, 0),
-                                 "vkResetDescriptorPool");
+    STREETSIM_VK_RETURN_IF_ERROR(vkResetDescriptorPool(device_, pool, 0), "vkResetDescriptorPool");
   }
   current_ = 0;
   return absl::OkStatus();
@@ -150,6 +151,9 @@ void Recorder::DispatchImpl(const ComputePipeline& p, std::initializer_list<cons
     return;
   }
   if (args == nullptr && (grid.x == 0 || grid.y == 0)) return;  // nothing to do
+  if (profiler_ != nullptr) {
+    absl::StrAppend(&pending_label_, pending_label_.empty() ? "" : "+", p.name());
+  }
   auto set = arena_->Allocate(p.set_layout());
   if (!set.ok()) {
     Fail(set.status());
@@ -197,6 +201,59 @@ void Recorder::Barrier() {
                        VK_PIPELINE_STAGE_COMPUTE_SHADER_BIT | VK_PIPELINE_STAGE_DRAW_INDIRECT_BIT |
                            VK_PIPELINE_STAGE_TRANSFER_BIT,
                        0, 1, &barrier, 0, nullptr, 0, nullptr);
+  if (profiler_ != nullptr && !pending_label_.empty()) {
+    profiler_->Mark(cmd_, pending_label_);
+    pending_label_.clear();
+  }
+}
+
+absl::StatusOr<std::unique_ptr<Profiler>> Profiler::Create(const Context& ctx) {
+  auto p = std::unique_ptr<Profiler>(new Profiler());
+  p->device_ = ctx.device();
+  if (!ctx.has_timestamps()) return absl::FailedPreconditionError("no timestamps");
+  VkQueryPoolCreateInfo info{VK_STRUCTURE_TYPE_QUERY_POOL_CREATE_INFO};
+  info.queryType = VK_QUERY_TYPE_TIMESTAMP;
+  info.queryCount = kMaxQueries;
+  STREETSIM_VK_RETURN_IF_ERROR(vkCreateQueryPool(p->device_, &info, nullptr, &p->pool_),
+                               "vkCreateQueryPool");
+  return p;
+}
+
+Profiler::~Profiler() {
+  if (pool_ != VK_NULL_HANDLE) vkDestroyQueryPool(device_, pool_, nullptr);
+}
+
+void Profiler::Begin(VkCommandBuffer cmd) {
+  labels_.clear();
+  vkCmdResetQueryPool(cmd, pool_, 0, kMaxQueries);
+  Mark(cmd, "begin");
+}
+
+void Profiler::Mark(VkCommandBuffer cmd, const std::string& label) {
+  if (labels_.size() >= kMaxQueries) return;
+  vkCmdWriteTimestamp(cmd, VK_PIPELINE_STAGE_BOTTOM_OF_PIPE_BIT, pool_,
+                      static_cast<uint32_t>(labels_.size()));
+  labels_.push_back(label);
+}
+
+void Profiler::Report(const Context& ctx) const {
+  if (labels_.size() < 2) return;
+  std::vector<uint64_t> ticks(labels_.size());
+  if (vkGetQueryPoolResults(device_, pool_, 0, static_cast<uint32_t>(labels_.size()),
+                            ticks.size() * 8, ticks.data(), 8,
+                            VK_QUERY_RESULT_64_BIT | VK_QUERY_RESULT_WAIT_BIT) != VK_SUCCESS) {
+    return;
+  }
+  std::map<std::string, std::pair<double, int>> by_label;
+  for (size_t i = 1; i < labels_.size(); ++i) {
+    auto& entry = by_label[labels_[i]];
+    entry.first += static_cast<double>(ticks[i] - ticks[i - 1]) * ctx.timestamp_period_ns() * 1e-6;
+    ++entry.second;
+  }
+  for (const auto& [label, entry] : by_label) {
+    LOG(INFO) << "vulkan profile: " << label << " x" << entry.second << ": " << entry.first
+              << " ms";
+  }
 }
 
 void Recorder::HostReadBarrier() {
@@ -213,8 +270,7 @@ void Recorder::Fill(const Buffer& buffer, VkDeviceSize offset, VkDeviceSize size
   vkCmdFillBuffer(cmd_, buffer.handle(), offset, size, value);
 }
 
-void Recorder::Update(const Buffer& buffer, VkDeviceSize offset,
-                      std::span<const uint32_t> words) {
+void Recorder::Update(const Buffer& buffer, VkDeviceSize offset, std::span<const uint32_t> words) {
   if (!status_.ok() || words.empty()) return;
   vkCmdUpdateBuffer(cmd_, buffer.handle(), offset, words.size_bytes(), words.data());
 }

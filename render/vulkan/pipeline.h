@@ -77,7 +77,26 @@ struct Grid {
   uint32_t x = 0, y = 1;
 };
 Grid GridFor(uint64_t groups);
-inline constexpr uint32_t kMaxGridX = 32768;
+inline constexpr uint32_t kMaxGridX = 16384;  // common.glsl: MAX_GRID_X
+
+// Per-dispatch device timing for tuning (STREETSIM_VK_PROFILE=1): a timestamp after every
+// barrier, labelled with the kernels recorded since the previous one.
+class Profiler {
+ public:
+  static constexpr uint32_t kMaxQueries = 1024;
+  static absl::StatusOr<std::unique_ptr<Profiler>> Create(const Context& ctx);
+  ~Profiler();
+  void Begin(VkCommandBuffer cmd);
+  void Mark(VkCommandBuffer cmd, const std::string& label);
+  // Logs milliseconds per label (summed over repeats) at INFO.
+  void Report(const Context& ctx) const;
+
+ private:
+  Profiler() = default;
+  VkDevice device_ = VK_NULL_HANDLE;
+  VkQueryPool pool_ = VK_NULL_HANDLE;
+  std::vector<std::string> labels_;
+};
 
 // Records a sequence of compute dispatches. The first error sticks (status()), later calls are
 // no-ops, so stage code reads straight through and the frame checks once.
@@ -88,6 +107,7 @@ class Recorder {
 
   VkCommandBuffer cmd() const { return cmd_; }
   const Context& ctx() const { return ctx_; }
+  void set_profiler(Profiler* profiler) { profiler_ = profiler; }
   const absl::Status& status() const { return status_; }
   void Fail(absl::Status s) {
     if (status_.ok()) status_ = std::move(s);
@@ -120,8 +140,8 @@ class Recorder {
   void HostReadBarrier();
   void Fill(const Buffer& buffer, VkDeviceSize offset, VkDeviceSize size, uint32_t value);
   void Update(const Buffer& buffer, VkDeviceSize offset, std::span<const uint32_t> words);
-  void Copy(const Buffer& src, VkDeviceSize src_offset, const Buffer& dst,
-            VkDeviceSize dst_offset, VkDeviceSize size);
+  void Copy(const Buffer& src, VkDeviceSize src_offset, const Buffer& dst, VkDeviceSize dst_offset,
+            VkDeviceSize size);
 
  private:
   void DispatchImpl(const ComputePipeline& p, std::initializer_list<const Buffer*> buffers,
@@ -131,6 +151,8 @@ class Recorder {
   VkCommandBuffer cmd_;
   DescriptorArena* arena_;
   absl::Status status_;
+  Profiler* profiler_ = nullptr;
+  std::string pending_label_;
 };
 
 }  // namespace streetsim::vulkan

@@ -38,15 +38,18 @@ void RecordProjectAndCompact(Recorder& rec, const Kernels& k, const ScanScratch&
                              const ProjectPush& push) {
   const Grid per_gaussian = GridFor(DivUp(push.n, kWorkgroupSize));
   rec.Dispatch(*k.project,
-               {scene.gauss, scene.sh, scene.splats, scene.rects, scene.flags, scene.touched},
+               {scene.gauss, scene.sh[0], scene.sh[1], scene.sh[2], scene.sh[3], scene.splats,
+                scene.rects, scene.flags, scene.touched},
                push, per_gaussian);
   rec.Barrier();
   RecordScan(rec, k, scratch, *scene.flags, counts, kCountN, push.n, kCountV, /*saturate=*/false,
              Launch{nullptr, 0, push.n});
-  rec.Dispatch(*k.compact,
-               {scene.flags, scene.touched, scene.splats, scene.depth_keys[0], scene.ids[0],
-                &counts},
-               per_gaussian);
+  rec.Dispatch(
+      *k.compact,
+      {scene.flags, scene.touched, scene.splats, scene.depth_keys[0], scene.ids[0], &counts},
+      per_gaussian);
+  // setup_args writes other elements of `counts` than compact reads, but in the same buffer.
+  rec.Barrier();
   struct SetupPush {
     uint32_t mode;
     uint32_t instance_capacity;

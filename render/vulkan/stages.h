@@ -2,6 +2,7 @@
 // file: project.cc (a, b), scan.cc, radix_sort.cc (c, f), binning.cc (d, e, g), blend.cc (h).
 #pragma once
 
+#include <algorithm>
 #include <array>
 #include <cstdint>
 #include <memory>
@@ -18,11 +19,15 @@ namespace streetsim::vulkan {
 // Mirrors shaders/common.glsl; change both together.
 inline constexpr uint32_t kWorkgroupSize = 256;
 inline constexpr uint32_t kScanBlock = 1024;
-inline constexpr uint32_t kSortBlock = 4096;
+inline constexpr uint32_t kSortBlock = 8192;
 inline constexpr uint32_t kRadix = 16;
 inline constexpr uint32_t kRadixBits = 4;
 inline constexpr uint32_t kTileSize = 16;
 inline constexpr uint32_t kMaxScanLevels = 4;
+inline constexpr int kShGroup = 4;      // SH coefficients per buffer (common.glsl: SH_GROUP)
+inline constexpr int kMaxShGroups = 4;  // 16 coefficients at degree 3
+// Floats per Gaussian in SH group g for K coefficients per channel.
+inline int ShGroupFloats(int K, int g) { return 3 * std::clamp(K - g * kShGroup, 0, kShGroup); }
 
 enum CountIndex : uint32_t {
   kCountN = 0,
@@ -52,8 +57,8 @@ inline uint64_t DivUp(uint64_t a, uint64_t b) { return (a + b - 1) / b; }
 struct Kernels {
   std::unique_ptr<ComputePipeline> project, compact, setup_args;
   std::unique_ptr<ComputePipeline> scan_block, scan_block_saturating, scan_add, scan_add_saturating;
-  std::unique_ptr<ComputePipeline> radix_hist, radix_scatter;
-  std::unique_ptr<ComputePipeline> gather_touched, emit, tile_ranges, blend;
+  std::unique_ptr<ComputePipeline> radix_hist, radix_scatter, radix_scatter_keys_only;
+  std::unique_ptr<ComputePipeline> gather_sorted, emit, tile_ranges, blend;
 
   static absl::StatusOr<std::unique_ptr<Kernels>> Create(const Context& ctx);
 };
@@ -91,17 +96,17 @@ void RecordScan(Recorder& rec, const Kernels& k, const ScanScratch& scratch, con
 // --- radix_sort.cc -------------------------------------------------------------------------------
 struct SortBuffers {
   const Buffer* keys[2];
-  const Buffer* vals[2];
-  const Buffer* hist;  // >= kRadix * DivUp(capacity, kSortBlock) uints
+  const Buffer* vals[2];  // null: keys-only sort
+  const Buffer* hist;     // >= kRadix * DivUp(capacity, kSortBlock) uints
 };
-// Stable LSD sort of (keys[0], vals[0])[0, counts[n_index]) by the low `bits` bits of the keys,
-// 4 bits per pass. Returns which pair holds the result (0 or 1). `blocks` gives the grid of the
-// histogram and scatter kernels, `hist_scan` that of the histogram scan (over
-// counts[hist_n_index] = 16 * blocks elements).
+// Stable LSD sort of (keys[0], vals[0])[0, counts[n_index]) by key bits [first_bit,
+// first_bit + bits), 4 bits per pass. Returns which pair holds the result (0 or 1). `blocks`
+// gives the grid of the histogram and scatter kernels, `hist_scan` that of the histogram scan
+// (over counts[hist_n_index] = 16 * blocks elements).
 int RecordRadixSort(Recorder& rec, const Kernels& k, const ScanScratch& scratch,
                     const SortBuffers& bufs, const Buffer& counts, uint32_t n_index,
-                    uint32_t hist_n_index, uint64_t capacity, int bits, const Launch& blocks,
-                    const Launch& hist_scan);
+                    uint32_t hist_n_index, uint64_t capacity, int first_bit, int bits,
+                    const Launch& blocks, const Launch& hist_scan);
 int RadixPasses(int bits);
 
 // --- project.cc ----------------------------------------------------------------------------------
@@ -118,15 +123,16 @@ static_assert(sizeof(ProjectPush) == 100);
 ProjectPush MakeProjectPush(const PinholeCamera& camera, uint32_t n, int sh_degree);
 
 struct SceneBuffers {
-  const Buffer* gauss;          // 3 vec4 per Gaussian
-  const Buffer* sh;             // N * K * 3 floats
-  const Buffer* splats;         // 3 vec4 per Gaussian
-  const Buffer* rects;          // uvec2 per Gaussian
-  const Buffer* flags;          // uint per Gaussian: visibility, scanned in place to offsets
-  const Buffer* touched;        // uint per Gaussian
-  const Buffer* depth_keys[2];  // uint per Gaussian (sort ping-pong)
-  const Buffer* ids[2];         // uint per Gaussian (sort ping-pong)
-  const Buffer* touched_sorted; // uint per Gaussian: touched in depth order, scanned to offsets
+  const Buffer* gauss;             // 3 vec4 per Gaussian
+  const Buffer* sh[kMaxShGroups];  // ShGroupFloats per Gaussian each; unused groups: any buffer
+  const Buffer* splats;            // 3 vec4 per Gaussian, by Gaussian id
+  const Buffer* sorted_splats;     // 3 vec4 per visible Gaussian, by depth rank
+  const Buffer* rects;             // uvec2 per Gaussian
+  const Buffer* flags;             // uint per Gaussian: visibility, scanned in place to offsets
+  const Buffer* touched;           // uint per Gaussian
+  const Buffer* depth_keys[2];     // uint per Gaussian (sort ping-pong)
+  const Buffer* ids[2];            // uint per Gaussian (sort ping-pong)
+  const Buffer* touched_sorted;    // uint per Gaussian: touched in depth order, scanned to offsets
 };
 // Stages a + b: projection, visibility scan, compaction (V -> counts[kCountV]), then setup_args
 // mode 0 (the dispatch sizes that depend on V).
@@ -135,19 +141,30 @@ void RecordProjectAndCompact(Recorder& rec, const Kernels& k, const ScanScratch&
                              const ProjectPush& push);
 
 // --- binning.cc ----------------------------------------------------------------------------------
+// Tile instances name a visible Gaussian by its depth rank j. When the tile id and j fit one
+// uint together (the usual case: 11 + 19 bits for 1242x375 and 500k Gaussians), an instance is
+// the single key tile << rank_bits | j and the tile sort moves keys only; else (pair mode,
+// rank_bits = 0) key = tile and value = j.
+int TileBits(uint32_t num_tiles);
+uint32_t RankBits(uint32_t num_gaussians, uint32_t num_tiles);  // 0: pair mode
+
 struct BinningBuffers {
   const Buffer* inst_keys[2];
-  const Buffer* inst_vals[2];
+  const Buffer* inst_vals[2];  // pair mode only
   const Buffer* hist;
   const Buffer* ranges;  // uvec2 per tile
 };
+struct BinningResult {
+  const Buffer* list;  // tile-sorted instances: depth rank j in the low bits (& rank_mask)
+  uint32_t rank_mask;
+};
 // Stages c..g: depth sort, touched-tiles scan (I -> counts[kCountI]), emit, tile sort, tile
-// ranges. Returns which instance pair holds the tile-sorted list.
-int RecordSortAndBin(Recorder& rec, const Kernels& k, const ScanScratch& scratch,
-                     const SceneBuffers& scene, const BinningBuffers& bins, const Buffer& counts,
-                     const Buffer& args, uint32_t num_gaussians, uint64_t instance_capacity,
-                     uint32_t tiles_x, uint32_t tiles_y);
-int TileBits(uint32_t num_tiles);
+// ranges. rank_bits: RankBits() (or 0 to force pair mode).
+BinningResult RecordSortAndBin(Recorder& rec, const Kernels& k, const ScanScratch& scratch,
+                               const SceneBuffers& scene, const BinningBuffers& bins,
+                               const Buffer& counts, const Buffer& args, uint32_t num_gaussians,
+                               uint64_t instance_capacity, uint32_t tiles_x, uint32_t tiles_y,
+                               uint32_t rank_bits);
 
 // --- blend.cc ------------------------------------------------------------------------------------
 struct ImageBuffers {
@@ -161,7 +178,7 @@ struct BlendParams {
   uint32_t width, height, tiles_x, tiles_y;
   float background[3];
 };
-void RecordBlend(Recorder& rec, const Kernels& k, const Buffer& ranges, const Buffer& inst_vals,
-                 const Buffer& splats, const ImageBuffers& image, const BlendParams& params);
+void RecordBlend(Recorder& rec, const Kernels& k, const Buffer& ranges, const BinningResult& bins,
+                 const Buffer& sorted_splats, const ImageBuffers& image, const BlendParams& params);
 
 }  // namespace streetsim::vulkan

@@ -41,9 +41,8 @@ absl::Status Run(const vulkan::VulkanEngine& engine, const Buffer& counts, uint3
 }  // namespace
 
 absl::StatusOr<std::vector<uint32_t>> ExclusiveScan(Engine& engine,
-                                                    std::span<const uint32_t> values,
-                                                    bool indirect, bool saturate,
-                                                    uint32_t* total) {
+                                                    std::span<const uint32_t> values, bool indirect,
+                                                    bool saturate, uint32_t* total) {
   auto v = AsVulkan(engine);
   if (!v.ok()) return v.status();
   const vulkan::Context& ctx = (*v)->context();
@@ -114,7 +113,7 @@ absl::Status SortPairs(Engine& engine, int bits, std::vector<uint32_t>* keys,
     rec.Barrier();
     const vulkan::SortBuffers bufs{{&*k0, &*k1}, {&*v0, &*v1}, &*hist};
     result = vulkan::RecordRadixSort(rec, k, scratch, bufs, *counts, vulkan::kCountV,
-                                     vulkan::kCountDepthHist, n, bits,
+                                     vulkan::kCountDepthHist, n, 0, bits,
                                      vulkan::Launch{&*args, vulkan::kArgsDepthSort, 0},
                                      vulkan::Launch{&*args, vulkan::kArgsDepthHistScan, 0});
   });
@@ -132,7 +131,8 @@ absl::StatusOr<PixelState> LastPixelState(Engine& engine, int width, int height)
   state.final_t.resize(pixels);
   state.n_contrib.resize(pixels);
   const vulkan::Context& ctx = (*v)->context();
-  if (absl::Status s = vulkan::DownloadBytes(ctx, (*v)->final_t(), state.final_t.data(), pixels * 4);
+  if (absl::Status s =
+          vulkan::DownloadBytes(ctx, (*v)->final_t(), state.final_t.data(), pixels * 4);
       !s.ok()) {
     return s;
   }
@@ -142,6 +142,10 @@ absl::StatusOr<PixelState> LastPixelState(Engine& engine, int width, int height)
     return s;
   }
   return state;
+}
+
+void ForcePairMode(Engine& engine, bool force) {
+  if (auto* v = dynamic_cast<vulkan::VulkanEngine*>(&engine)) v->set_force_pair_mode(force);
 }
 
 int Rerenders(const Engine& engine) {

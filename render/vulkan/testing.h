@@ -14,9 +14,8 @@ namespace streetsim::vulkan_testing {
 // Exclusive prefix sum of `values` with the engine's scan kernels. indirect: grids come from the
 // setup_args kernel as in a frame; else from the host. saturate: clamp sums at 0xffffffff.
 absl::StatusOr<std::vector<uint32_t>> ExclusiveScan(Engine& engine,
-                                                    std::span<const uint32_t> values,
-                                                    bool indirect, bool saturate,
-                                                    uint32_t* total);
+                                                    std::span<const uint32_t> values, bool indirect,
+                                                    bool saturate, uint32_t* total);
 
 // Stable radix sort of (keys, values) by the low `bits` bits of the keys, through the frame's
 // indirect path (the depth sort's args slots).
@@ -30,7 +29,10 @@ struct PixelState {
 };
 absl::StatusOr<PixelState> LastPixelState(Engine& engine, int width, int height);
 
-int Rerenders(const Engine& engine);           // frames rendered twice to grow instance buffers
+// Tile instances as (key, value) pairs even when they would pack into one uint (stages.h).
+void ForcePairMode(Engine& engine, bool force);
+
+int Rerenders(const Engine& engine);  // frames rendered twice to grow instance buffers
 uint64_t InstanceCapacity(const Engine& engine);
 int ValidationMessages(const Engine& engine);  // 0 unless validation is on and complained
 uint32_t SubgroupSize(const Engine& engine);

@@ -6,7 +6,9 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <cstdlib>
 #include <cstring>
+#include <string_view>
 
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
@@ -23,8 +25,8 @@ constexpr VkDeviceSize kCountsBytes = kNumCounts * sizeof(uint32_t);
 
 std::atomic<uint64_t> next_engine_id{1};
 
-absl::Status EnsureBuffer(const Context& ctx, Buffer* buffer, VkDeviceSize bytes,
-                          Buffer::Kind kind, const char* name) {
+absl::Status EnsureBuffer(const Context& ctx, Buffer* buffer, VkDeviceSize bytes, Buffer::Kind kind,
+                          const char* name) {
   if (!buffer->valid()) {
     auto created = Buffer::Create(ctx, bytes, kind, name);
     if (!created.ok()) return created.status();
@@ -44,6 +46,10 @@ double MsSince(std::chrono::steady_clock::time_point start) {
 absl::StatusOr<std::unique_ptr<Kernels>> Kernels::Create(const Context& ctx) {
   auto k = std::make_unique<Kernels>();
   const SpecConstant saturate[] = {{0, 1}};
+  const SpecConstant keys_only[] = {{0, 1}};
+  // blend.comp unrolls its batch loop over the subgroup's lanes when there are few of them.
+  const uint32_t lanes = ctx.subgroup().size;
+  const SpecConstant unroll[] = {{0, lanes <= 16 ? lanes : 0}};
   struct Spec {
     std::unique_ptr<ComputePipeline>* out;
     const char* name;
@@ -53,7 +59,7 @@ absl::StatusOr<std::unique_ptr<Kernels>> Kernels::Create(const Context& ctx) {
     std::span<const SpecConstant> spec;
   };
   const Spec specs[] = {
-      {&k->project, "project", spirv::project, 6, sizeof(ProjectPush), {}},
+      {&k->project, "project", spirv::project, 9, sizeof(ProjectPush), {}},
       {&k->compact, "compact", spirv::compact, 6, 0, {}},
       {&k->setup_args, "setup_args", spirv::setup_args, 2, 8, {}},
       {&k->scan_block, "scan_block", spirv::scan_block, 3, 16, {}},
@@ -62,10 +68,12 @@ absl::StatusOr<std::unique_ptr<Kernels>> Kernels::Create(const Context& ctx) {
       {&k->scan_add_saturating, "scan_add_saturating", spirv::scan_add, 3, 16, saturate},
       {&k->radix_hist, "radix_hist", spirv::radix_hist, 3, 8, {}},
       {&k->radix_scatter, "radix_scatter", spirv::radix_scatter, 6, 8, {}},
-      {&k->gather_touched, "gather_touched", spirv::gather_touched, 4, 0, {}},
-      {&k->emit, "emit", spirv::emit, 6, 8, {}},
-      {&k->tile_ranges, "tile_ranges", spirv::tile_ranges, 3, 0, {}},
-      {&k->blend, "blend", spirv::blend, 8, 24, {}},
+      {&k->radix_scatter_keys_only, "radix_scatter_keys_only", spirv::radix_scatter, 6, 8,
+       keys_only},
+      {&k->gather_sorted, "gather_sorted", spirv::gather_sorted, 6, 0, {}},
+      {&k->emit, "emit", spirv::emit, 6, 12, {}},
+      {&k->tile_ranges, "tile_ranges", spirv::tile_ranges, 3, 4, {}},
+      {&k->blend, "blend", spirv::blend, 8, 28, unroll},
   };
   for (const Spec& s : specs) {
     auto p = ComputePipeline::Create(ctx, s.name, s.spirv, s.buffers, s.push_bytes, s.spec);
@@ -77,8 +85,10 @@ absl::StatusOr<std::unique_ptr<Kernels>> Kernels::Create(const Context& ctx) {
 
 SceneBuffers VulkanScene::view() const {
   return SceneBuffers{&gauss,
-                      &sh,
+                      {&sh[0], sh[1].valid() ? &sh[1] : &sh[0], sh[2].valid() ? &sh[2] : &sh[0],
+                       sh[3].valid() ? &sh[3] : &sh[0]},
                       &splats,
+                      &sorted_splats,
                       &rects,
                       &flags,
                       &touched,
@@ -117,6 +127,10 @@ absl::StatusOr<std::unique_ptr<VulkanEngine>> VulkanEngine::Create(
         vkCreateQueryPool(c.device(), &query_info, nullptr, &engine->query_pool_),
         "vkCreateQueryPool");
   }
+  if (const char* env = std::getenv("STREETSIM_VK_PROFILE"); env && std::string_view(env) == "1") {
+    auto profiler = Profiler::Create(c);
+    if (profiler.ok()) engine->profiler_ = *std::move(profiler);
+  }
   for (auto [buffer, bytes, name] :
        {std::tuple{&engine->counts_, kCountsBytes, "counts"},
         std::tuple{&engine->args_, VkDeviceSize{kNumArgs * kArgsSlotBytes}, "args"}}) {
@@ -137,12 +151,12 @@ VulkanEngine::~VulkanEngine() {
 }
 
 absl::StatusOr<std::unique_ptr<DeviceScene>> VulkanEngine::Upload(const GaussianStore& store) {
-  if (absl::Status s = store.Validate(); !s.ok()) return s;
   const size_t n = store.size();
   if (n > kMaxGaussians) {
-    return absl::InvalidArgumentError(absl::StrCat("vulkan: ", n, " Gaussians exceed the limit of ",
-                                                   kMaxGaussians, " (2^26)"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("vulkan: ", n, " Gaussians exceed the limit of ", kMaxGaussians, " (2^26)"));
   }
+  if (absl::Status s = store.Validate(); !s.ok()) return s;
   if (store.sh_degree < 0 || store.sh_degree > kMaxShDegree) {
     return absl::InvalidArgumentError(absl::StrCat("vulkan: sh_degree ", store.sh_degree));
   }
@@ -150,49 +164,62 @@ absl::StatusOr<std::unique_ptr<DeviceScene>> VulkanEngine::Upload(const Gaussian
   const Context& c = *ctx_;
   auto scene = std::make_unique<VulkanScene>(ctx_, id_, static_cast<uint32_t>(n), store.sh_degree);
   const VkDeviceSize n64 = n;
-  const VkDeviceSize sh_floats = n64 * store.sh_coeffs() * 3;
+  const int K = store.sh_coeffs();
   struct Alloc {
     Buffer* buffer;
     VkDeviceSize bytes;
     const char* name;
   };
-  for (const Alloc& a : {Alloc{&scene->gauss, n64 * 48, "gauss"},
-                         Alloc{&scene->sh, sh_floats * 4, "sh"},
-                         Alloc{&scene->splats, n64 * 48, "splats"},
-                         Alloc{&scene->rects, n64 * 8, "rects"},
-                         Alloc{&scene->flags, n64 * 4, "flags"},
-                         Alloc{&scene->touched, n64 * 4, "touched"},
-                         Alloc{&scene->touched_sorted, n64 * 4, "touched_sorted"},
-                         Alloc{&scene->depth_keys[0], n64 * 4, "depth_keys0"},
-                         Alloc{&scene->depth_keys[1], n64 * 4, "depth_keys1"},
-                         Alloc{&scene->ids[0], n64 * 4, "ids0"},
-                         Alloc{&scene->ids[1], n64 * 4, "ids1"}}) {
+  for (const Alloc& a :
+       {Alloc{&scene->gauss, n64 * 48, "gauss"},
+        Alloc{&scene->sh[0], n64 * ShGroupFloats(K, 0) * 4, "sh0"},
+        Alloc{&scene->splats, n64 * 48, "splats"},
+        Alloc{&scene->sorted_splats, n64 * 48, "sorted_splats"},
+        Alloc{&scene->rects, n64 * 8, "rects"}, Alloc{&scene->flags, n64 * 4, "flags"},
+        Alloc{&scene->touched, n64 * 4, "touched"},
+        Alloc{&scene->touched_sorted, n64 * 4, "touched_sorted"},
+        Alloc{&scene->depth_keys[0], n64 * 4, "depth_keys0"},
+        Alloc{&scene->depth_keys[1], n64 * 4, "depth_keys1"},
+        Alloc{&scene->ids[0], n64 * 4, "ids0"}, Alloc{&scene->ids[1], n64 * 4, "ids1"}}) {
     if (absl::Status s = EnsureBuffer(c, a.buffer, a.bytes, Buffer::Kind::kDevice, a.name);
         !s.ok()) {
       return s;
     }
   }
   // Pack (mean, logit), (log-scale, 0), quaternion as 3 vec4 per Gaussian: aligned loads.
-  absl::Status s = UploadWith(c, scene->gauss, n * 48, 48,
-                              [&](size_t begin, size_t end, std::byte* out) {
-                                float* dst = reinterpret_cast<float*>(out);
-                                for (size_t i = begin / 48; i < end / 48; ++i, dst += 12) {
-                                  std::memcpy(dst, &store.means[i * 3], 12);
-                                  dst[3] = store.opacity_logits[i];
-                                  std::memcpy(dst + 4, &store.log_scales[i * 3], 12);
-                                  dst[7] = 0.0f;
-                                  std::memcpy(dst + 8, &store.rotations[i * 4], 16);
-                                }
-                              });
+  absl::Status s =
+      UploadWith(c, scene->gauss, n * 48, 48, [&](size_t begin, size_t end, std::byte* out) {
+        float* dst = reinterpret_cast<float*>(out);
+        for (size_t i = begin / 48; i < end / 48; ++i, dst += 12) {
+          std::memcpy(dst, &store.means[i * 3], 12);
+          dst[3] = store.opacity_logits[i];
+          std::memcpy(dst + 4, &store.log_scales[i * 3], 12);
+          dst[7] = 0.0f;
+          std::memcpy(dst + 8, &store.rotations[i * 4], 16);
+        }
+      });
   if (!s.ok()) return s;
-  s = UploadBytes(c, scene->sh, store.sh.data(), sh_floats * 4);
-  if (!s.ok()) return s;
+  for (int g = 0; g < kMaxShGroups && ShGroupFloats(K, g) > 0; ++g) {
+    const size_t floats = ShGroupFloats(K, g);
+    if (g > 0) {
+      s = EnsureBuffer(c, &scene->sh[g], n64 * floats * 4, Buffer::Kind::kDevice, "sh");
+      if (!s.ok()) return s;
+    }
+    s = UploadWith(c, scene->sh[g], n * floats * 4, floats * 4,
+                   [&](size_t begin, size_t end, std::byte* out) {
+                     float* dst = reinterpret_cast<float*>(out);
+                     for (size_t i = begin / (floats * 4); i < end / (floats * 4); ++i) {
+                       std::memcpy(dst, &store.sh[(i * K + g * kShGroup) * 3], floats * 4);
+                       dst += floats;
+                     }
+                   });
+    if (!s.ok()) return s;
+  }
   return std::unique_ptr<DeviceScene>(std::move(scene));
 }
 
 absl::Status VulkanEngine::EnsureFrameResources(uint32_t n, uint32_t width, uint32_t height,
-                                                uint64_t capacity,
-                                                const RenderOptions& options) {
+                                                uint64_t capacity) {
   const Context& c = *ctx_;
   const uint64_t max_elements = c.limits().maxStorageBufferRange / 4;
   if (capacity > max_elements) {
@@ -200,17 +227,20 @@ absl::Status VulkanEngine::EnsureFrameResources(uint32_t n, uint32_t width, uint
         "vulkan: ", capacity, " tile instances exceed the device's storage buffer range (",
         max_elements, " elements)"));
   }
+  // Values exist only in pair mode (stages.h: RankBits).
+  const bool pairs = rank_bits(n, width, height) == 0;
+  uint64_t capacity_bytes = UINT64_MAX;
   for (int i = 0; i < 2; ++i) {
     for (Buffer* b : {&inst_keys_[i], &inst_vals_[i]}) {
+      if (b == &inst_vals_[i] && !pairs) continue;
       if (absl::Status s = EnsureBuffer(c, b, capacity * 4, Buffer::Kind::kDevice, "instances");
           !s.ok()) {
         return s;
       }
+      capacity_bytes = std::min(capacity_bytes, b->size());
     }
   }
-  instance_capacity_ = std::min<uint64_t>(
-      {inst_keys_[0].size(), inst_keys_[1].size(), inst_vals_[0].size(), inst_vals_[1].size()});
-  instance_capacity_ = std::min(instance_capacity_ / 4, max_elements);
+  instance_capacity_ = std::min(capacity_bytes / 4, max_elements);
   const uint64_t sort_max = std::max<uint64_t>(n, instance_capacity_);
   const uint64_t hist_elements = kRadix * DivUp(sort_max, kSortBlock);
   if (absl::Status s = EnsureBuffer(c, &hist_, hist_elements * 4, Buffer::Kind::kDevice, "hist");
@@ -249,6 +279,10 @@ absl::Status VulkanEngine::RenderOnce(const VulkanScene& scene, const PinholeCam
   STREETSIM_VK_RETURN_IF_ERROR(vkBeginCommandBuffer(cmd_, &begin), "vkBeginCommandBuffer");
 
   Recorder rec(c, cmd_, arena_.get());
+  if (profiler_) {
+    profiler_->Begin(cmd_);
+    rec.set_profiler(profiler_.get());
+  }
   auto timestamp = [&](uint32_t index) {
     if (query_pool_ != VK_NULL_HANDLE) {
       vkCmdWriteTimestamp(cmd_, VK_PIPELINE_STAGE_BOTTOM_OF_PIPE_BIT, query_pool_, index);
@@ -266,17 +300,18 @@ absl::Status VulkanEngine::RenderOnce(const VulkanScene& scene, const PinholeCam
   RecordProjectAndCompact(rec, *kernels_, scratch_, sb, counts_, args_,
                           MakeProjectPush(camera, n, scene.sh_degree()));
   timestamp(1);
-  const BinningBuffers bins{{&inst_keys_[0], &inst_keys_[1]},
-                            {&inst_vals_[0], &inst_vals_[1]},
-                            &hist_,
-                            &ranges_};
-  const int sorted = RecordSortAndBin(rec, *kernels_, scratch_, sb, bins, counts_, args_, n,
-                                      instance_capacity_, tiles_x, tiles_y);
+  const BinningBuffers bins{
+      {&inst_keys_[0], &inst_keys_[1]}, {&inst_vals_[0], &inst_vals_[1]}, &hist_, &ranges_};
+  const BinningResult sorted =
+      RecordSortAndBin(rec, *kernels_, scratch_, sb, bins, counts_, args_, n, instance_capacity_,
+                       tiles_x, tiles_y, rank_bits(n, width, height));
   timestamp(2);
-  const BlendParams blend{width, height, tiles_x, tiles_y,
-                          {options.background.x(), options.background.y(),
-                           options.background.z()}};
-  RecordBlend(rec, *kernels_, ranges_, inst_vals_[sorted], *sb.splats,
+  const BlendParams blend{width,
+                          height,
+                          tiles_x,
+                          tiles_y,
+                          {options.background.x(), options.background.y(), options.background.z()}};
+  RecordBlend(rec, *kernels_, ranges_, sorted, *sb.sorted_splats,
               ImageBuffers{&rgb_, &depth_, &alpha_, &final_t_, &n_contrib_}, blend);
   timestamp(3);
 
@@ -301,6 +336,7 @@ absl::Status VulkanEngine::RenderOnce(const VulkanScene& scene, const PinholeCam
                                "vkWaitForFences");
   if (absl::Status s = readback_.InvalidateForHost(); !s.ok()) return s;
   std::memcpy(counts, readback_.mapped(), kCountsBytes);
+  if (profiler_) profiler_->Report(c);
   return absl::OkStatus();
 }
 
@@ -318,19 +354,23 @@ absl::Status VulkanEngine::Render(const DeviceScene& scene, const PinholeCamera&
   const uint32_t n = static_cast<uint32_t>(vscene->size());
   // Instance capacity from an estimate; the device clamps its writes to it, and the rare frame
   // that needs more is rendered again with room for all of them.
-  uint64_t capacity = std::max<uint64_t>({uint64_t{4} * n, last_instances_ + last_instances_ / 4,
-                                          kMinInstanceCapacity, instance_capacity_});
+  const uint64_t max_instances = ctx_->limits().maxStorageBufferRange / 4;
+  uint64_t capacity = std::min(
+      max_instances, std::max<uint64_t>({uint64_t{4} * n, last_instances_ + last_instances_ / 4,
+                                         kMinInstanceCapacity, instance_capacity_}));
   uint32_t counts[kNumCounts] = {};
   for (int attempt = 0;; ++attempt) {
-    if (absl::Status s = EnsureFrameResources(n, camera.width, camera.height, capacity, options);
-        !s.ok()) {
+    if (absl::Status s = EnsureFrameResources(n, camera.width, camera.height, capacity); !s.ok()) {
       return s;
     }
     if (absl::Status s = RenderOnce(*vscene, camera, options, counts); !s.ok()) return s;
     const uint64_t instances = counts[kCountI];
     if (instances <= instance_capacity_) break;
-    if (instances == UINT32_MAX) {
-      return absl::ResourceExhaustedError("vulkan: more than 2^32 tile instances in one frame");
+    if (instances > max_instances) {
+      return absl::ResourceExhaustedError(
+          absl::StrCat("vulkan: the frame needs ",
+                       instances == UINT32_MAX ? "2^32 or more" : absl::StrCat(instances),
+                       " tile instances; the device's storage buffer range holds ", max_instances));
     }
     if (attempt > 0) {
       return absl::InternalError(absl::StrCat("vulkan: ", instances,
@@ -339,7 +379,7 @@ absl::Status VulkanEngine::Render(const DeviceScene& scene, const PinholeCamera&
     }
     LOG(INFO) << "vulkan: " << instances << " tile instances exceed the capacity "
               << instance_capacity_ << "; growing and rendering the frame again";
-    capacity = instances + instances / 4;
+    capacity = std::min(instances + instances / 4, max_instances);
     ++rerenders_;
   }
   last_instances_ = counts[kCountI];
@@ -351,9 +391,9 @@ absl::Status VulkanEngine::Render(const DeviceScene& scene, const PinholeCamera&
   out->timings = StageTimings{};
   if (query_pool_ != VK_NULL_HANDLE) {
     uint64_t ticks[kNumTimestamps] = {};
-    const VkResult r = vkGetQueryPoolResults(ctx_->device(), query_pool_, 0, kNumTimestamps,
-                                             sizeof(ticks), ticks, sizeof(uint64_t),
-                                             VK_QUERY_RESULT_64_BIT | VK_QUERY_RESULT_WAIT_BIT);
+    const VkResult r =
+        vkGetQueryPoolResults(ctx_->device(), query_pool_, 0, kNumTimestamps, sizeof(ticks), ticks,
+                              sizeof(uint64_t), VK_QUERY_RESULT_64_BIT | VK_QUERY_RESULT_WAIT_BIT);
     if (r == VK_SUCCESS) {
       const uint32_t bits = ctx_->timestamp_valid_bits();
       const uint64_t mask = bits >= 64 ? ~uint64_t{0} : (uint64_t{1} << bits) - 1;

@@ -1,11 +1,10 @@
 #include "tests/render/vulkan_reference.h"
 
+#include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
 #include <numeric>
 #include <random>
-
-#include <Eigen/Geometry>
 
 #include "render/common/projection_math.h"
 
@@ -116,14 +115,32 @@ GaussianStore MakeRandomScene(const SceneOptions& options) {
     float logit = uni(-3.0f, 4.0f);
     if (options.hard_cases) {
       switch (i % 11) {
-        case 1: z = uni(-5.0f, 0.19f); break;                         // behind / at the near plane
-        case 2: z = uni(0.15f, 0.6f); x *= 0.05f; y *= 0.05f; break;  // across the near plane
-        case 3: for (float& s : log_s) s = std::log(uni(3.0f, 20.0f)); break;  // huge
-        case 4: for (float& s : log_s) s = std::log(uni(1e-4f, 3e-3f)); break;  // tiny
-        case 5: logit = uni(-9.0f, -5.0f); break;                     // nearly transparent
-        case 6: x = uni(-3.0f, 3.0f) * z; break;                      // far outside the frustum
-        case 7: log_s[0] = std::log(2.0f); log_s[1] = std::log(0.005f); break;  // needle
-        default: break;
+        case 1:
+          z = uni(-5.0f, 0.19f);
+          break;  // behind / at the near plane
+        case 2:
+          z = uni(0.15f, 0.6f);
+          x *= 0.05f;
+          y *= 0.05f;
+          break;  // across the near plane
+        case 3:
+          for (float& s : log_s) s = std::log(uni(3.0f, 20.0f));
+          break;  // huge
+        case 4:
+          for (float& s : log_s) s = std::log(uni(1e-4f, 3e-3f));
+          break;  // tiny
+        case 5:
+          logit = uni(-9.0f, -5.0f);
+          break;  // nearly transparent
+        case 6:
+          x = uni(-3.0f, 3.0f) * z;
+          break;  // far outside the frustum
+        case 7:
+          log_s[0] = std::log(2.0f);
+          log_s[1] = std::log(0.005f);
+          break;  // needle
+        default:
+          break;
       }
     }
     store.means[i * 3 + 0] = x;

@@ -3,10 +3,9 @@
 // 16x16 tiles row-major, blend each pixel front to back with the 3DGS rules.
 #pragma once
 
+#include <Eigen/Core>
 #include <cstdint>
 #include <vector>
-
-#include <Eigen/Core>
 
 #include "render/camera.h"
 #include "scene/gaussians/gaussian_store.h"

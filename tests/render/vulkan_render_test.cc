@@ -1,5 +1,8 @@
 // Tests of the vulkan backend (render/vulkan): the scan and radix sort stages against simple C++
 // references, and whole frames against a scalar 3DGS reference (vulkan_reference.h).
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+
 #include <algorithm>
 #include <cmath>
 #include <cstdlib>
@@ -7,9 +10,6 @@
 #include <random>
 #include <string>
 #include <vector>
-
-#include <gmock/gmock.h>
-#include <gtest/gtest.h>
 
 #include "render/engine.h"
 #include "render/vulkan/testing.h"
@@ -111,6 +111,18 @@ TEST_F(VulkanTest, DeviceNameThatMatchesNothingIsAClearError) {
   }
 }
 
+TEST_F(VulkanTest, NoDriverIsAClearErrorNotACrash) {
+  // The loader scans for drivers at every instance creation; point it at nothing.
+  ScopedEnv icd("VK_ICD_FILENAMES", "/nonexistent/streetsim_no_icd.json");
+  ScopedEnv driver("VK_DRIVER_FILES", "/nonexistent/streetsim_no_icd.json");
+  EXPECT_TRUE(ListVulkanDevices().empty());
+  EXPECT_FALSE(HasVulkanGpu());
+  auto engine = CreateVulkanEngine(VulkanDevicePreference::kLavapipe);
+  ASSERT_FALSE(engine.ok());
+  EXPECT_EQ(engine.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(engine.status().message(), HasSubstr("vulkan"));
+}
+
 // --- Prefix sum ----------------------------------------------------------------------------------
 
 std::vector<uint32_t> RandomValues(size_t n, uint32_t max_value, uint32_t seed) {
@@ -137,6 +149,25 @@ TEST_F(VulkanTest, ExclusiveScanMatchesReference) {
       EXPECT_TRUE(*out == expected);
     }
   }
+}
+
+TEST_F(VulkanTest, ExclusiveScanBeyondOneDimensionalGrids) {
+  // More than 16384 blocks of 1024: the level-0 grid goes 2D (pipeline.h: GridFor). 2^25 - 3
+  // elements also come close to lavapipe's 128 MiB maxStorageBufferRange.
+  const size_t n = (size_t{1} << 25) - 3;
+  std::vector<uint32_t> in(n);
+  for (size_t i = 0; i < n; ++i) in[i] = static_cast<uint32_t>((i * 2654435761u) >> 29);
+  uint32_t total = 0;
+  auto out = vulkan_testing::ExclusiveScan(SharedEngine(), in, /*indirect=*/true, false, &total);
+  ASSERT_TRUE(out.ok()) << out.status();
+  uint32_t acc = 0;
+  size_t mismatches = 0;
+  for (size_t i = 0; i < n; ++i) {
+    mismatches += (*out)[i] != acc;
+    acc += in[i];
+  }
+  EXPECT_EQ(mismatches, 0u);
+  EXPECT_EQ(total, acc);
 }
 
 TEST_F(VulkanTest, SaturatingScanClampsInsteadOfWrapping) {
@@ -247,10 +278,11 @@ void RenderAndCompare(const GaussianStore& store, const PinholeCamera& camera,
 
   const Diff d = Compare(out, ref, *state);
   if (std::getenv("VK_TEST_VERBOSE")) {
-    std::printf("V %zu/%zu I %zu/%zu max rgb %g alpha %g depth %g beyond %zu %zu %zu T %zu nc %zu\n",
-                out.stats.num_visible, ref.num_visible, out.stats.num_tile_instances,
-                ref.num_tile_instances, d.max_rgb, d.max_alpha, d.max_depth_rel, d.rgb_beyond,
-                d.alpha_beyond, d.depth_beyond, d.t_beyond, d.contrib_mismatch);
+    std::printf(
+        "V %zu/%zu I %zu/%zu max rgb %g alpha %g depth %g beyond %zu %zu %zu T %zu nc %zu\n",
+        out.stats.num_visible, ref.num_visible, out.stats.num_tile_instances,
+        ref.num_tile_instances, d.max_rgb, d.max_alpha, d.max_depth_rel, d.rgb_beyond,
+        d.alpha_beyond, d.depth_beyond, d.t_beyond, d.contrib_mismatch);
   }
   const size_t allowed = 2 + pixels / 2000;  // threshold flips (alpha at 1/255, T at 1e-4)
   EXPECT_LE(d.rgb_beyond, allowed) << "max rgb diff " << d.max_rgb;
@@ -306,6 +338,17 @@ TEST_F(VulkanTest, MatchesReferenceWithRotatedCameraAndOddSizes) {
   RenderAndCompare(store, MakeCamera(1, 1, 5.0));
 }
 
+TEST_F(VulkanTest, MatchesReferenceWithPairInstances) {
+  // Scenes too large for packed (tile << rank_bits | rank) instances use (tile, rank) pairs.
+  SceneOptions opt;
+  opt.num_gaussians = 1500;
+  opt.sh_degree = 1;
+  opt.seed = 77;
+  vulkan_testing::ForcePairMode(SharedEngine(), true);
+  RenderAndCompare(MakeRandomScene(opt), MakeCamera(300, 170, 200.0, 5.0, 3.0));
+  vulkan_testing::ForcePairMode(SharedEngine(), false);
+}
+
 TEST_F(VulkanTest, EmptySceneIsBackgroundOnly) {
   GaussianStore store;
   store.sh_degree = 1;
@@ -332,7 +375,8 @@ TEST_F(VulkanTest, AllGaussiansCulled) {
   SceneOptions opt;
   opt.num_gaussians = 300;
   GaussianStore store = MakeRandomScene(opt);
-  for (size_t i = 0; i < store.size(); ++i) store.means[i * 3 + 2] = -std::abs(store.means[i * 3 + 2]) - 0.5f;
+  for (size_t i = 0; i < store.size(); ++i)
+    store.means[i * 3 + 2] = -std::abs(store.means[i * 3 + 2]) - 0.5f;
   Engine& engine = SharedEngine();
   auto scene = engine.Upload(store);
   ASSERT_TRUE(scene.ok());
@@ -425,7 +469,9 @@ TEST_F(VulkanTest, RejectsScenesFromElsewhere) {
 TEST_F(VulkanTest, RejectsTooManyGaussiansAndInvalidStores) {
   GaussianStore huge;
   huge.opacity_logits.resize((size_t{1} << 26) + 1);  // size() is what is checked first
-  EXPECT_EQ(SharedEngine().Upload(huge).status().code(), absl::StatusCode::kInvalidArgument);
+  const absl::Status too_many = SharedEngine().Upload(huge).status();
+  EXPECT_EQ(too_many.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(too_many.message(), HasSubstr("2^26"));
   GaussianStore broken = MakeRandomScene(SceneOptions{});
   broken.means.pop_back();
   EXPECT_EQ(SharedEngine().Upload(broken).status().code(), absl::StatusCode::kInvalidArgument);

@@ -7,12 +7,13 @@
 #define WG_SIZE 256              // threads per workgroup of the 1D kernels
 #define SCAN_ITEMS 4             // items per thread in the block scan
 #define SCAN_BLOCK 1024          // WG_SIZE * SCAN_ITEMS
-#define SORT_ITEMS 16            // keys per thread in the radix passes
-#define SORT_BLOCK 4096          // WG_SIZE * SORT_ITEMS
+#define SORT_ITEMS 32            // keys per thread in the radix passes
+#define SORT_BLOCK 8192          // WG_SIZE * SORT_ITEMS
+#define RANGE_ITEMS 4            // instances per thread in tile_ranges
 #define RADIX_BITS 4
 #define RADIX 16
 #define TILE_SIZE 16
-#define MAX_GRID_X 32768         // grids wider than this go 2D (pipeline.h: GridFor)
+#define MAX_GRID_X 16384         // grids wider than this go 2D (pipeline.h: GridFor)
 
 // --- The counts buffer (uint[]): element counts produced and consumed on the device -------------
 #define COUNT_N 0           // Gaussians (host-written at frame start)
@@ -31,16 +32,23 @@
 #define ARGS_V_THREADS 9         // one thread per visible Gaussian
 #define ARGS_TILE_SORT 10        // tile radix blocks
 #define ARGS_TILE_HIST_SCAN 11   // 4 levels
-#define ARGS_IC_THREADS 15       // one thread per tile instance
+#define ARGS_IC_THREADS 15       // tile_ranges: RANGE_ITEMS tile instances per thread
 #define NUM_ARGS 16
 #define MAX_SCAN_LEVELS 4
 
 // --- Per-Gaussian records ------------------------------------------------------------------------
 // Gaussian parameters (uploaded once), 3 vec4 per Gaussian:
 //   [0] = (mean xyz, opacity logit), [1] = (log-scale xyz, 0), [2] = quaternion (w, x, y, z).
-// Projected splat, 3 vec4 per Gaussian (written by project.comp for visible Gaussians only):
-//   [0] = (x, y, conic a, conic b), [1] = (conic c, opacity, depth, band half height),
-//   [2] = (r, g, b, 0).
+// SH coefficients (K = (degree + 1)^2 per colour) in up to 4 groups of SH_GROUP coefficients,
+// one buffer each, [i][k % SH_GROUP][rgb] within group k / SH_GROUP: no per-Gaussian record is
+// larger than 48 bytes, so scenes of maxStorageBufferRange / 48 Gaussians fit (lavapipe: 128 MiB,
+// 2.8M Gaussians) whatever the SH degree.
+#define SH_GROUP 4u
+uint ShGroupFloats(uint K, uint g) { return 3u * min(SH_GROUP, K > g * SH_GROUP ? K - g * SH_GROUP : 0u); }
+// Projected splat, 3 vec4 per Gaussian (written by project.comp for visible Gaussians only, by
+// Gaussian id; gather_sorted.comp copies them into depth order for the blender):
+//   [0] = (x, y, conic a, conic b), [1] = (conic c, opacity, r, g),
+//   [2] = (b, depth, band half height, 0): the blender loads the first 10 words.
 // Tile rect, uvec2 per Gaussian: (x0 | y0 << 16, x1 | y1 << 16), half-open, in tiles.
 
 uint linear_group_id() { return gl_WorkGroupID.y * gl_NumWorkGroups.x + gl_WorkGroupID.x; }

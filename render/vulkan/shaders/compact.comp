@@ -17,6 +17,6 @@ void main() {
   if (i >= counts[COUNT_N] || touched[i] == 0u) return;
   const uint pos = offsets[i];
   // Depth > near plane (0.2) > 0, so the float bits order like the floats.
-  keys[pos] = floatBitsToUint(splats[3u * i + 1u].z);
+  keys[pos] = floatBitsToUint(splats[3u * i + 2u].y);
   ids[pos] = i;
 }

@@ -7,11 +7,15 @@
 layout(local_size_x = WG_SIZE) in;
 
 layout(std430, binding = 0) readonly buffer Gaussians { vec4 gauss[]; };
-layout(std430, binding = 1) readonly buffer Sh { float sh[]; };
-layout(std430, binding = 2) writeonly buffer Splats { vec4 splats[]; };
-layout(std430, binding = 3) writeonly buffer Rects { uvec2 rects[]; };
-layout(std430, binding = 4) writeonly buffer Flags { uint flags[]; };
-layout(std430, binding = 5) writeonly buffer Touched { uint touched[]; };
+// SH coefficients k in [4g, 4g + 4) of every Gaussian live in group g (common.glsl).
+layout(std430, binding = 1) readonly buffer Sh0 { float sh0[]; };
+layout(std430, binding = 2) readonly buffer Sh1 { float sh1[]; };
+layout(std430, binding = 3) readonly buffer Sh2 { float sh2[]; };
+layout(std430, binding = 4) readonly buffer Sh3 { float sh3[]; };
+layout(std430, binding = 5) writeonly buffer Splats { vec4 splats[]; };
+layout(std430, binding = 6) writeonly buffer Rects { uvec2 rects[]; };
+layout(std430, binding = 7) writeonly buffer Flags { uint flags[]; };
+layout(std430, binding = 8) writeonly buffer Touched { uint touched[]; };
 
 layout(push_constant, std430) uniform Camera {
   float R[9];  // R_cam_from_world, row-major
@@ -38,38 +42,42 @@ const float kShC3_0 = -0.5900435899266435, kShC3_1 = 2.890611442640554,
             kShC3_4 = -0.4570457994644658, kShC3_5 = 1.445305721320277,
             kShC3_6 = -0.5900435899266435;
 
-vec3 ShCoeff(uint base, uint k) {
-  const uint o = base + k * 3u;
-  return vec3(sh[o], sh[o + 1u], sh[o + 2u]);
+// k is a constant at every call, so the group (binding) is too.
+vec3 ShCoeff(uint i, uint K, uint k) {
+  const uint g = k / SH_GROUP;
+  const uint o = i * ShGroupFloats(K, g) + (k % SH_GROUP) * 3u;
+  if (g == 0u) return vec3(sh0[o], sh0[o + 1u], sh0[o + 2u]);
+  if (g == 1u) return vec3(sh1[o], sh1[o + 1u], sh1[o + 2u]);
+  if (g == 2u) return vec3(sh2[o], sh2[o + 1u], sh2[o + 2u]);
+  return vec3(sh3[o], sh3[o + 1u], sh3[o + 2u]);
 }
 
 // Accumulates in the same order as the reference loop (v += basis[k] * sh[k], k ascending).
 vec3 ShColor(uint i, vec3 dir) {
   const uint K = uint((cam.sh_degree + 1) * (cam.sh_degree + 1));
-  const uint base = i * K * 3u;
   const float x = dir.x, y = dir.y, z = dir.z;
   vec3 v = vec3(0.0);
-  v += kShC0 * ShCoeff(base, 0u);
+  v += kShC0 * ShCoeff(i, K, 0u);
   if (cam.sh_degree >= 1) {
-    v += (-kShC1 * y) * ShCoeff(base, 1u);
-    v += (kShC1 * z) * ShCoeff(base, 2u);
-    v += (-kShC1 * x) * ShCoeff(base, 3u);
+    v += (-kShC1 * y) * ShCoeff(i, K, 1u);
+    v += (kShC1 * z) * ShCoeff(i, K, 2u);
+    v += (-kShC1 * x) * ShCoeff(i, K, 3u);
   }
   if (cam.sh_degree >= 2) {
     const float xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
-    v += (kShC2_0 * xy) * ShCoeff(base, 4u);
-    v += (kShC2_1 * yz) * ShCoeff(base, 5u);
-    v += (kShC2_2 * (2.0 * zz - xx - yy)) * ShCoeff(base, 6u);
-    v += (kShC2_3 * xz) * ShCoeff(base, 7u);
-    v += (kShC2_4 * (xx - yy)) * ShCoeff(base, 8u);
+    v += (kShC2_0 * xy) * ShCoeff(i, K, 4u);
+    v += (kShC2_1 * yz) * ShCoeff(i, K, 5u);
+    v += (kShC2_2 * (2.0 * zz - xx - yy)) * ShCoeff(i, K, 6u);
+    v += (kShC2_3 * xz) * ShCoeff(i, K, 7u);
+    v += (kShC2_4 * (xx - yy)) * ShCoeff(i, K, 8u);
     if (cam.sh_degree >= 3) {
-      v += (kShC3_0 * y * (3.0 * xx - yy)) * ShCoeff(base, 9u);
-      v += (kShC3_1 * xy * z) * ShCoeff(base, 10u);
-      v += (kShC3_2 * y * (4.0 * zz - xx - yy)) * ShCoeff(base, 11u);
-      v += (kShC3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)) * ShCoeff(base, 12u);
-      v += (kShC3_4 * x * (4.0 * zz - xx - yy)) * ShCoeff(base, 13u);
-      v += (kShC3_5 * z * (xx - yy)) * ShCoeff(base, 14u);
-      v += (kShC3_6 * x * (xx - 3.0 * yy)) * ShCoeff(base, 15u);
+      v += (kShC3_0 * y * (3.0 * xx - yy)) * ShCoeff(i, K, 9u);
+      v += (kShC3_1 * xy * z) * ShCoeff(i, K, 10u);
+      v += (kShC3_2 * y * (4.0 * zz - xx - yy)) * ShCoeff(i, K, 11u);
+      v += (kShC3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)) * ShCoeff(i, K, 12u);
+      v += (kShC3_4 * x * (4.0 * zz - xx - yy)) * ShCoeff(i, K, 13u);
+      v += (kShC3_5 * z * (xx - yy)) * ShCoeff(i, K, 14u);
+      v += (kShC3_6 * x * (xx - 3.0 * yy)) * ShCoeff(i, K, 15u);
     }
   }
   return vec3(smax(v.x + 0.5, 0.0), smax(v.y + 0.5, 0.0), smax(v.z + 0.5, 0.0));
@@ -160,8 +168,8 @@ bool Project(uint i, out vec4 s0, out vec4 s1, out vec4 s2, out ivec4 rect) {
   const vec3 rgb = ShColor(i, vec3(dir.x * inv_len, dir.y * inv_len, dir.z * inv_len));
 
   s0 = vec4(sx, sy, cov_yy * inv_det, -cov_xy * inv_det);
-  s1 = vec4(cov_xx * inv_det, opacity, pz, half_h);
-  s2 = vec4(rgb, 0.0);
+  s1 = vec4(cov_xx * inv_det, opacity, rgb.r, rgb.g);
+  s2 = vec4(rgb.b, pz, half_h, 0.0);
   return true;
 }
 

@@ -3,6 +3,7 @@
 // every (digit, block) its output offset. Subgroup-free: correct for any subgroup size.
 #version 460
 #extension GL_GOOGLE_include_directive : require
+#extension GL_EXT_control_flow_attributes : require
 #include "common.glsl"
 
 layout(local_size_x = WG_SIZE) in;
@@ -14,7 +15,7 @@ layout(push_constant, std430) uniform Params {
   uint shift;
 } pc;
 
-// Per-thread digit counts packed two per uint (16 bits each; a block has at most 4096 keys).
+// Per-thread digit counts packed two per uint (16 bits each; a block has at most 8192 keys).
 shared uint s_cnt[8 * WG_SIZE];
 shared uint s_part[8 * (WG_SIZE / 8)];
 
@@ -27,7 +28,7 @@ void main() {
   const uint first = block * SORT_BLOCK + tid * SORT_ITEMS;
 
   uvec4 lo = uvec4(0u), hi = uvec4(0u);  // words 0..3 (digits 0..7), 4..7 (digits 8..15)
-  for (uint k = 0u; k < SORT_ITEMS; ++k) {
+  [[unroll]] for (uint k = 0u; k < SORT_ITEMS; ++k) {
     const uint idx = first + k;
     if (idx < n) {
       const uint d = (keys[idx] >> pc.shift) & (RADIX - 1u);
@@ -37,7 +38,7 @@ void main() {
       hi += uvec4(equal(uvec4(4u, 5u, 6u, 7u), uvec4(w))) * inc;
     }
   }
-  for (uint w = 0u; w < 4u; ++w) {
+  [[unroll]] for (uint w = 0u; w < 4u; ++w) {
     s_cnt[w * WG_SIZE + tid] = lo[w];
     s_cnt[(w + 4u) * WG_SIZE + tid] = hi[w];
   }

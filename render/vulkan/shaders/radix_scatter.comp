@@ -1,10 +1,14 @@
-// LSD radix sort, pass part 2: stable scatter. Thread t owns keys [t*16, t*16+16) of its block, so
-// the block order is (thread, item); a key's rank among same-digit keys of the block is
+// LSD radix sort, pass part 2: stable scatter. Thread t owns SORT_ITEMS consecutive keys of its
+// block, so the block order is (thread, item); a key's rank among same-digit keys of the block is
 // (same-digit keys of earlier threads: a shared scan of packed per-thread counts) + (same-digit
 // keys earlier in this thread). Subgroup-free: correct for any subgroup size.
 #version 460
 #extension GL_GOOGLE_include_directive : require
+#extension GL_EXT_control_flow_attributes : require
 #include "common.glsl"
+
+// Keys-only sorts (packed tile instances) leave the value bindings untouched.
+layout(constant_id = 0) const uint kKeysOnly = 0u;
 
 layout(local_size_x = WG_SIZE) in;
 layout(std430, binding = 0) readonly buffer KeysIn { uint keys_in[]; };
@@ -43,7 +47,7 @@ void main() {
   uint key[SORT_ITEMS];
   uint rank[SORT_ITEMS];  // digit in the low 4 bits, rank within this thread above
   uvec4 lo = uvec4(0u), hi = uvec4(0u);
-  for (uint k = 0u; k < SORT_ITEMS; ++k) {
+  [[unroll]] for (uint k = 0u; k < SORT_ITEMS; ++k) {
     const uint idx = first + k;
     key[k] = idx < n ? keys_in[idx] : 0u;
     const uint d = (key[k] >> pc.shift) & (RADIX - 1u);
@@ -53,7 +57,7 @@ void main() {
     lo += uvec4(equal(uvec4(0u, 1u, 2u, 3u), uvec4(w))) * inc;
     hi += uvec4(equal(uvec4(4u, 5u, 6u, 7u), uvec4(w))) * inc;
   }
-  for (uint w = 0u; w < 4u; ++w) {
+  [[unroll]] for (uint w = 0u; w < 4u; ++w) {
     s_cnt[w * WG_SIZE + tid] = lo[w];
     s_cnt[(w + 4u) * WG_SIZE + tid] = hi[w];
   }
@@ -80,14 +84,18 @@ void main() {
     }
   }
   barrier();
-  for (uint k = 0u; k < SORT_ITEMS; ++k) {
+  // This thread's exclusive prefix of the packed counts, one word per digit pair.
+  uvec4 pre_lo, pre_hi;
+  [[unroll]] for (uint w = 0u; w < 4u; ++w) {
+    pre_lo[w] = s_cnt[w * WG_SIZE + tid] + s_part[w * (WG_SIZE / 8u) + (tid >> 3u)];
+    pre_hi[w] = s_cnt[(w + 4u) * WG_SIZE + tid] + s_part[(w + 4u) * (WG_SIZE / 8u) + (tid >> 3u)];
+  }
+  [[unroll]] for (uint k = 0u; k < SORT_ITEMS; ++k) {
     const uint idx = first + k;
-    if (idx >= n) break;
+    if (idx >= n) continue;
     const uint d = rank[k] & (RADIX - 1u);
-    const uint w = d >> 1u;
-    const uint before = s_cnt[w * WG_SIZE + tid] + s_part[w * (WG_SIZE / 8u) + (tid >> 3u)];
-    const uint pos = s_offset[d] + ((before >> ((d & 1u) * 16u)) & 0xffffu) + (rank[k] >> 4u);
+    const uint pos = s_offset[d] + Extract(pre_lo, pre_hi, d) + (rank[k] >> 4u);
     keys_out[pos] = key[k];
-    vals_out[pos] = vals_in[idx];
+    if (kKeysOnly == 0u) vals_out[pos] = vals_in[idx];
   }
 }

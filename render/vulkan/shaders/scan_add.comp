@@ -2,6 +2,7 @@
 // elements of level k.
 #version 460
 #extension GL_GOOGLE_include_directive : require
+#extension GL_EXT_control_flow_attributes : require
 #include "common.glsl"
 
 layout(constant_id = 0) const uint kSaturate = 0u;
@@ -24,7 +25,7 @@ void main() {
   if (block == 0u || block >= div_up(n, SCAN_BLOCK)) return;  // block 0 adds 0
   const uint add = sums[pc.sums_offset + block];
   const uint first = block * SCAN_BLOCK + gl_LocalInvocationID.x * SCAN_ITEMS;
-  for (uint k = 0u; k < SCAN_ITEMS; ++k) {
+  [[unroll]] for (uint k = 0u; k < SCAN_ITEMS; ++k) {
     const uint idx = first + k;
     if (idx < n) {
       const uint s = data[pc.data_offset + idx] + add;

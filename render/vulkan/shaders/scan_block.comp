@@ -4,6 +4,7 @@
 // level k-1; the single block of the top level writes the grand total.
 #version 460
 #extension GL_GOOGLE_include_directive : require
+#extension GL_EXT_control_flow_attributes : require
 #include "common.glsl"
 
 // Saturating adds (clamp at 0xffffffff) for scans whose total may exceed 32 bits: tile instances.
@@ -38,7 +39,7 @@ void main() {
 
   uint v[SCAN_ITEMS];
   uint running = 0u;
-  for (uint k = 0u; k < SCAN_ITEMS; ++k) {
+  [[unroll]] for (uint k = 0u; k < SCAN_ITEMS; ++k) {
     const uint idx = first + k;
     const uint x = idx < n ? data[pc.data_offset + idx] : 0u;
     v[k] = running;
@@ -68,7 +69,7 @@ void main() {
   }
   barrier();
   const uint prefix = add(s_seg[tid / 8u], s_part[tid]);
-  for (uint k = 0u; k < SCAN_ITEMS; ++k) {
+  [[unroll]] for (uint k = 0u; k < SCAN_ITEMS; ++k) {
     const uint idx = first + k;
     if (idx < n) data[pc.data_offset + idx] = add(prefix, v[k]);
   }

@@ -46,6 +46,6 @@ void main() {
     counts[COUNT_TILE_HIST] = blocks * RADIX;
     Write(ARGS_TILE_SORT, blocks);
     WriteScan(ARGS_TILE_HIST_SCAN, blocks * RADIX);
-    Write(ARGS_IC_THREADS, div_up(ic, WG_SIZE));
+    Write(ARGS_IC_THREADS, div_up(ic, WG_SIZE * RANGE_ITEMS));
   }
 }

@@ -1,0 +1,29 @@
+#include "scene/init/voxel_grid.h"
+
+namespace streetsim {
+
+void VoxelGrid::Add(const Eigen::Vector3d& p, float reflectance) {
+  auto [it, inserted] = slot_.try_emplace(VoxelOf(p, inv_voxel_), static_cast<int>(sum_.size()));
+  if (inserted) {
+    sum_.push_back(p);
+    reflectance_sum_.push_back(reflectance);
+    count_.push_back(1);
+  } else {
+    sum_[it->second] += p;
+    reflectance_sum_[it->second] += reflectance;
+    ++count_[it->second];
+  }
+}
+
+void VoxelGrid::Extract(int min_hits, std::vector<Eigen::Vector3f>* points,
+                        std::vector<float>* reflectance) const {
+  points->clear();
+  if (reflectance) reflectance->clear();
+  for (size_t i = 0; i < sum_.size(); ++i) {
+    if (count_[i] < min_hits) continue;
+    points->push_back((sum_[i] / count_[i]).cast<float>());
+    if (reflectance) reflectance->push_back(reflectance_sum_[i] / count_[i]);
+  }
+}
+
+}  // namespace streetsim

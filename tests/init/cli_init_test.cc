@@ -1,0 +1,98 @@
+// `streetsim init` through the built binary, viewed with `streetsim render` from a logged camera.
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <algorithm>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+
+#include "gtest/gtest.h"
+#include "scene/gaussians/ply_io.h"
+
+namespace streetsim {
+namespace {
+
+const std::string kBinary = std::string(STREETSIM_BINARY_DIR) + "/bin/streetsim";
+const std::string kData = STREETSIM_DATA_DIR;
+const std::string kRaw = kData + "/kitti_raw/2011_09_26";
+
+struct Result {
+  int exit_code;
+  std::string err;
+};
+
+Result Exec(const std::string& args) {
+  // Per process: ctest runs the tests of this file in parallel processes.
+  const std::string err = testing::TempDir() + "/cli_init_stderr." + std::to_string(getpid()) + ".txt";
+  const int status = std::system((kBinary + " " + args + " >/dev/null 2>" + err).c_str());
+  std::ifstream f(err);
+  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1,
+          std::string((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>())};
+}
+
+double Psnr(const cv::Mat& a, const cv::Mat& b) {
+  cv::Mat da, db;
+  a.convertTo(da, CV_64F, 1 / 255.0);
+  b.convertTo(db, CV_64F, 1 / 255.0);
+  const cv::Mat d = da - db;
+  const double mse = cv::sum(d.mul(d))[0] + cv::sum(d.mul(d))[1] + cv::sum(d.mul(d))[2];
+  return 10 * std::log10(1.0 / (mse / (3.0 * a.total())));
+}
+
+TEST(CliInit, InitialSceneRendersLikeTheLoggedImage) {
+  const std::string dir = testing::TempDir() + "/cli_init_" + std::to_string(getpid());
+  std::filesystem::create_directories(dir);
+  const std::string ply = dir + "/init.ply", cam = dir + "/cam20.json", png = dir + "/render20.png";
+  Result r = Exec("init " + kRaw + " --out " + ply + " --frames 0:40 --voxel 0.1 --sky");
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  EXPECT_NE(r.err.find("Gaussians from lidar"), std::string::npos) << r.err;
+  absl::StatusOr<GaussianStore> store = ReadGaussianPly(ply);
+  ASSERT_TRUE(store.ok()) << store.status();
+  EXPECT_GT(store->size(), 50'000u);
+  r = Exec("log camera " + kRaw + " --frame 20 --out " + cam);
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  r = Exec("render --backend cpu --ply " + ply + " --camera " + cam + " --out-rgb " + png);
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  const cv::Mat render = cv::imread(png);
+  const cv::Mat image = cv::imread(kRaw + "/2011_09_26_drive_sfnd_sync/image_02/data/0000000020.png");
+  ASSERT_EQ(render.size(), image.size());
+  const double psnr = Psnr(render, image);
+  const double blank = Psnr(cv::Mat::zeros(image.size(), image.type()), image);
+  std::printf("streetsim render of the init from logged camera 20: PSNR %.2f dB (black image %.2f dB)\n", psnr, blank);
+  EXPECT_GT(psnr, blank + 4);
+}
+
+TEST(CliInit, CameraOnlyLogSaysItUsesRandomPoints) {
+  const std::string ply = testing::TempDir() + "/random." + std::to_string(getpid()) + ".ply";
+  const Result r = Exec("init " + kData + "/kitti_odometry_excerpt/seq_a --out " + ply + " --random-points 2000 --frames 0:5");
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  EXPECT_NE(r.err.find("random points in the camera frusta"), std::string::npos) << r.err;
+}
+
+TEST(CliInit, BadInputIsExitTwoAndOneLine) {
+  const std::string out = testing::TempDir() + "/x.ply";
+  for (const auto& [args, says] : std::vector<std::pair<std::string, std::string>>{
+           {"init", "expects exactly one log PATH"},
+           {"init " + kRaw, "--out is required"},
+           {"init " + kRaw + " --out x.png", "must be a .ply"},
+           {"init " + kRaw + " --out " + out + " --voxel -1", "--voxel must be a positive number"},
+           {"init " + kRaw + " --out " + out + " --frames 10", "--frames '10'"},
+           {"init " + kRaw + " --out " + out + " --frames 500:600", "no frames selected"},
+           {"init " + kData + "/nope --out " + out, "no such file or directory"},
+           {"init " + kRaw + " --out " + out + " --sky=1", "--sky takes no value"},
+       }) {
+    const Result r = Exec(args);
+    EXPECT_EQ(r.exit_code, 2) << args << ": " << r.err;
+    EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << args << ": " << r.err;
+    EXPECT_NE(r.err.find(says), std::string::npos) << args << ": " << r.err;
+  }
+}
+
+}  // namespace
+}  // namespace streetsim

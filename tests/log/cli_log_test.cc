@@ -1,0 +1,128 @@
+// `streetsim log ...` through the built binary: every shared log, and clean refusals.
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "gtest/gtest.h"
+#include "scene/log/poses_file.h"
+
+namespace streetsim {
+namespace {
+
+namespace fs = std::filesystem;
+const std::string kBinary = std::string(STREETSIM_BINARY_DIR) + "/bin/streetsim";
+const std::string kData = STREETSIM_DATA_DIR;
+
+struct Result {
+  int exit_code;
+  std::string out, err;
+};
+
+std::string Slurp(const std::string& p) {
+  std::ifstream f(p);
+  return std::string((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+}
+
+Result Exec(const std::string& args) {
+  // Per process: ctest runs the tests of this file in parallel processes.
+  const std::string tag = std::to_string(getpid());
+  const std::string out = testing::TempDir() + "/cli_log_stdout." + tag + ".txt";
+  const std::string err = testing::TempDir() + "/cli_log_stderr." + tag + ".txt";
+  const int status = std::system((kBinary + " " + args + " >" + out + " 2>" + err).c_str());
+  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, Slurp(out), Slurp(err)};
+}
+
+int Lines(const std::string& s) {
+  int n = 0;
+  for (char c : s) n += c == '\n';
+  return n;
+}
+
+void ExpectRefusal(const std::string& args, const std::string& says) {
+  const Result r = Exec(args);
+  EXPECT_EQ(r.exit_code, 2) << args << ": " << r.err;
+  EXPECT_EQ(Lines(r.err), 1) << args << ": " << r.err;
+  EXPECT_NE(r.err.find(says), std::string::npos) << args << ": " << r.err;
+}
+
+TEST(CliLog, InfoWorksOnEverySharedLog) {
+  const std::vector<std::pair<std::string, std::string>> logs = {
+      {"/kitti_raw/2011_09_26", "frames: 78"},
+      {"/kitti_raw/2011_09_26/2011_09_26_drive_sfnd_sync", "lidars: 1"},
+      {"/kitti_oxts/2011_09_26/2011_09_26_drive_0013_sync", "world: ENU at lat 49.013141873"},
+      {"/kitti_oxts/2011_09_26/2011_09_26_drive_0013_gps_loss", "42 of 144 oxts records bridged"},
+      {"/kitti_oxts/2011_09_26/2011_09_26_drive_0013_gps_loss/oxts", "frames: 144"},
+      {"/kitti_odometry_excerpt/seq_a", "frames: 51"},
+      {"/colmap_plush", "sparse points: 25784"},
+  };
+  for (const auto& [path, says] : logs) {
+    const Result r = Exec("log info " + kData + path);
+    EXPECT_EQ(r.exit_code, 0) << path << ": " << r.err;
+    EXPECT_NE(r.out.find(says), std::string::npos) << path << ":\n" << r.out;
+    EXPECT_NE(r.out.find("distance driven:"), std::string::npos);
+    EXPECT_NE(r.out.find("time span:"), std::string::npos);
+  }
+}
+
+TEST(CliLog, PreviewDrawsLidarOnTheImage) {
+  const std::string out = testing::TempDir() + "/" + std::to_string(getpid()) + "_preview.png";
+  fs::remove(out);
+  const Result r = Exec("log preview " + kData + "/kitti_raw/2011_09_26 --frame 10 --out " + out);
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  const cv::Mat drawn = cv::imread(out);
+  const cv::Mat original = cv::imread(kData + "/kitti_raw/2011_09_26/2011_09_26_drive_sfnd_sync/image_02/data/0000000010.png");
+  ASSERT_EQ(drawn.size(), original.size());
+  cv::Mat diff;
+  cv::absdiff(drawn, original, diff);
+  cv::cvtColor(diff, diff, cv::COLOR_BGR2GRAY);
+  // Thousands of LiDAR dots, and the sky (top rows, above the HDL-64's +2 degrees) untouched.
+  EXPECT_GT(cv::countNonZero(diff > 30), 20'000);
+  EXPECT_EQ(cv::countNonZero(diff(cv::Rect(0, 0, drawn.cols, 20)) > 30), 0);
+  // Camera-only logs draw their sparse points.
+  EXPECT_EQ(Exec("log preview " + kData + "/colmap_plush --frame 3 --out " + out).exit_code, 0);
+}
+
+TEST(CliLog, PosesFromLidarCompareWithTheProvidedEstimate) {
+  const std::string out = testing::TempDir() + "/" + std::to_string(getpid()) + "_poses.txt";
+  const Result r = Exec("log poses " + kData + "/kitti_raw/2011_09_26 --from-lidar --frames 0:12 --out " + out);
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  EXPECT_NE(r.out.find("against poses_velo_icp_estimated.txt"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("ms per scan"), std::string::npos);
+  absl::StatusOr<std::vector<Eigen::Isometry3d>> poses = ReadPosesFile(out);
+  ASSERT_TRUE(poses.ok()) << poses.status();
+  EXPECT_EQ(poses->size(), 12u);
+}
+
+TEST(CliLog, CameraWritesARenderableCamera) {
+  const std::string out = testing::TempDir() + "/" + std::to_string(getpid()) + "_cam.json";
+  const Result r = Exec("log camera " + kData + "/kitti_odometry_excerpt/seq_a --frame 5 --out " + out);
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  EXPECT_NE(Slurp(out).find("\"width\": 1226"), std::string::npos) << Slurp(out);
+}
+
+TEST(CliLog, BadInputIsExitTwoAndOneLine) {
+  ExpectRefusal("log", "expects a subcommand");
+  ExpectRefusal("log frobnicate x", "unknown subcommand");
+  ExpectRefusal("log info", "expects exactly one log PATH");
+  ExpectRefusal("log info " + kData + "/nope", "no such file or directory");
+  ExpectRefusal("log info " + kData + "/ply", "not a recognised log");
+  ExpectRefusal("log info " + kData + "/kitti_oxts/2011_09_26", "name one");
+  ExpectRefusal("log info " + kData + "/colmap_plush --bogus", "unknown flag --bogus");
+  ExpectRefusal("log preview " + kData + "/kitti_raw/2011_09_26 --frame 500 --out /tmp/x.png", "--frame 500 is not in 0..77");
+  ExpectRefusal("log preview " + kData + "/kitti_raw/2011_09_26 --frame 1", "--out is required");
+  ExpectRefusal("log preview " + kData + "/kitti_raw/2011_09_26 --out x.jpg", "must be a .png");
+  ExpectRefusal("log preview " + kData + "/kitti_odometry_excerpt/seq_a --out /tmp/x.png", "no LiDAR and no sparse points");
+  ExpectRefusal("log poses " + kData + "/kitti_odometry_excerpt/seq_a --from-lidar", "no LiDAR");
+  ExpectRefusal("log poses " + kData + "/kitti_raw/2011_09_26 --frames 5:2", "--frames '5:2'");
+}
+
+}  // namespace
+}  // namespace streetsim
