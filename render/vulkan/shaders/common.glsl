@@ -44,7 +44,9 @@
 // larger than 48 bytes, so scenes of maxStorageBufferRange / 48 Gaussians fit (lavapipe: 128 MiB,
 // 2.8M Gaussians) whatever the SH degree.
 #define SH_GROUP 4u
-uint ShGroupFloats(uint K, uint g) { return 3u * min(SH_GROUP, K > g * SH_GROUP ? K - g * SH_GROUP : 0u); }
+uint ShGroupFloats(uint K, uint g) {
+  return 3u * min(SH_GROUP, K > g * SH_GROUP ? K - g * SH_GROUP : 0u);
+}
 // Projected splat, 3 vec4 per Gaussian (written by project.comp for visible Gaussians only, by
 // Gaussian id; gather_sorted.comp copies them into depth order for the blender):
 //   [0] = (x, y, conic a, conic b), [1] = (conic c, opacity, r, g),
