@@ -10,6 +10,13 @@ namespace streetsim {
 int RunRenderCommand(const std::vector<std::string>& args);
 int RunPlyInfoCommand(const std::vector<std::string>& args);
 int RunDevicesCommand(const std::vector<std::string>& args);
+
+// Server and remote commands (docs/server.md).
+int RunServeCommand(const std::vector<std::string>& args);
+int RunScenesCommand(const std::vector<std::string>& args);
+int RunJobsCommand(const std::vector<std::string>& args);
+int RunRemoteRenderCommand(const std::vector<std::string>& args);  // render --server
+int RunReplayCommand(const std::vector<std::string>& args);
 int RunLogCommand(const std::vector<std::string>& args);   // log info|preview|poses|camera
 int RunInitCommand(const std::vector<std::string>& args);
 

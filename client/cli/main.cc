@@ -27,7 +27,12 @@ void PrintUsage(FILE* out) {
                "            streetsim log poses PATH [--from-lidar] [--frames A:B] [--out POSES.txt]\n"
                "            streetsim log camera PATH --frame N --out CAMERA.json [--camera NAME]\n"
                "  init      initial Gaussians of a log: streetsim init PATH --out SCENE.ply [--frames A:B[:S]]\n"
-               "              [--voxel M] [--max-range M] [--sky] [--drop-dynamic] [--random-points N]\n");
+               "              [--voxel M] [--max-range M] [--sky] [--drop-dynamic] [--random-points N]\n"
+               "  serve     run the gRPC simulator server (docs/server.md): streetsim serve\n"
+               "              [--listen HOST:PORT] [--data-root DIR] [--state-dir DIR] [--backend B] ...\n"
+               "  scenes    list a server's scenes: streetsim scenes --server HOST:PORT\n"
+               "  jobs      training jobs on a server: streetsim jobs list|train|watch|get|cancel ...\n"
+               "  replay    scripted replay through a server: streetsim replay SCENARIO.json\n");
 }
 
 }  // namespace
@@ -43,6 +48,10 @@ int main(int argc, char** argv) {
   if (command == "render") return streetsim::RunRenderCommand(args);
   if (command == "ply-info") return streetsim::RunPlyInfoCommand(args);
   if (command == "devices") return streetsim::RunDevicesCommand(args);
+  if (command == "serve") return streetsim::RunServeCommand(args);
+  if (command == "scenes") return streetsim::RunScenesCommand(args);
+  if (command == "jobs") return streetsim::RunJobsCommand(args);
+  if (command == "replay") return streetsim::RunReplayCommand(args);
   if (command == "log") return streetsim::RunLogCommand(args);
   if (command == "init") return streetsim::RunInitCommand(args);
   std::fprintf(stderr, "streetsim: unknown command '%s' (try streetsim --help)\n", command.c_str());

@@ -55,6 +55,9 @@ absl::Status CheckExtension(const std::string& path, std::initializer_list<const
 }  // namespace
 
 int RunRenderCommand(const std::vector<std::string>& argv) {
+  for (const std::string& a : argv) {
+    if (a == "--server" || a.rfind("--server=", 0) == 0) return RunRemoteRenderCommand(argv);
+  }
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(
       argv, {{"ply"}, {"camera"}, {"out-rgb"}, {"out-depth"}, {"out-alpha"}, {"background"},
              {"backend"}});

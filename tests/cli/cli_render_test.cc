@@ -1,5 +1,6 @@
 // The `streetsim render` contract, exercised through the real binary.
 #include <sys/wait.h>
+#include <unistd.h>
 
 #include <cstdio>
 #include <filesystem>
@@ -28,7 +29,8 @@ struct ProcessResult {
 };
 
 ProcessResult Exec(const std::string& args) {
-  const std::string err = testing::TempDir() + "/stderr.txt";
+  // Per process: ctest runs the tests of this file in parallel processes.
+  const std::string err = testing::TempDir() + "/cli_render_stderr_" + std::to_string(getpid()) + ".txt";
   const std::string cmd = kBinary + " " + args + " 2>" + err + " >/dev/null";
   const int status = std::system(cmd.c_str());
   std::ifstream f(err);

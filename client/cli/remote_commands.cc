@@ -1,0 +1,500 @@
+// Subcommands that talk to a streetsim server: scenes, jobs, render --server, replay.
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+#include <opencv2/videoio.hpp>
+
+#include "absl/strings/ascii.h"
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
+#include "client/cli/args.h"
+#include "client/cli/camera_json.h"
+#include "client/cli/commands.h"
+#include "client/cli/image_io.h"
+#include "client/cpp/streetsim_client.h"
+
+namespace streetsim {
+namespace {
+
+namespace fs = std::filesystem;
+namespace v1 = ::streetsim::v1;
+using nlohmann::json;
+
+int Fail(const char* command, int code, const absl::Status& status) {
+  std::string msg(status.message());
+  std::replace(msg.begin(), msg.end(), '\n', ' ');
+  std::fprintf(stderr, "streetsim %s: %s\n", command, msg.c_str());
+  return code;
+}
+
+// Bad input from the caller (exit 2) vs. a failure on the way (exit 1).
+int CodeFor(const absl::Status& s) {
+  switch (s.code()) {
+    case absl::StatusCode::kInvalidArgument:
+    case absl::StatusCode::kNotFound:
+    case absl::StatusCode::kOutOfRange:
+    case absl::StatusCode::kAlreadyExists:
+    case absl::StatusCode::kUnauthenticated:
+    case absl::StatusCode::kPermissionDenied:
+      return 2;
+    default:
+      return 1;
+  }
+}
+
+const std::vector<FlagSpec> kConnectionFlags = {{"server"}, {"token-file"}, {"tls-ca"}, {"timeout-s"}};
+
+std::vector<FlagSpec> WithConnection(std::vector<FlagSpec> flags) {
+  flags.insert(flags.end(), kConnectionFlags.begin(), kConnectionFlags.end());
+  return flags;
+}
+
+absl::StatusOr<std::unique_ptr<client::Client>> ConnectFromFlags(const ParsedArgs& args) {
+  client::ClientOptions o;
+  o.target = args.Get("server").value_or("127.0.0.1:50051");
+  if (auto f = args.Get("token-file")) {
+    std::ifstream in(*f);
+    if (!in) return absl::InvalidArgumentError(absl::StrCat("--token-file ", *f, ": cannot open"));
+    std::string line;
+    std::getline(in, line);
+    o.token = std::string(absl::StripAsciiWhitespace(line));
+  }
+  o.tls_root_cert_file = args.Get("tls-ca").value_or("");
+  if (auto t = args.Get("timeout-s")) {
+    if (!absl::SimpleAtod(*t, &o.timeout_s) || !(o.timeout_s > 0)) {
+      return absl::InvalidArgumentError("--timeout-s takes a positive number of seconds");
+    }
+  }
+  return client::Client::Connect(o);
+}
+
+absl::Status WriteBytesAtomic(const std::string& path, const std::string& bytes) {
+  const std::string tmp = path + ".tmp";
+  {
+    std::ofstream out(tmp, std::ios::binary);
+    out.write(bytes.data(), bytes.size());
+    if (!out) return absl::InternalError(absl::StrCat("cannot write ", path));
+  }
+  std::error_code ec;
+  fs::rename(tmp, path, ec);
+  if (ec) return absl::InternalError(absl::StrCat("cannot write ", path, ": ", ec.message()));
+  return absl::OkStatus();
+}
+
+absl::Status WriteFloatImage(const std::string& path, const v1::Image& image) {
+  absl::StatusOr<client::DecodedImage> d = client::DecodeImage(image);
+  if (!d.ok()) return d.status();
+  return WriteFloatTiff(path, d->width, d->height, d->f32);
+}
+
+const char* StateName(v1::JobState s) {
+  switch (s) {
+    case v1::JOB_STATE_QUEUED: return "queued";
+    case v1::JOB_STATE_RUNNING: return "running";
+    case v1::JOB_STATE_SUCCEEDED: return "succeeded";
+    case v1::JOB_STATE_FAILED: return "failed";
+    case v1::JOB_STATE_CANCELLED: return "cancelled";
+    default: return "unknown";
+  }
+}
+
+const char* SceneStateName(v1::SceneState s) {
+  switch (s) {
+    case v1::SCENE_STATE_AVAILABLE: return "available";
+    case v1::SCENE_STATE_LOADING: return "loading";
+    case v1::SCENE_STATE_READY: return "ready";
+    case v1::SCENE_STATE_FAILED: return "failed";
+    default: return "unknown";
+  }
+}
+
+void PrintJob(const v1::Job& j) {
+  std::printf("%s  %-9s  %-10s  scene %s  log %s  attempts %d%s%s\n", j.job_id().c_str(), StateName(j.state()),
+              j.progress().stage().c_str(), j.scene_name().c_str(), j.log_path().c_str(), j.attempts(),
+              j.error().empty() ? "" : "  error: ", j.error().c_str());
+}
+
+void ProgressBar(const v1::Job& j) {
+  const int width = 30;
+  const int filled = static_cast<int>(std::clamp(j.progress().fraction(), 0.0, 1.0) * width);
+  std::fprintf(stderr, "\r[%s%s] %3.0f%%  %-9s stage %-8s  %.1f s  %llu Gaussians", std::string(filled, '#').c_str(),
+               std::string(width - filled, '.').c_str(), 100 * j.progress().fraction(), StateName(j.state()),
+               j.progress().stage().c_str(), j.progress().elapsed_s(),
+               static_cast<unsigned long long>(j.progress().num_gaussians()));
+  std::fflush(stderr);
+}
+
+double Percentile(std::vector<double> v, double q) {
+  if (v.empty()) return 0;
+  std::sort(v.begin(), v.end());
+  return v[std::min(v.size() - 1, static_cast<size_t>(std::ceil(q * v.size())) - (q > 0 ? 1 : 0))];
+}
+
+absl::StatusOr<Eigen::Isometry3d> MatrixFromJson(const json& j) {
+  if (!j.is_array() || j.size() != 16) return absl::InvalidArgumentError("a pose is 16 numbers (row-major 4x4)");
+  Eigen::Matrix4d m;
+  for (int i = 0; i < 16; ++i) {
+    if (!j[i].is_number()) return absl::InvalidArgumentError("a pose is 16 numbers");
+    m(i / 4, i % 4) = j[i].get<double>();
+  }
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.linear() = m.topLeftCorner<3, 3>();
+  T.translation() = m.topRightCorner<3, 1>();
+  return T;
+}
+
+}  // namespace
+
+int RunScenesCommand(const std::vector<std::string>& argv) {
+  absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(argv, WithConnection({{"load"}, {"unload"}, {"info"}}));
+  if (!args.ok()) return Fail("scenes", 2, args.status());
+  absl::StatusOr<std::unique_ptr<client::Client>> c = ConnectFromFlags(*args);
+  if (!c.ok()) return Fail("scenes", 2, c.status());
+  if (auto name = args->Get("load")) {
+    absl::StatusOr<v1::Scene> s = (*c)->LoadScene(*name, true);
+    if (!s.ok()) return Fail("scenes", CodeFor(s.status()), s.status());
+    std::printf("%s: %s, %llu Gaussians\n", s->name().c_str(), SceneStateName(s->state()),
+                static_cast<unsigned long long>(s->num_gaussians()));
+    return 0;
+  }
+  if (auto name = args->Get("unload")) {
+    absl::Status s = (*c)->UnloadScene(*name);
+    return s.ok() ? 0 : Fail("scenes", CodeFor(s), s);
+  }
+  if (auto name = args->Get("info")) {
+    absl::StatusOr<v1::Scene> s = (*c)->GetScene(*name);
+    if (!s.ok()) return Fail("scenes", CodeFor(s.status()), s.status());
+    std::printf("%s\n", s->DebugString().c_str());
+    return 0;
+  }
+  absl::StatusOr<v1::ServerInfo> info = (*c)->GetServerInfo();
+  if (!info.ok()) return Fail("scenes", CodeFor(info.status()), info.status());
+  absl::StatusOr<std::vector<v1::Scene>> scenes = (*c)->ListScenes();
+  if (!scenes.ok()) return Fail("scenes", CodeFor(scenes.status()), scenes.status());
+  std::printf("server %s: api %s, %s (%s), %d sessions, %d scenes loaded\n", args->Get("server").value_or("127.0.0.1:50051").c_str(),
+              info->api_version().c_str(), info->backend().c_str(), info->device().c_str(),
+              info->load().sessions(), info->load().scenes_loaded());
+  std::printf("%-40s %-10s %-6s %-24s %s\n", "NAME", "STATE", "SOURCE", "TIME RANGE (us)", "CAMERAS");
+  for (const v1::Scene& s : *scenes) {
+    std::string range = s.has_time_range() ? absl::StrCat(s.start_time_us(), "..", s.end_time_us()) : "static";
+    std::string cams;
+    for (const auto& cam : s.rig().cameras()) {
+      absl::StrAppend(&cams, cams.empty() ? "" : ",", cam.sensor_id(), "(", cam.intrinsics().width(), "x",
+                      cam.intrinsics().height(), ")");
+    }
+    std::printf("%-40s %-10s %-6s %-24s %s\n", s.name().c_str(), SceneStateName(s.state()),
+                s.source() == "job" ? "job" : "data", range.c_str(), cams.c_str());
+  }
+  return 0;
+}
+
+int RunJobsCommand(const std::vector<std::string>& argv) {
+  absl::StatusOr<ParsedArgs> args =
+      ParsedArgs::Parse(argv, WithConnection({{"scene-name"}, {"request-id"}, {"watch", false}, {"max-iterations"}}));
+  if (!args.ok()) return Fail("jobs", 2, args.status());
+  const std::vector<std::string>& pos = args->positional();
+  const std::string verb = pos.empty() ? "list" : pos[0];
+  absl::StatusOr<std::unique_ptr<client::Client>> c = ConnectFromFlags(*args);
+  if (!c.ok()) return Fail("jobs", 2, c.status());
+  auto watch = [&](const std::string& id) -> int {
+    absl::StatusOr<v1::Job> done = (*c)->WatchJob(id, ProgressBar);
+    std::fprintf(stderr, "\n");
+    if (!done.ok()) return Fail("jobs", CodeFor(done.status()), done.status());
+    PrintJob(*done);
+    return done->state() == v1::JOB_STATE_SUCCEEDED ? 0 : 1;
+  };
+  if (verb == "list" && pos.size() <= 1) {
+    absl::StatusOr<std::vector<v1::Job>> jobs = (*c)->ListJobs();
+    if (!jobs.ok()) return Fail("jobs", CodeFor(jobs.status()), jobs.status());
+    for (const v1::Job& j : *jobs) PrintJob(j);
+    return 0;
+  }
+  if (verb == "train" && pos.size() == 2) {
+    v1::CreateTrainingJobRequest req;
+    req.set_log_path(pos[1]);
+    req.mutable_config()->set_scene_name(args->Get("scene-name").value_or(""));
+    req.set_request_id(args->Get("request-id").value_or(""));
+    if (auto it = args->Get("max-iterations")) {
+      int n;
+      if (!absl::SimpleAtoi(*it, &n) || n < 0) return Fail("jobs", 2, absl::InvalidArgumentError("--max-iterations takes an integer >= 0"));
+      req.mutable_config()->set_max_iterations(n);
+    }
+    absl::StatusOr<v1::Job> job = (*c)->CreateTrainingJob(req);
+    if (!job.ok()) return Fail("jobs", CodeFor(job.status()), job.status());
+    PrintJob(*job);
+    return args->Has("watch") ? watch(job->job_id()) : 0;
+  }
+  if ((verb == "watch" || verb == "cancel" || verb == "get") && pos.size() == 2) {
+    if (verb == "watch") return watch(pos[1]);
+    absl::StatusOr<v1::Job> job = verb == "cancel" ? (*c)->CancelJob(pos[1]) : (*c)->GetJob(pos[1]);
+    if (!job.ok()) return Fail("jobs", CodeFor(job.status()), job.status());
+    PrintJob(*job);
+    return 0;
+  }
+  return Fail("jobs", 2, absl::InvalidArgumentError(
+      "usage: streetsim jobs [list | train LOG_PATH [--scene-name N] [--request-id R] [--watch] | watch ID | "
+      "get ID | cancel ID] [--server HOST:PORT]"));
+}
+
+int RunRemoteRenderCommand(const std::vector<std::string>& argv) {
+  absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(
+      argv, WithConnection({{"ply"}, {"scene"}, {"camera"}, {"out-rgb"}, {"out-depth"}, {"out-alpha"},
+                            {"background"}, {"backend"}, {"time-us"}}));
+  if (!args.ok()) return Fail("render", 2, args.status());
+  if (!args->positional().empty()) {
+    return Fail("render", 2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
+  }
+  // --ply with --server names a .ply under the server's data root (its scene name is the path
+  // without ".ply"); --scene names any server scene.
+  std::string scene = args->Get("scene").value_or("");
+  if (auto ply = args->Get("ply")) {
+    if (!scene.empty()) return Fail("render", 2, absl::InvalidArgumentError("give --scene or --ply, not both"));
+    scene = *ply;
+    if (absl::EndsWith(scene, ".ply")) scene.resize(scene.size() - 4);
+  }
+  if (scene.empty()) return Fail("render", 2, absl::InvalidArgumentError("--scene NAME (or --ply) is required with --server"));
+  absl::StatusOr<std::string> camera_path = args->Required("camera");
+  if (!camera_path.ok()) return Fail("render", 2, camera_path.status());
+  absl::StatusOr<std::string> out_rgb = args->Required("out-rgb");
+  if (!out_rgb.ok()) return Fail("render", 2, out_rgb.status());
+  const std::string ext = absl::AsciiStrToLower(fs::path(*out_rgb).extension().string());
+  if (ext != ".png" && ext != ".jpg" && ext != ".jpeg") {
+    return Fail("render", 2, absl::InvalidArgumentError(absl::StrCat("--out-rgb ", *out_rgb, ": unsupported extension")));
+  }
+  absl::StatusOr<PinholeCamera> camera = ReadCameraJson(*camera_path);
+  if (!camera.ok()) return Fail("render", 2, camera.status());
+  v1::RenderRequest req;
+  req.set_scene(scene);
+  if (auto t = args->Get("time-us")) {
+    int64_t v;
+    if (!absl::SimpleAtoi(*t, &v)) return Fail("render", 2, absl::InvalidArgumentError("--time-us takes an integer"));
+    req.set_time_us(v);
+  }
+  v1::SensorRequest* sensor = req.add_sensors();
+  sensor->set_sensor_id("cli_camera");
+  v1::PinholeIntrinsics* k = sensor->mutable_intrinsics();
+  k->set_width(camera->width);
+  k->set_height(camera->height);
+  k->set_fx(camera->fx);
+  k->set_fy(camera->fy);
+  k->set_cx(camera->cx);
+  k->set_cy(camera->cy);
+  *sensor->mutable_t_ego_from_sensor() = client::ToPose(Eigen::Isometry3d::Identity());
+  *req.mutable_t_world_from_sensor() = client::ToPose(camera->T_world_from_cam);
+  v1::OutputSpec* out = req.mutable_outputs();
+  out->set_rgb(true);
+  out->set_rgb_encoding(ext == ".png" ? v1::IMAGE_ENCODING_PNG : v1::IMAGE_ENCODING_JPEG);
+  out->set_depth(args->Has("out-depth"));
+  out->set_alpha(args->Has("out-alpha"));
+  if (auto bg = args->Get("background")) {
+    const std::vector<std::string> parts = absl::StrSplit(*bg, ',');
+    double v[3];
+    if (parts.size() != 3 || !absl::SimpleAtod(parts[0], &v[0]) || !absl::SimpleAtod(parts[1], &v[1]) ||
+        !absl::SimpleAtod(parts[2], &v[2])) {
+      return Fail("render", 2, absl::InvalidArgumentError("--background takes R,G,B (three numbers in [0,1])"));
+    }
+    out->mutable_background_rgb()->set_x(v[0]);
+    out->mutable_background_rgb()->set_y(v[1]);
+    out->mutable_background_rgb()->set_z(v[2]);
+  }
+  if (args->Has("backend")) std::fprintf(stderr, "streetsim render: --backend is chosen by the server; ignored\n");
+  absl::StatusOr<std::unique_ptr<client::Client>> c = ConnectFromFlags(*args);
+  if (!c.ok()) return Fail("render", 2, c.status());
+  absl::StatusOr<v1::RenderResponse> resp = (*c)->Render(req);
+  if (!resp.ok()) return Fail("render", CodeFor(resp.status()), resp.status());
+  const v1::SensorFrame& f = resp->frames(0);
+  if (absl::Status s = WriteBytesAtomic(*out_rgb, f.rgb().data()); !s.ok()) return Fail("render", 1, s);
+  if (auto p = args->Get("out-depth")) {
+    if (absl::Status s = WriteFloatImage(*p, f.depth()); !s.ok()) return Fail("render", 1, s);
+  }
+  if (auto p = args->Get("out-alpha")) {
+    if (absl::Status s = WriteFloatImage(*p, f.alpha()); !s.ok()) return Fail("render", 1, s);
+  }
+  std::fprintf(stderr, "streetsim render: %dx%d of %s on the server: %.1f ms (queue %.1f, render %.1f, encode %.1f), %s\n",
+               f.rgb().width(), f.rgb().height(), scene.c_str(), resp->timings().total_ms(),
+               resp->timings().queue_ms(), resp->timings().render_ms(), resp->timings().encode_ms(),
+               resp->content_digest().c_str());
+  return 0;
+}
+
+// SCENARIO.json:
+// {"server": "127.0.0.1:50051", "scene": NAME, "num_steps": N, "step_dt_us": 100000,
+//  "start_time_us": T0 (optional), "sensors": ["cam_front"] (optional), "width": W, "height": H,
+//  "depth": false, "jpeg": false, "video_fps": 10,
+//  "ego": {"mode": "log", "lateral_offset_m": 0.0, "longitudinal_offset_m": 0.0}
+//       | {"mode": "poses", "poses": [[16 numbers], ...]}            (one per step)
+//       | {"mode": "straight", "start": [16 numbers], "speed_mps": 5}}
+// Writes OUT/frames/step_%05d_<sensor>.png|jpg, OUT/<sensor>.avi (MJPG) and OUT/summary.json.
+int RunReplayCommand(const std::vector<std::string>& argv) {
+  absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(argv, WithConnection({{"out"}}));
+  if (!args.ok()) return Fail("replay", 2, args.status());
+  if (args->positional().size() != 1) {
+    return Fail("replay", 2, absl::InvalidArgumentError("usage: streetsim replay SCENARIO.json --out DIR [--server HOST:PORT]"));
+  }
+  const std::string out_dir = args->Get("out").value_or("replay-out");
+  std::ifstream in(args->positional()[0]);
+  if (!in) return Fail("replay", 2, absl::InvalidArgumentError(absl::StrCat(args->positional()[0], ": cannot open")));
+  std::stringstream ss;
+  ss << in.rdbuf();
+  json sc = json::parse(ss.str(), nullptr, false);
+  if (sc.is_discarded() || !sc.is_object()) return Fail("replay", 2, absl::InvalidArgumentError("scenario is not a JSON object"));
+  ParsedArgs conn = *args;
+  if (!args->Has("server") && sc.contains("server")) {
+    std::vector<std::string> a = {"--server", sc["server"].get<std::string>()};
+    conn = *ParsedArgs::Parse(a, kConnectionFlags);
+  }
+  absl::StatusOr<std::unique_ptr<client::Client>> c = ConnectFromFlags(conn);
+  if (!c.ok()) return Fail("replay", 2, c.status());
+
+  const std::string scene = sc.value("scene", "");
+  const int num_steps = sc.value("num_steps", 0);
+  if (scene.empty() || num_steps <= 0 || num_steps > 100000) {
+    return Fail("replay", 2, absl::InvalidArgumentError("scenario needs \"scene\" and \"num_steps\" in 1..100000"));
+  }
+  absl::StatusOr<v1::Scene> info = (*c)->GetScene(scene);
+  if (!info.ok()) return Fail("replay", CodeFor(info.status()), info.status());
+  v1::CreateSessionRequest create;
+  create.set_scene(scene);
+  create.set_step_dt_us(sc.value("step_dt_us", int64_t{100000}));
+  create.set_start_time_us(sc.value("start_time_us", int64_t{0}));
+  create.set_seed(sc.value("seed", uint64_t{0}));
+  const bool jpeg = sc.value("jpeg", false);
+  create.mutable_outputs()->set_rgb(true);
+  create.mutable_outputs()->set_rgb_encoding(jpeg ? v1::IMAGE_ENCODING_JPEG : v1::IMAGE_ENCODING_PNG);
+  create.mutable_outputs()->set_depth(sc.value("depth", false));
+  create.mutable_outputs()->set_depth_encoding(v1::DEPTH_ENCODING_PNG16);
+  std::vector<std::string> sensor_ids;
+  if (sc.contains("sensors")) sensor_ids = sc["sensors"].get<std::vector<std::string>>();
+  if (sensor_ids.empty()) {
+    for (const auto& cam : info->rig().cameras()) sensor_ids.push_back(cam.sensor_id());
+  }
+  for (const std::string& id : sensor_ids) {
+    v1::SensorRequest* s = create.add_sensors();
+    s->set_sensor_id(id);
+    s->set_width(sc.value("width", 0));
+    s->set_height(sc.value("height", 0));
+  }
+  // Ego poses per step.
+  const json ego = sc.value("ego", json{{"mode", "log"}});
+  const std::string mode = ego.value("mode", "log");
+  std::vector<Eigen::Isometry3d> poses;
+  const int64_t dt = create.step_dt_us();
+  int64_t t0 = create.start_time_us() == 0 && info->has_time_range() ? info->start_time_us() : create.start_time_us();
+  if (mode == "log") {
+    if (info->ego_trajectory_size() == 0) {
+      return Fail("replay", 2, absl::InvalidArgumentError("ego mode \"log\" needs a scene with an ego trajectory"));
+    }
+    const double lat = ego.value("lateral_offset_m", 0.0), lon = ego.value("longitudinal_offset_m", 0.0);
+    const auto& traj = info->ego_trajectory();
+    for (int k = 0; k < num_steps; ++k) {
+      const int64_t t = t0 + k * dt;
+      int i = 0;
+      while (i + 1 < traj.size() && traj[i + 1].time_us() <= t) ++i;
+      Eigen::Isometry3d T = client::FromPose(traj[i].t_world_from_ego());
+      if (i + 1 < traj.size() && t > traj[i].time_us()) {
+        const double a = double(t - traj[i].time_us()) / double(traj[i + 1].time_us() - traj[i].time_us());
+        const Eigen::Isometry3d B = client::FromPose(traj[i + 1].t_world_from_ego());
+        T.translation() = (1 - a) * T.translation() + a * B.translation();
+        T.linear() = Eigen::Quaterniond(T.rotation()).slerp(a, Eigen::Quaterniond(B.rotation())).toRotationMatrix();
+      }
+      T.translation() += T.linear() * Eigen::Vector3d(lon, lat, 0);  // offsets in the ego frame (FLU)
+      poses.push_back(T);
+    }
+  } else if (mode == "poses") {
+    for (const json& p : ego.value("poses", json::array())) {
+      absl::StatusOr<Eigen::Isometry3d> T = MatrixFromJson(p);
+      if (!T.ok()) return Fail("replay", 2, T.status());
+      poses.push_back(*T);
+    }
+    if (static_cast<int>(poses.size()) < num_steps) {
+      return Fail("replay", 2, absl::InvalidArgumentError("ego.poses has fewer poses than num_steps"));
+    }
+  } else if (mode == "straight") {
+    absl::StatusOr<Eigen::Isometry3d> start = MatrixFromJson(ego.value("start", json::array()));
+    if (!start.ok()) return Fail("replay", 2, start.status());
+    const double v = ego.value("speed_mps", 5.0);
+    for (int k = 0; k < num_steps; ++k) {
+      Eigen::Isometry3d T = *start;
+      T.translation() += start->linear() * Eigen::Vector3d(v * k * dt * 1e-6, 0, 0);
+      poses.push_back(T);
+    }
+  } else {
+    return Fail("replay", 2, absl::InvalidArgumentError("ego.mode must be log, poses or straight"));
+  }
+  *create.mutable_initial_t_world_from_ego() = client::ToPose(poses[0]);
+
+  absl::StatusOr<v1::Session> session = (*c)->CreateSession(create);
+  if (!session.ok()) return Fail("replay", CodeFor(session.status()), session.status());
+  std::error_code ec;
+  fs::create_directories(fs::path(out_dir) / "frames", ec);
+  if (ec) return Fail("replay", 2, absl::InvalidArgumentError(absl::StrCat("--out ", out_dir, ": ", ec.message())));
+  std::map<std::string, cv::VideoWriter> videos;
+  const double fps = sc.value("video_fps", 1e6 / dt);
+  json steps = json::array();
+  std::vector<double> latencies;
+  for (int k = 0; k < num_steps; ++k) {
+    v1::StepRequest step;
+    step.set_session_id(session->session_id());
+    step.set_step_index(k);
+    *step.mutable_t_world_from_ego() = client::ToPose(poses[k]);
+    const auto t_start = std::chrono::steady_clock::now();
+    absl::StatusOr<v1::StepResponse> r = (*c)->Step(step);
+    if (!r.ok() && absl::IsUnavailable(r.status())) r = (*c)->Step(step);  // idempotent retry
+    const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t_start).count();
+    if (!r.ok()) {
+      (void)(*c)->CloseSession(session->session_id());
+      return Fail("replay", CodeFor(r.status()), r.status());
+    }
+    latencies.push_back(ms);
+    json frames = json::object();
+    for (const v1::SensorFrame& f : r->frames()) {
+      const std::string name = absl::StrCat("step_", std::string(5 - std::min<size_t>(5, std::to_string(k).size()), '0'),
+                                            k, "_", f.sensor_id(), jpeg ? ".jpg" : ".png");
+      if (absl::Status s = WriteBytesAtomic((fs::path(out_dir) / "frames" / name).string(), f.rgb().data()); !s.ok()) {
+        return Fail("replay", 1, s);
+      }
+      frames[f.sensor_id()] = {{"file", "frames/" + name}, {"digest", f.rgb().digest()}};
+      std::vector<uchar> buf(f.rgb().data().begin(), f.rgb().data().end());
+      cv::Mat bgr = cv::imdecode(buf, cv::IMREAD_COLOR);
+      cv::VideoWriter& vw = videos[f.sensor_id()];
+      if (!vw.isOpened() && !bgr.empty()) {
+        vw.open((fs::path(out_dir) / (f.sensor_id() + ".avi")).string(), cv::VideoWriter::fourcc('M', 'J', 'P', 'G'),
+                fps, bgr.size());
+      }
+      if (vw.isOpened() && !bgr.empty()) vw.write(bgr);
+    }
+    const auto& tr = r->t_world_from_ego().translation_m();
+    steps.push_back({{"step_index", r->step_index()}, {"time_us", r->time_us()},
+                     {"ego_xyz_m", {tr.x(), tr.y(), tr.z()}}, {"latency_ms", ms},
+                     {"server_total_ms", r->timings().total_ms()}, {"content_digest", r->content_digest()},
+                     {"frames", frames}});
+  }
+  for (auto& [id, vw] : videos) vw.release();
+  (void)(*c)->CloseSession(session->session_id());
+  double mean = 0;
+  for (double l : latencies) mean += l / latencies.size();
+  json summary = {{"scenario", args->positional()[0]}, {"scene", scene}, {"session", session->session_id()},
+                  {"num_steps", num_steps}, {"step_dt_us", dt}, {"sensors", sensor_ids},
+                  {"step_latency_ms", {{"mean", mean}, {"p50", Percentile(latencies, 0.5)},
+                                       {"p99", Percentile(latencies, 0.99)}}},
+                  {"videos", json::array()}, {"steps", steps}};
+  for (auto& [id, vw] : videos) summary["videos"].push_back(id + ".avi");
+  if (absl::Status s = WriteBytesAtomic((fs::path(out_dir) / "summary.json").string(), summary.dump(1)); !s.ok()) {
+    return Fail("replay", 1, s);
+  }
+  std::fprintf(stderr, "streetsim replay: %d steps of %s, step latency p50 %.1f ms p99 %.1f ms; wrote %s/\n", num_steps,
+               scene.c_str(), Percentile(latencies, 0.5), Percentile(latencies, 0.99), out_dir.c_str());
+  return 0;
+}
+
+}  // namespace streetsim

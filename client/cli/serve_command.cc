@@ -1,0 +1,70 @@
+// streetsim serve: run the gRPC server (docs/server.md) until SIGTERM / SIGINT.
+#include <algorithm>
+#include <cstdio>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
+#include "client/cli/args.h"
+#include "client/cli/commands.h"
+#include "server/server_main.h"
+
+namespace streetsim {
+namespace {
+
+int Fail(int code, const absl::Status& status) {
+  std::fprintf(stderr, "streetsim serve: %s\n", std::string(status.message()).c_str());
+  return code;
+}
+
+template <typename T>
+absl::Status ParseInt(const ParsedArgs& args, const std::string& flag, T min, T* out) {
+  if (auto v = args.Get(flag)) {
+    T n;
+    if (!absl::SimpleAtoi(*v, &n) || n < min) {
+      return absl::InvalidArgumentError(absl::StrCat("--", flag, " '", *v, "': expected an integer >= ", min));
+    }
+    *out = n;
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+int RunServeCommand(const std::vector<std::string>& argv) {
+  absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(
+      argv, {{"listen"}, {"data-root"}, {"state-dir"}, {"backend"}, {"tls-cert"}, {"tls-key"},
+             {"auth-token-file"}, {"max-sessions"}, {"max-queued-renders"}, {"max-image-side"},
+             {"session-lease-s"}, {"max-message-mb"}, {"init-command"}});
+  if (!args.ok()) return Fail(2, args.status());
+  if (!args->positional().empty()) {
+    return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
+  }
+  server::ServerOptions o;
+  o.listen = args->Get("listen").value_or(o.listen);
+  if (o.listen.rfind(':') == std::string::npos) return Fail(2, absl::InvalidArgumentError("--listen takes HOST:PORT"));
+  o.data_root = args->Get("data-root").value_or(o.data_root);
+  o.state_dir = args->Get("state-dir").value_or(o.state_dir);
+  absl::StatusOr<Backend> backend = ParseBackend(args->Get("backend").value_or("auto"));
+  if (!backend.ok()) return Fail(2, backend.status());
+  o.backend = *backend;
+  o.tls_cert_file = args->Get("tls-cert").value_or("");
+  o.tls_key_file = args->Get("tls-key").value_or("");
+  o.auth_token_file = args->Get("auth-token-file").value_or("");
+  int side = 0;
+  int64_t lease_s = 0, message_mb = 0;
+  for (const absl::Status& s : {ParseInt(*args, "max-sessions", 1, &o.limits.max_sessions),
+                                ParseInt(*args, "max-queued-renders", 0, &o.limits.max_queued_renders),
+                                ParseInt(*args, "max-image-side", 1, &side),
+                                ParseInt<int64_t>(*args, "session-lease-s", 1, &lease_s),
+                                ParseInt<int64_t>(*args, "max-message-mb", 1, &message_mb)}) {
+    if (!s.ok()) return Fail(2, s);
+  }
+  if (side > 0) o.limits.max_image_width = o.limits.max_image_height = std::min(side, kMaxImageSide);
+  if (lease_s > 0) o.limits.session_lease_ms = lease_s * 1000;
+  if (message_mb > 0) o.limits.max_message_bytes = std::min<int64_t>(message_mb, 2000) << 20;
+  if (auto cmd = args->Get("init-command")) o.init_command = absl::StrSplit(*cmd, ' ', absl::SkipEmpty());
+  return server::RunServerUntilSignal(o);
+}
+
+}  // namespace streetsim

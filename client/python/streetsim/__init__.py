@@ -1,0 +1,20 @@
+"""Python client for the streetsim gRPC simulator server (API streetsim.v1).
+
+The generated stubs (streetsim/v1/*_pb2.py) are produced at build time into
+<build>/python/streetsim; put both directories on PYTHONPATH:
+
+    PYTHONPATH=client/python:build/python /usr/bin/python3 -c "import streetsim"
+"""
+# The package spans client/python/streetsim (this code) and <build>/python/streetsim (stubs).
+__path__ = __import__("pkgutil").extend_path(__path__, __name__)
+
+from streetsim.client import (  # noqa: E402,F401
+    Client,
+    Frame,
+    Session,
+    StreetsimError,
+    pose_from_matrix,
+    matrix_from_pose,
+)
+
+__all__ = ["Client", "Frame", "Session", "StreetsimError", "pose_from_matrix", "matrix_from_pose"]

@@ -1,0 +1,141 @@
+#include "server/render_core.h"
+
+#include <chrono>
+#include <thread>
+
+#include <grpcpp/server_context.h>
+
+#include "absl/strings/str_cat.h"
+#include "server/digest.h"
+#include "server/image_encoding.h"
+
+namespace streetsim::server {
+namespace {
+
+double MsSince(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+}
+
+}  // namespace
+
+CancelCheck ContextCancelCheck(const grpc::ServerContextBase* ctx) {
+  return [ctx]() -> absl::Status {
+    if (ctx->deadline() < std::chrono::system_clock::now()) {
+      return absl::DeadlineExceededError("deadline exceeded");
+    }
+    if (ctx->IsCancelled()) return absl::CancelledError("cancelled by the client");
+    return absl::OkStatus();
+  };
+}
+
+RenderCore::RenderCore(std::unique_ptr<Engine> engine, const ServerLimits& limits, int debug_delay_ms)
+    : engine_(std::move(engine)), limits_(limits), debug_delay_ms_(debug_delay_ms) {}
+
+std::string RenderCore::backend_name() const { return std::string(BackendName(engine_->backend())); }
+std::string RenderCore::device_name() const { return engine_->device_name(); }
+
+absl::StatusOr<std::unique_ptr<DeviceScene>> RenderCore::Upload(const GaussianStore& store) {
+  std::lock_guard<std::timed_mutex> lock(engine_mu_);
+  return engine_->Upload(store);
+}
+
+absl::StatusOr<RenderResult> RenderCore::Render(const SceneField& field, int64_t time_us,
+                                                const std::vector<CameraView>& views,
+                                                const v1::OutputSpec& outputs,
+                                                const CancelCheck& cancel) {
+  const auto t0 = std::chrono::steady_clock::now();
+  // Queue bound: one rendering + max_queued_renders waiting.
+  if (in_flight_.fetch_add(1) >= limits_.max_queued_renders + 1) {
+    in_flight_.fetch_sub(1);
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "render queue full (", limits_.max_queued_renders, " waiting); retry later"));
+  }
+  struct Release {
+    std::atomic<int>* n;
+    ~Release() { n->fetch_sub(1); }
+  } release{&in_flight_};
+
+  std::unique_lock<std::timed_mutex> lock(engine_mu_, std::defer_lock);
+  while (!lock.try_lock_for(std::chrono::milliseconds(5))) {
+    if (absl::Status s = cancel(); !s.ok()) return s;
+  }
+  RenderResult result;
+  result.timings.set_queue_ms(MsSince(t0));
+  if (absl::Status s = cancel(); !s.ok()) return s;
+
+  if (debug_delay_ms_ > 0) {  // test hook: a slow renderer, cancellable like a real one
+    const auto until = std::chrono::steady_clock::now() + std::chrono::milliseconds(debug_delay_ms_);
+    while (std::chrono::steady_clock::now() < until) {
+      if (absl::Status s = cancel(); !s.ok()) return s;
+      std::this_thread::sleep_for(std::chrono::milliseconds(2));
+    }
+  }
+
+  absl::StatusOr<const DeviceScene*> scene = field.At(time_us);
+  if (!scene.ok()) return scene.status();
+  RenderOptions options;
+  options.want_depth = outputs.depth();
+  options.want_alpha = outputs.alpha();
+  if (outputs.has_background_rgb()) {
+    options.background = Eigen::Vector3f(outputs.background_rgb().x(), outputs.background_rgb().y(),
+                                         outputs.background_rgb().z());
+  }
+  std::vector<RenderOutput> rendered(views.size());
+  const auto t_render = std::chrono::steady_clock::now();
+  for (size_t i = 0; i < views.size(); ++i) {
+    if (absl::Status s = cancel(); !s.ok()) return s;
+    PinholeCamera cam;
+    cam.width = views[i].intrinsics.width;
+    cam.height = views[i].intrinsics.height;
+    cam.fx = views[i].intrinsics.fx;
+    cam.fy = views[i].intrinsics.fy;
+    cam.cx = views[i].intrinsics.cx;
+    cam.cy = views[i].intrinsics.cy;
+    cam.T_world_from_cam = views[i].T_world_from_sensor;
+    if (absl::Status s = cam.Validate(); !s.ok()) {
+      return absl::InvalidArgumentError(absl::StrCat("sensor ", views[i].sensor_id, ": ", s.message()));
+    }
+    if (absl::Status s = engine_->Render(**scene, cam, options, &rendered[i]); !s.ok()) {
+      return absl::InternalError(absl::StrCat("render failed: ", s.message()));
+    }
+  }
+  result.timings.set_render_ms(MsSince(t_render));
+  lock.unlock();
+
+  if (absl::Status s = cancel(); !s.ok()) return s;
+  const auto t_encode = std::chrono::steady_clock::now();
+  Fnv1a64 digest;
+  for (size_t i = 0; i < views.size(); ++i) {
+    const RenderOutput& r = rendered[i];
+    v1::SensorFrame frame;
+    frame.set_sensor_id(views[i].sensor_id);
+    IntrinsicsToProto(views[i].intrinsics, frame.mutable_intrinsics());
+    PoseToProto(views[i].T_world_from_sensor, frame.mutable_t_world_from_sensor());
+    frame.set_num_visible_gaussians(r.stats.num_visible);
+    if (outputs.rgb()) {
+      if (absl::Status s = EncodeRgb(r.width, r.height, r.rgb, outputs.rgb_encoding(),
+                                     outputs.jpeg_quality(), frame.mutable_rgb());
+          !s.ok()) return s;
+      digest.Update(frame.rgb().data());
+    }
+    if (outputs.depth()) {
+      if (absl::Status s = EncodeDepth(r.width, r.height, r.depth, outputs.depth_encoding(),
+                                       frame.mutable_depth());
+          !s.ok()) return s;
+      digest.Update(frame.depth().data());
+    }
+    if (outputs.alpha()) {
+      if (absl::Status s = EncodeAlpha(r.width, r.height, r.alpha, outputs.alpha_encoding(),
+                                       frame.mutable_alpha());
+          !s.ok()) return s;
+      digest.Update(frame.alpha().data());
+    }
+    result.frames.push_back(std::move(frame));
+  }
+  result.timings.set_encode_ms(MsSince(t_encode));
+  result.timings.set_total_ms(MsSince(t0));
+  result.content_digest = digest.Hex();
+  return result;
+}
+
+}  // namespace streetsim::server

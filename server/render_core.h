@@ -1,0 +1,69 @@
+// The one gate to the render engine: serialises engine calls, bounds the queue
+// (RESOURCE_EXHAUSTED beyond Limits.max_queued_renders), checks deadline/cancellation between
+// stages (waiting, each camera, encoding) and encodes outputs.
+#pragma once
+
+#include <atomic>
+#include <functional>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <vector>
+
+#include <Eigen/Geometry>
+
+#include "absl/status/statusor.h"
+#include "render/engine.h"
+#include "server/limits.h"
+#include "server/proto_convert.h"
+#include "server/scene_field.h"
+#include "streetsim/v1/common.pb.h"
+
+namespace grpc {
+class ServerContext;
+class ServerContextBase;
+}
+
+namespace streetsim::server {
+
+// Returns OK to go on, DEADLINE_EXCEEDED or CANCELLED to stop.
+using CancelCheck = std::function<absl::Status()>;
+CancelCheck ContextCancelCheck(const grpc::ServerContextBase* ctx);
+
+struct CameraView {
+  std::string sensor_id;
+  Intrinsics intrinsics;
+  Eigen::Isometry3d T_world_from_sensor = Eigen::Isometry3d::Identity();
+};
+
+struct RenderResult {
+  std::vector<v1::SensorFrame> frames;
+  v1::Timings timings;
+  std::string content_digest;
+};
+
+class RenderCore {
+ public:
+  RenderCore(std::unique_ptr<Engine> engine, const ServerLimits& limits, int debug_delay_ms);
+
+  // Engine::Upload under the engine lock.
+  absl::StatusOr<std::unique_ptr<DeviceScene>> Upload(const GaussianStore& store);
+
+  // Renders every view of `field` at time_us; all or nothing. `outputs` already validated.
+  absl::StatusOr<RenderResult> Render(const SceneField& field, int64_t time_us,
+                                      const std::vector<CameraView>& views,
+                                      const v1::OutputSpec& outputs, const CancelCheck& cancel);
+
+  int in_flight() const { return in_flight_.load(); }
+  std::string backend_name() const;
+  std::string device_name() const;
+
+ private:
+  std::unique_ptr<Engine> engine_;
+  ServerLimits limits_;
+  int debug_delay_ms_;
+  std::timed_mutex engine_mu_;
+  std::atomic<int> in_flight_{0};
+};
+
+}  // namespace streetsim::server

@@ -1,0 +1,161 @@
+#include "server/render_service.h"
+
+#include "absl/strings/str_cat.h"
+#include "server/request_validation.h"
+#include "server/status_mapping.h"
+
+namespace streetsim::server {
+namespace {
+
+enum class PoseKind { kEgo, kSensor, kLog };
+
+struct PosePlan {
+  PoseKind kind = PoseKind::kLog;
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+};
+
+template <typename Msg>
+absl::StatusOr<PosePlan> PlanPose(const Msg& msg, const std::string& field) {
+  PosePlan plan;
+  if (msg.has_t_world_from_ego()) {
+    absl::StatusOr<Eigen::Isometry3d> T = PoseFromProto(msg.t_world_from_ego(), field + "T_world_from_ego");
+    if (!T.ok()) return T.status();
+    plan.kind = PoseKind::kEgo;
+    plan.T = *T;
+  } else if (msg.has_t_world_from_sensor()) {
+    absl::StatusOr<Eigen::Isometry3d> T = PoseFromProto(msg.t_world_from_sensor(), field + "T_world_from_sensor");
+    if (!T.ok()) return T.status();
+    plan.kind = PoseKind::kSensor;
+    plan.T = *T;
+  }
+  return plan;
+}
+
+absl::StatusOr<std::vector<CameraView>> Views(const SceneManifest& manifest,
+                                              const std::vector<RigCamera>& cameras,
+                                              const PosePlan& plan, int64_t time_us) {
+  switch (plan.kind) {
+    case PoseKind::kEgo:
+      return ViewsAt(cameras, plan.T);
+    case PoseKind::kSensor: {
+      if (cameras.size() != 1) {
+        return absl::InvalidArgumentError("T_world_from_sensor needs exactly one sensor in the request");
+      }
+      return std::vector<CameraView>{{cameras[0].sensor_id, cameras[0].intrinsics, plan.T}};
+    }
+    case PoseKind::kLog: {
+      std::optional<Eigen::Isometry3d> T = manifest.EgoPoseAt(time_us);
+      if (!T) {
+        return absl::InvalidArgumentError(
+            "no pose given (T_world_from_ego or T_world_from_sensor) and the scene has no ego trajectory");
+      }
+      return ViewsAt(cameras, *T);
+    }
+  }
+  return absl::InternalError("unreachable");
+}
+
+absl::Status CheckSize(const google::protobuf::Message& msg, const ServerLimits& limits) {
+  if (static_cast<int64_t>(msg.ByteSizeLong()) > limits.max_message_bytes) {
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "response of ", msg.ByteSizeLong(), " bytes exceeds the server's max message size (",
+        limits.max_message_bytes, "); ask for PNG/JPEG, fewer sensors or a smaller resolution"));
+  }
+  return absl::OkStatus();
+}
+
+void FillResponse(RenderResult&& r, const std::string& scene, int64_t time_us, v1::RenderResponse* resp) {
+  resp->set_scene(scene);
+  resp->set_time_us(time_us);
+  for (v1::SensorFrame& f : r.frames) *resp->add_frames() = std::move(f);
+  *resp->mutable_timings() = r.timings;
+  resp->set_content_digest(r.content_digest);
+}
+
+}  // namespace
+
+std::vector<CameraView> ViewsAt(const std::vector<RigCamera>& cameras, const Eigen::Isometry3d& T_world_from_ego) {
+  std::vector<CameraView> views;
+  for (const RigCamera& c : cameras) {
+    views.push_back({c.sensor_id, c.intrinsics, T_world_from_ego * c.T_ego_from_cam});
+  }
+  return views;
+}
+
+grpc::Status RenderServiceImpl::Render(grpc::ServerContext* ctx, const v1::RenderRequest* req,
+                                       v1::RenderResponse* resp) {
+  absl::Status status = [&]() -> absl::Status {
+    if (absl::Status s = deps_->auth.Check(*ctx); !s.ok()) return s;
+    if (req->scene().empty()) return absl::InvalidArgumentError("scene is empty");
+    absl::StatusOr<v1::OutputSpec> outputs = ValidateOutputs(req->outputs());
+    if (!outputs.ok()) return outputs.status();
+    absl::StatusOr<PosePlan> plan = PlanPose(*req, "");
+    if (!plan.ok()) return plan.status();
+    absl::StatusOr<std::shared_ptr<const SceneManifest>> manifest = deps_->scenes->Manifest(req->scene());
+    if (!manifest.ok()) return manifest.status();
+    if (absl::Status s = CheckTime(**manifest, req->time_us()); !s.ok()) return s;
+    absl::StatusOr<std::vector<RigCamera>> cams = ResolveSensors(**manifest, req->sensors(), deps_->limits);
+    if (!cams.ok()) return cams.status();
+    absl::StatusOr<std::vector<CameraView>> views = Views(**manifest, *cams, *plan, req->time_us());
+    if (!views.ok()) return views.status();
+    const CancelCheck cancel = ContextCancelCheck(ctx);
+    absl::StatusOr<SceneHandle> scene = deps_->scenes->Acquire(req->scene(), cancel);
+    if (!scene.ok()) return scene.status();
+    absl::StatusOr<RenderResult> r = deps_->core->Render(*scene->scene->field, req->time_us(), *views, *outputs, cancel);
+    if (!r.ok()) return r.status();
+    FillResponse(std::move(*r), req->scene(), req->time_us(), resp);
+    return CheckSize(*resp, deps_->limits);
+  }();
+  if (!status.ok()) resp->Clear();
+  return ToGrpcStatus(status);
+}
+
+grpc::Status RenderServiceImpl::RenderTrajectory(grpc::ServerContext* ctx, const v1::RenderTrajectoryRequest* req,
+                                                 grpc::ServerWriter<v1::TrajectoryFrame>* writer) {
+  absl::Status status = [&]() -> absl::Status {
+    if (absl::Status s = deps_->auth.Check(*ctx); !s.ok()) return s;
+    if (req->scene().empty()) return absl::InvalidArgumentError("scene is empty");
+    if (req->points().empty()) return absl::InvalidArgumentError("points is empty");
+    if (req->points_size() > deps_->limits.max_trajectory_poses) {
+      return absl::InvalidArgumentError(absl::StrCat("too many points (", req->points_size(), " > ",
+                                                     deps_->limits.max_trajectory_poses, ")"));
+    }
+    absl::StatusOr<v1::OutputSpec> outputs = ValidateOutputs(req->outputs());
+    if (!outputs.ok()) return outputs.status();
+    absl::StatusOr<std::shared_ptr<const SceneManifest>> manifest = deps_->scenes->Manifest(req->scene());
+    if (!manifest.ok()) return manifest.status();
+    absl::StatusOr<std::vector<RigCamera>> cams = ResolveSensors(**manifest, req->sensors(), deps_->limits);
+    if (!cams.ok()) return cams.status();
+    // Validate every point before rendering any.
+    std::vector<std::vector<CameraView>> all_views;
+    for (int i = 0; i < req->points_size(); ++i) {
+      const v1::TrajectoryPoint& p = req->points(i);
+      const std::string field = absl::StrCat("points[", i, "].");
+      if (absl::Status s = CheckTime(**manifest, p.time_us()); !s.ok()) {
+        return absl::OutOfRangeError(absl::StrCat(field, "time_us: ", s.message()));
+      }
+      absl::StatusOr<PosePlan> plan = PlanPose(p, field);
+      if (!plan.ok()) return plan.status();
+      absl::StatusOr<std::vector<CameraView>> views = Views(**manifest, *cams, *plan, p.time_us());
+      if (!views.ok()) return absl::InvalidArgumentError(absl::StrCat(field, " ", views.status().message()));
+      all_views.push_back(std::move(*views));
+    }
+    const CancelCheck cancel = ContextCancelCheck(ctx);
+    absl::StatusOr<SceneHandle> scene = deps_->scenes->Acquire(req->scene(), cancel);
+    if (!scene.ok()) return scene.status();
+    for (int i = 0; i < req->points_size(); ++i) {
+      absl::StatusOr<RenderResult> r =
+          deps_->core->Render(*scene->scene->field, req->points(i).time_us(), all_views[i], *outputs, cancel);
+      if (!r.ok()) return r.status();
+      v1::TrajectoryFrame frame;
+      frame.set_index(i);
+      FillResponse(std::move(*r), req->scene(), req->points(i).time_us(), frame.mutable_response());
+      if (absl::Status s = CheckSize(frame, deps_->limits); !s.ok()) return s;
+      if (!writer->Write(frame)) return absl::CancelledError("client went away");
+    }
+    return absl::OkStatus();
+  }();
+  return ToGrpcStatus(status);
+}
+
+}  // namespace streetsim::server

@@ -1,0 +1,303 @@
+#include "server/scene_registry.h"
+
+#include <chrono>
+#include <filesystem>
+#include <system_error>
+
+#include "absl/strings/str_cat.h"
+#include "render/common/log.h"
+#include "scene/gaussians/ply_io.h"
+#include "server/path_confinement.h"
+
+namespace streetsim::server {
+namespace fs = std::filesystem;
+
+namespace {
+
+constexpr int kMaxScanDepth = 3;
+constexpr int kMaxScanEntries = 20000;
+
+std::string Canonical(const std::string& p) {
+  std::error_code ec;
+  fs::path c = fs::canonical(p, ec);
+  return ec ? std::string() : c.string();
+}
+
+}  // namespace
+
+SceneRegistry::SceneRegistry(std::string data_root, std::string job_scenes_dir, RenderCore* core)
+    : data_root_(std::move(data_root)), job_scenes_dir_(std::move(job_scenes_dir)), core_(core) {
+  std::lock_guard<std::mutex> lock(mu_);
+  RescanLocked();
+}
+
+SceneRegistry::~SceneRegistry() {
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    stopping_ = true;
+  }
+  for (std::thread& t : loaders_) t.join();
+}
+
+void SceneRegistry::RescanLocked() {
+  std::map<std::string, Entry> found;
+  auto add = [&](const std::string& name, const std::string& ply, const std::string& manifest_path,
+                 const std::string& source) {
+    if (found.count(name)) return;  // data root first, then jobs
+    Entry e;
+    e.name = name;
+    e.ply_path = ply;
+    e.source = source;
+    if (!manifest_path.empty() && fs::exists(manifest_path)) {
+      absl::StatusOr<SceneManifest> m = ReadSceneManifest(manifest_path);
+      if (m.ok()) {
+        e.manifest = std::make_shared<SceneManifest>(std::move(*m));
+      } else {
+        e.manifest_error = std::string(m.status().message());
+      }
+    } else {
+      SceneManifest m;
+      m.cameras = DefaultRig();
+      e.manifest = std::make_shared<SceneManifest>(std::move(m));
+    }
+    found.emplace(name, std::move(e));
+  };
+  auto scan = [&](const std::string& root, const std::string& source, bool bare_ply) {
+    const std::string real_root = Canonical(root);
+    if (real_root.empty()) return;
+    std::error_code ec;
+    fs::recursive_directory_iterator it(real_root, fs::directory_options::skip_permission_denied, ec);
+    int count = 0;
+    for (; !ec && it != fs::recursive_directory_iterator(); it.increment(ec)) {
+      if (++count > kMaxScanEntries) break;
+      if (it.depth() >= kMaxScanDepth - 1) it.disable_recursion_pending();
+      const fs::path& p = it->path();
+      std::error_code ec2;
+      if (it->is_directory(ec2)) {
+        const std::string ply = (p / "scene.ply").string();
+        const std::string real = Canonical(ply);
+        if (!real.empty() && IsInside(real_root, real)) {
+          add(fs::relative(p, real_root).generic_string(), real, (p / "scene.json").string(), source);
+        }
+      } else if (bare_ply && p.extension() == ".ply" && p.filename() != "scene.ply") {
+        const std::string real = Canonical(p.string());
+        if (!real.empty() && IsInside(real_root, real)) {
+          std::string name = fs::relative(p, real_root).generic_string();
+          name.resize(name.size() - 4);
+          add(name, real, "", source);
+        }
+      }
+    }
+  };
+  scan(data_root_, "data_root", true);
+  if (!job_scenes_dir_.empty()) scan(job_scenes_dir_, "job", false);
+  // Keep the resident state of scenes still present at the same path.
+  for (auto& [name, e] : found) {
+    auto old = entries_.find(name);
+    if (old != entries_.end() && old->second.ply_path == e.ply_path) {
+      e.state = old->second.state;
+      e.error = old->second.error;
+      e.loaded = old->second.loaded;
+      e.generation = old->second.generation;
+    }
+  }
+  // Scenes that vanished from disk but are loading stay until their load ends.
+  for (auto& [name, e] : entries_) {
+    if (!found.count(name) && e.state == v1::SCENE_STATE_LOADING) found.emplace(name, e);
+  }
+  entries_ = std::move(found);
+}
+
+SceneRegistry::Entry* SceneRegistry::FindLocked(const std::string& name, bool rescan) {
+  auto it = entries_.find(name);
+  if (it == entries_.end() && rescan) {
+    RescanLocked();
+    it = entries_.find(name);
+  }
+  return it == entries_.end() ? nullptr : &it->second;
+}
+
+void SceneRegistry::FillScene(const Entry& e, bool with_trajectory, v1::Scene* out) const {
+  out->set_name(e.name);
+  out->set_state(e.state);
+  out->set_source(e.source);
+  out->set_error(!e.manifest_error.empty() ? e.manifest_error : e.error);
+  if (e.manifest) {
+    const SceneManifest& m = *e.manifest;
+    out->set_has_time_range(m.has_time_range);
+    out->set_start_time_us(m.start_us);
+    out->set_end_time_us(m.end_us);
+    for (const RigCamera& c : m.cameras) {
+      v1::CameraSpec* spec = out->mutable_rig()->add_cameras();
+      spec->set_sensor_id(c.sensor_id);
+      IntrinsicsToProto(c.intrinsics, spec->mutable_intrinsics());
+      PoseToProto(c.T_ego_from_cam, spec->mutable_t_ego_from_sensor());
+    }
+    if (with_trajectory) {
+      for (const TimedEgoPose& p : m.ego_trajectory) {
+        v1::TimedPose* tp = out->add_ego_trajectory();
+        tp->set_time_us(p.time_us);
+        PoseToProto(p.T_world_from_ego, tp->mutable_t_world_from_ego());
+      }
+    }
+  }
+  if (e.loaded) {
+    out->set_num_gaussians(e.loaded->num_gaussians);
+    v1::Bounds* b = out->mutable_bounds();
+    b->mutable_min_m()->set_x(e.loaded->min_m.x());
+    b->mutable_min_m()->set_y(e.loaded->min_m.y());
+    b->mutable_min_m()->set_z(e.loaded->min_m.z());
+    b->mutable_max_m()->set_x(e.loaded->max_m.x());
+    b->mutable_max_m()->set_y(e.loaded->max_m.y());
+    b->mutable_max_m()->set_z(e.loaded->max_m.z());
+  }
+}
+
+std::vector<v1::Scene> SceneRegistry::List() {
+  std::lock_guard<std::mutex> lock(mu_);
+  RescanLocked();
+  std::vector<v1::Scene> out;
+  for (const auto& [name, e] : entries_) {
+    out.emplace_back();
+    FillScene(e, false, &out.back());
+  }
+  return out;
+}
+
+static absl::Status UnknownScene(const std::string& name) {
+  return absl::NotFoundError(absl::StrCat("unknown scene '", name, "' (see ListScenes)"));
+}
+
+absl::StatusOr<v1::Scene> SceneRegistry::Get(const std::string& name) {
+  std::lock_guard<std::mutex> lock(mu_);
+  Entry* e = FindLocked(name, true);
+  if (!e) return UnknownScene(name);
+  v1::Scene out;
+  FillScene(*e, true, &out);
+  return out;
+}
+
+absl::StatusOr<std::shared_ptr<const SceneManifest>> SceneRegistry::Manifest(const std::string& name) {
+  std::lock_guard<std::mutex> lock(mu_);
+  Entry* e = FindLocked(name, true);
+  if (!e) return UnknownScene(name);
+  if (!e->manifest) {
+    return absl::FailedPreconditionError(absl::StrCat("scene '", name, "': ", e->manifest_error));
+  }
+  return e->manifest;
+}
+
+bool SceneRegistry::Exists(const std::string& name) {
+  std::lock_guard<std::mutex> lock(mu_);
+  return FindLocked(name, true) != nullptr;
+}
+
+int SceneRegistry::num_loaded() {
+  std::lock_guard<std::mutex> lock(mu_);
+  int n = 0;
+  for (const auto& [name, e] : entries_) n += e.loaded != nullptr;
+  return n;
+}
+
+void SceneRegistry::StartLoadLocked(Entry* e) {
+  e->state = v1::SCENE_STATE_LOADING;
+  e->error.clear();
+  const uint64_t generation = ++e->generation;
+  const std::string name = e->name;
+  const std::string path = e->ply_path;
+  loaders_.emplace_back([this, name, path, generation] {
+    const auto t0 = std::chrono::steady_clock::now();
+    absl::StatusOr<std::shared_ptr<LoadedScene>> result = [&]() -> absl::StatusOr<std::shared_ptr<LoadedScene>> {
+      absl::StatusOr<GaussianStore> store = ReadGaussianPly(path);
+      if (!store.ok()) return store.status();
+      auto loaded = std::make_shared<LoadedScene>();
+      loaded->num_gaussians = store->size();
+      if (store->size() > 0) {
+        Eigen::Map<const Eigen::Matrix<float, 3, Eigen::Dynamic>> m(store->means.data(), 3, store->size());
+        loaded->min_m = m.rowwise().minCoeff().cast<double>();
+        loaded->max_m = m.rowwise().maxCoeff().cast<double>();
+      }
+      absl::StatusOr<std::unique_ptr<DeviceScene>> device = core_->Upload(*store);
+      if (!device.ok()) return device.status();
+      loaded->field = std::make_unique<StaticSceneField>(std::move(*device));
+      return loaded;
+    }();
+    std::lock_guard<std::mutex> lock(mu_);
+    auto it = entries_.find(name);
+    if (it == entries_.end() || it->second.generation != generation) return;  // unloaded meanwhile
+    if (result.ok()) {
+      it->second.loaded = std::move(*result);
+      it->second.state = v1::SCENE_STATE_READY;
+      LOG(INFO) << "scene " << name << " loaded (" << it->second.loaded->num_gaussians << " Gaussians, "
+                << std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() << " s)";
+    } else {
+      it->second.state = v1::SCENE_STATE_FAILED;
+      it->second.error = std::string(result.status().message());
+      LOG(WARNING) << "scene " << name << " failed to load: " << it->second.error;
+    }
+    cv_.notify_all();
+  });
+}
+
+absl::Status SceneRegistry::WaitLoadedLocked(std::unique_lock<std::mutex>& lock, const std::string& name,
+                                             const CancelCheck& cancel) {
+  while (true) {
+    Entry* e = FindLocked(name, false);
+    if (!e) return UnknownScene(name);
+    if (e->state == v1::SCENE_STATE_READY) return absl::OkStatus();
+    if (e->state == v1::SCENE_STATE_FAILED) {
+      return absl::FailedPreconditionError(absl::StrCat("scene '", name, "' failed to load: ", e->error));
+    }
+    if (e->state != v1::SCENE_STATE_LOADING) StartLoadLocked(e);
+    if (cancel) {
+      if (absl::Status s = cancel(); !s.ok()) return s;
+    }
+    if (stopping_) return absl::UnavailableError("server shutting down");
+    cv_.wait_for(lock, std::chrono::milliseconds(20));
+  }
+}
+
+absl::StatusOr<v1::Scene> SceneRegistry::Load(const std::string& name, bool wait, const CancelCheck& cancel) {
+  std::unique_lock<std::mutex> lock(mu_);
+  Entry* e = FindLocked(name, true);
+  if (!e) return UnknownScene(name);
+  if (!e->manifest) {
+    return absl::FailedPreconditionError(absl::StrCat("scene '", name, "': ", e->manifest_error));
+  }
+  if (e->state != v1::SCENE_STATE_READY && e->state != v1::SCENE_STATE_LOADING) StartLoadLocked(e);
+  if (wait) {
+    if (absl::Status s = WaitLoadedLocked(lock, name, cancel); !s.ok()) return s;
+  }
+  e = FindLocked(name, false);
+  if (!e) return UnknownScene(name);
+  v1::Scene out;
+  FillScene(*e, false, &out);
+  return out;
+}
+
+absl::Status SceneRegistry::Unload(const std::string& name) {
+  std::lock_guard<std::mutex> lock(mu_);
+  Entry* e = FindLocked(name, true);
+  if (!e) return UnknownScene(name);
+  e->loaded.reset();
+  e->state = v1::SCENE_STATE_AVAILABLE;
+  e->error.clear();
+  ++e->generation;
+  cv_.notify_all();
+  return absl::OkStatus();
+}
+
+absl::StatusOr<SceneHandle> SceneRegistry::Acquire(const std::string& name, const CancelCheck& cancel) {
+  std::unique_lock<std::mutex> lock(mu_);
+  Entry* e = FindLocked(name, true);
+  if (!e) return UnknownScene(name);
+  if (!e->manifest) {
+    return absl::FailedPreconditionError(absl::StrCat("scene '", name, "': ", e->manifest_error));
+  }
+  if (e->state == v1::SCENE_STATE_FAILED) StartLoadLocked(e);  // one more try
+  if (absl::Status s = WaitLoadedLocked(lock, name, cancel); !s.ok()) return s;
+  e = FindLocked(name, false);
+  return SceneHandle{name, e->manifest, e->loaded};
+}
+
+}  // namespace streetsim::server

@@ -1,0 +1,69 @@
+// The streetsim gRPC server: builder, listening address (127.0.0.1 by default), TLS, bearer
+// token, health + reflection, the streetsim.v1 services, and graceful shutdown.
+#pragma once
+
+#include <chrono>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "render/engine.h"
+#include "server/limits.h"
+
+namespace grpc {
+class Server;
+class Service;
+}
+
+namespace streetsim::server {
+
+struct ServerOptions {
+  std::string listen = "127.0.0.1:50051";  // port 0: pick a free one (see Server::port)
+  std::string data_root = "./data";
+  std::string state_dir = "./state";
+  Backend backend = Backend::kAuto;
+  std::string tls_cert_file;   // both or neither
+  std::string tls_key_file;
+  std::string auth_token_file;  // bearer token; empty: no auth
+  ServerLimits limits;
+  std::vector<std::string> init_command;  // training init stage argv prefix (tests override)
+  int debug_render_delay_ms = 0;          // tests only: a slow renderer
+};
+
+struct ServiceDeps;
+class RenderCore;
+class SceneRegistry;
+class SessionManager;
+class JobStore;
+class JobRunner;
+
+class Server {
+ public:
+  static absl::StatusOr<std::unique_ptr<Server>> Start(const ServerOptions& options);
+  ~Server();
+
+  int port() const { return port_; }
+  std::string address() const;  // host:port actually bound
+
+  // Health NOT_SERVING, new sessions/jobs refused, in-flight calls get `grace` to finish, jobs
+  // stop (records stay resumable). Idempotent.
+  void Shutdown(std::chrono::milliseconds grace = std::chrono::seconds(10));
+  void Wait();
+
+ private:
+  Server() = default;
+  ServerOptions options_;
+  int port_ = 0;
+  std::unique_ptr<ServiceDeps> deps_;
+  std::unique_ptr<RenderCore> core_;
+  std::unique_ptr<SceneRegistry> scenes_;
+  std::unique_ptr<SessionManager> sessions_;
+  std::unique_ptr<JobStore> job_store_;
+  std::unique_ptr<JobRunner> jobs_;
+  std::vector<std::unique_ptr<grpc::Service>> services_;
+  std::unique_ptr<grpc::Server> server_;
+  bool shut_down_ = false;
+};
+
+}  // namespace streetsim::server

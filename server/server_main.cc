@@ -1,0 +1,33 @@
+#include "server/server_main.h"
+
+#include <pthread.h>
+#include <signal.h>
+
+#include <cstdio>
+
+namespace streetsim::server {
+
+int RunServerUntilSignal(const ServerOptions& options) {
+  // Block the stop signals in every thread (gRPC's included, created after this) and wait for
+  // them here.
+  sigset_t stop;
+  sigemptyset(&stop);
+  sigaddset(&stop, SIGTERM);
+  sigaddset(&stop, SIGINT);
+  pthread_sigmask(SIG_BLOCK, &stop, nullptr);
+
+  absl::StatusOr<std::unique_ptr<Server>> server = Server::Start(options);
+  if (!server.ok()) {
+    std::fprintf(stderr, "streetsim serve: %s\n", std::string(server.status().message()).c_str());
+    return absl::IsInvalidArgument(server.status()) ? 2 : 1;
+  }
+  std::printf("streetsim serve: listening on %s\n", (*server)->address().c_str());
+  std::fflush(stdout);
+  int sig = 0;
+  sigwait(&stop, &sig);
+  std::fprintf(stderr, "streetsim serve: %s, draining\n", sig == SIGTERM ? "SIGTERM" : "SIGINT");
+  (*server)->Shutdown();
+  return 0;
+}
+
+}  // namespace streetsim::server
