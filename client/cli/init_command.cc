@@ -9,6 +9,7 @@
 #include "scene/gaussians/ply_io.h"
 #include "scene/init/initial_scene.h"
 #include "scene/log/open_log.h"
+#include "scene/log/scene_manifest.h"
 
 namespace streetsim {
 namespace {
@@ -68,6 +69,17 @@ int RunInitCommand(const std::vector<std::string>& argv) {
                 store.status());
   }
   if (absl::Status s = WriteGaussianPly(*store, *out); !s.ok()) return Fail(1, s);
+  // A scene directory (DIR/scene.ply) also gets DIR/scene.json with the log's camera rig, time
+  // range and ego trajectory, which `streetsim serve` reads (docs/server.md).
+  const std::filesystem::path out_path(*out);
+  if (out_path.filename() == "scene.ply") {
+    const std::filesystem::path dir = out_path.has_parent_path() ? out_path.parent_path() : ".";
+    const std::string manifest = (dir / "scene.json").string();
+    if (absl::Status s = WriteSceneManifest(*log, std::filesystem::absolute(dir).filename().string(), manifest);
+        !s.ok()) {
+      return Fail(1, s);
+    }
+  }
   std::fprintf(stderr,
                "streetsim init: %zu Gaussians from %s (%d frames; %zu LiDAR points -> %zu voxels, %zu seen "
                "by a camera, %zu sky), median scale %.3f m, %.1f s -> %s\n",

@@ -68,6 +68,22 @@ TEST(CliInit, InitialSceneRendersLikeTheLoggedImage) {
   EXPECT_GT(psnr, blank + 4);
 }
 
+TEST(CliInit, SceneDirectoryGetsTheLogManifest) {
+  // DIR/scene.ply -> DIR/scene.json with the rig, time range and trajectory the server serves.
+  const std::string dir = testing::TempDir() + "/cli_init_scene_" + std::to_string(getpid());
+  std::filesystem::create_directories(dir);
+  const Result r = Exec("init " + kRaw + " --out " + dir + "/scene.ply --frames 0:10 --voxel 0.3");
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  std::ifstream f(dir + "/scene.json");
+  const std::string json((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+  EXPECT_NE(json.find("\"ego_trajectory\""), std::string::npos) << json.substr(0, 200);
+  EXPECT_NE(json.find("\"image_02\""), std::string::npos);
+  EXPECT_NE(json.find("\"time_range_us\""), std::string::npos);
+  // Any other output name writes no manifest.
+  ASSERT_EQ(Exec("init " + kRaw + " --out " + dir + "/other.ply --frames 0:10 --voxel 0.3").exit_code, 0);
+  EXPECT_FALSE(std::filesystem::exists(dir + "/other.json"));
+}
+
 TEST(CliInit, CameraOnlyLogSaysItUsesRandomPoints) {
   const std::string ply = testing::TempDir() + "/random." + std::to_string(getpid()) + ".ply";
   const Result r = Exec("init " + kData + "/kitti_odometry_excerpt/seq_a --out " + ply + " --random-points 2000 --frames 0:5");
