@@ -47,9 +47,6 @@ absl::StatusOr<std::unique_ptr<Kernels>> Kernels::Create(const Context& ctx) {
   auto k = std::make_unique<Kernels>();
   const SpecConstant saturate[] = {{0, 1}};
   const SpecConstant keys_only[] = {{0, 1}};
-  // blend.comp unrolls its batch loop over the subgroup's lanes when there are few of them.
-  const uint32_t lanes = ctx.subgroup().size;
-  const SpecConstant unroll[] = {{0, lanes <= 16 ? lanes : 0}};
   struct Spec {
     std::unique_ptr<ComputePipeline>* out;
     const char* name;
@@ -73,7 +70,7 @@ absl::StatusOr<std::unique_ptr<Kernels>> Kernels::Create(const Context& ctx) {
       {&k->gather_sorted, "gather_sorted", spirv::gather_sorted, 6, 0, {}},
       {&k->emit, "emit", spirv::emit, 6, 12, {}},
       {&k->tile_ranges, "tile_ranges", spirv::tile_ranges, 3, 4, {}},
-      {&k->blend, "blend", spirv::blend, 8, 28, unroll},
+      {&k->blend, "blend", spirv::blend, 8, 28, {}},
   };
   for (const Spec& s : specs) {
     auto p = ComputePipeline::Create(ctx, s.name, s.spirv, s.buffers, s.push_bytes, s.spec);
