@@ -11,6 +11,7 @@
 #include <Eigen/Core>
 
 #include "absl/status/statusor.h"
+#include "absl/strings/str_cat.h"
 #include "render/camera.h"
 #include "scene/gaussians/gaussian_store.h"
 
@@ -35,6 +36,9 @@ struct RenderOptions {
   Eigen::Vector3f background = Eigen::Vector3f::Zero();  // linear RGB added with weight T
   bool want_depth = true;
   bool want_alpha = true;
+  // Keep what Engine::RenderBackward needs (per-pixel contributor counts and the frame's splats)
+  // until the next Render on this engine. Costs one store per pixel and splat in the blend.
+  bool keep_for_backward = false;
 };
 
 // Wall-clock milliseconds per stage of the last render (device time for vulkan when the device
@@ -62,6 +66,31 @@ struct RenderOutput {
   RenderStats stats;
 };
 
+// dL/d(outputs) of the last Render, same layouts as RenderOutput. A null pointer means zero.
+struct RenderOutputGrads {
+  const float* rgb = nullptr;    // [H*W*3]
+  const float* depth = nullptr;  // [H*W]
+  const float* alpha = nullptr;  // [H*W]
+};
+
+struct BackwardOptions {
+  // Fixed-order reduction: identical bits run to run and for any thread count (slower).
+  bool deterministic = false;
+};
+
+// dL/d(raw parameters) in GaussianStore layouts, sized for the scene rendered (sh: K of the
+// uploaded scene's degree), plus per-Gaussian screen-space quantities densification needs.
+struct GaussianGrads {
+  std::vector<float> means;           // [N*3]
+  std::vector<float> log_scales;      // [N*3]
+  std::vector<float> rotations;       // [N*4]
+  std::vector<float> opacity_logits;  // [N]
+  std::vector<float> sh;              // [N*K*3]
+  std::vector<float> means2d;         // [N*2] dL/d(u, v) of the projected mean, pixels
+  std::vector<float> radii;           // [N] 3DGS screen radius ceil(3 sqrt(lambda_max)); 0 = not visible
+  double backward_ms = 0;             // wall time of the backward pass
+};
+
 // A scene living in a backend's memory. Opaque; created by Engine::Upload.
 class DeviceScene {
  public:
@@ -83,6 +112,25 @@ class Engine {
   // Renders one frame. `out` buffers are reused across calls when sizes match.
   virtual absl::Status Render(const DeviceScene& scene, const PinholeCamera& camera,
                               const RenderOptions& options, RenderOutput* out) = 0;
+
+  // Gradients of a scalar loss with respect to every Gaussian parameter of `scene`, given
+  // dL/d(outputs) of the last Render on this engine, which must have rendered `scene` with
+  // keep_for_backward set (3DGS backward: per-tile back-to-front replay). Backends without a
+  // backward pass return Unimplemented.
+  virtual absl::Status RenderBackward(const DeviceScene& scene, const RenderOutputGrads& grads,
+                                      const BackwardOptions& options, GaussianGrads* out) {
+    return absl::UnimplementedError(
+        absl::StrCat(device_name(), ": this backend has no backward pass yet"));
+  }
+
+  // Replaces the parameters of an uploaded scene (training: once per step) without reallocating
+  // when the size is unchanged. The default re-uploads.
+  virtual absl::Status UpdateScene(const GaussianStore& store, std::unique_ptr<DeviceScene>* scene) {
+    absl::StatusOr<std::unique_ptr<DeviceScene>> s = Upload(store);
+    if (!s.ok()) return s.status();
+    *scene = std::move(*s);
+    return absl::OkStatus();
+  }
 };
 
 // Creates an engine. kAuto: vulkan when a real (non-CPU) Vulkan GPU is present, else cpu.

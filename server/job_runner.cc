@@ -1,15 +1,22 @@
 #include "server/job_runner.h"
 
 #include <fcntl.h>
+#include <poll.h>
 #include <signal.h>
 #include <spawn.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <regex>
+
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
@@ -24,7 +31,13 @@ namespace fs = std::filesystem;
 
 namespace {
 
-constexpr int kNumStages = 2;  // init, publish (train will be added between them)
+// Stages: init, [train,] publish. stage_index: 0 init, 1 train (or publish), 2 publish.
+int NumStages(bool with_train) { return with_train ? 3 : 2; }
+// Job fraction when init / train end.
+double InitDoneFraction(bool with_train) { return with_train ? 0.05 : 0.9; }
+constexpr double kTrainDoneFraction = 0.95;
+constexpr int64_t kMaxPreviewFileBytes = 64 << 20;
+constexpr int kPreviewMaxWidth = 384;  // job records (and ListJobs) carry it: keep it small
 
 // "element vertex N" from a PLY header; 0 if unreadable.
 uint64_t PlyVertexCount(const std::string& path) {
@@ -40,13 +53,107 @@ uint64_t PlyVertexCount(const std::string& path) {
   return 0;
 }
 
-std::vector<std::string> DefaultInitCommand() {
+std::string StreetsimNextToThisBinary() {
   std::error_code ec;
   const fs::path exe = fs::read_symlink("/proc/self/exe", ec);
-  return {(exe.parent_path() / "streetsim").string(), "init"};
+  return (exe.parent_path() / "streetsim").string();
+}
+
+// Runs `program --help` (10 s at most) and looks for a "  train" command line in its usage.
+bool HelpListsTrain(const std::string& program) {
+  std::error_code ec;
+  if (!fs::exists(program, ec)) return false;
+  int fds[2];
+  if (pipe2(fds, O_CLOEXEC) != 0) return false;
+  posix_spawn_file_actions_t actions;
+  posix_spawn_file_actions_init(&actions);
+  posix_spawn_file_actions_addopen(&actions, 0, "/dev/null", O_RDONLY, 0);
+  posix_spawn_file_actions_adddup2(&actions, fds[1], 1);
+  posix_spawn_file_actions_addopen(&actions, 2, "/dev/null", O_WRONLY, 0);
+  posix_spawnattr_t attr;
+  posix_spawnattr_init(&attr);
+  sigset_t none;
+  sigemptyset(&none);
+  posix_spawnattr_setsigmask(&attr, &none);
+  posix_spawnattr_setflags(&attr, POSIX_SPAWN_SETSIGMASK);
+  std::string arg0 = program, arg1 = "--help";
+  char* args[] = {arg0.data(), arg1.data(), nullptr};
+  pid_t pid = 0;
+  const int rc = posix_spawn(&pid, args[0], &actions, &attr, args, environ);
+  posix_spawn_file_actions_destroy(&actions);
+  posix_spawnattr_destroy(&attr);
+  close(fds[1]);
+  if (rc != 0) {
+    close(fds[0]);
+    return false;
+  }
+  std::string out;
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(10);
+  while (out.size() < (1 << 20)) {
+    const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(deadline - std::chrono::steady_clock::now());
+    if (left.count() <= 0) break;
+    pollfd pfd{fds[0], POLLIN, 0};
+    if (poll(&pfd, 1, static_cast<int>(left.count())) <= 0) break;
+    char buf[4096];
+    const ssize_t n = read(fds[0], buf, sizeof(buf));
+    if (n <= 0) break;
+    out.append(buf, n);
+  }
+  close(fds[0]);
+  int wstatus = 0;
+  if (waitpid(pid, &wstatus, WNOHANG) == 0) {
+    kill(pid, SIGKILL);
+    waitpid(pid, &wstatus, 0);
+  }
+  return out.find("\n  train ") != std::string::npos || out.rfind("  train ", 0) == 0;
+}
+
+// The first held-out preview the trainer wrote (WORK/preview/*.png, render | ground truth),
+// scaled down to kPreviewMaxWidth and re-encoded as PNG; "" if none.
+std::string FirstPreviewPng(const std::string& work) {
+  std::error_code ec;
+  std::vector<std::string> pngs;
+  for (fs::directory_iterator it(work + "/preview", ec), end; !ec && it != end; it.increment(ec)) {
+    if (it->path().extension() == ".png") pngs.push_back(it->path().string());
+  }
+  if (pngs.empty()) return "";
+  std::sort(pngs.begin(), pngs.end());
+  if (fs::file_size(pngs.front(), ec) > static_cast<uintmax_t>(kMaxPreviewFileBytes) || ec) return "";
+  cv::Mat image = cv::imread(pngs.front(), cv::IMREAD_COLOR);
+  if (image.empty()) return "";
+  if (image.cols > kPreviewMaxWidth) {
+    const int height = std::max(1, image.rows * kPreviewMaxWidth / image.cols);
+    cv::Mat small;
+    cv::resize(image, small, cv::Size(kPreviewMaxWidth, height), 0, 0, cv::INTER_AREA);
+    image = small;
+  }
+  std::vector<uchar> png;
+  if (!cv::imencode(".png", image, png)) return "";
+  return std::string(png.begin(), png.end());
 }
 
 }  // namespace
+
+bool ParseTrainProgressLine(const std::string& line, TrainProgressLine* out) {
+  static const std::regex kLine(
+      R"((\d+)/(\d+)\s+loss\s+(\S+)\s+psnr\s+(\S+)\s+dB\s+(\d+)\s+Gaussians(?:\s+\S+\s+it/s)?(?:\s+ETA\s+(\d+):(\d+):(\d+))?)");
+  std::smatch m;
+  if (!std::regex_search(line, m, kLine)) return false;
+  TrainProgressLine p;
+  if (!absl::SimpleAtoi(m[1].str(), &p.iteration) || !absl::SimpleAtoi(m[2].str(), &p.total) ||
+      !absl::SimpleAtod(m[3].str(), &p.loss) || !absl::SimpleAtod(m[4].str(), &p.psnr_db) ||
+      !absl::SimpleAtoi(m[5].str(), &p.gaussians) || p.total <= 0 || p.iteration < 0) {
+    return false;
+  }
+  if (m[6].matched) {
+    int h = 0, mi = 0, sec = 0;
+    if (absl::SimpleAtoi(m[6].str(), &h) && absl::SimpleAtoi(m[7].str(), &mi) && absl::SimpleAtoi(m[8].str(), &sec)) {
+      p.eta_s = h * 3600.0 + mi * 60.0 + sec;
+    }
+  }
+  *out = p;
+  return true;
+}
 
 bool IsFinal(v1::JobState s) {
   return s == v1::JOB_STATE_SUCCEEDED || s == v1::JOB_STATE_FAILED || s == v1::JOB_STATE_CANCELLED;
@@ -54,8 +161,22 @@ bool IsFinal(v1::JobState s) {
 
 JobRunner::JobRunner(JobStore* store, ServiceDeps* deps, JobRunnerOptions options)
     : store_(store), deps_(deps), options_(std::move(options)) {
-  if (options_.init_command.empty()) options_.init_command = DefaultInitCommand();
+  if (options_.init_command.empty()) options_.init_command = {StreetsimNextToThisBinary(), "init"};
+  if (!options_.train_command.empty()) train_available_ = 1;
 }
+
+bool JobRunner::TrainAvailable() {
+  std::lock_guard<std::mutex> lock(probe_mu_);
+  if (train_available_ < 0) {
+    const std::string program = StreetsimNextToThisBinary();
+    train_available_ = HelpListsTrain(program) ? 1 : 0;
+    if (train_available_) options_.train_command = {program, "train"};
+    LOG(INFO) << "training jobs: " << (train_available_ ? "" : "no ") << "train stage (" << program << " --help)";
+  }
+  return train_available_ == 1;
+}
+
+bool JobRunner::WithTrain(const v1::Job& job) { return job.config().max_iterations() > 0 && TrainAvailable(); }
 
 JobRunner::~JobRunner() { Stop(); }
 
@@ -130,7 +251,7 @@ absl::StatusOr<v1::Job> JobRunner::Create(const v1::CreateTrainingJobRequest& re
   job.set_created_unix_ms(NowUnixMs());
   v1::JobProgress* p = job.mutable_progress();
   p->set_stage("init");
-  p->set_num_stages(kNumStages);
+  p->set_num_stages(NumStages(WithTrain(job)));
   p->set_max_iterations(req.config().max_iterations());
   p->set_eta_s(-1);
   if (absl::Status s = store_->Put(job); !s.ok()) return s;
@@ -190,7 +311,33 @@ void JobRunner::WorkerLoop() {
 }
 
 absl::StatusOr<int> JobRunner::RunChild(const std::string& id, const std::vector<std::string>& argv,
-                                        const std::string& log_path, v1::Job* job) {
+                                        const std::string& log_path, v1::Job* job,
+                                        const std::function<bool(const std::string&)>& on_line) {
+  std::error_code size_ec;
+  const auto size_before = fs::file_size(log_path, size_ec);
+  std::streamoff log_offset = size_ec ? 0 : static_cast<std::streamoff>(size_before);
+  std::string partial;
+  bool dirty = false;
+  // Feeds the lines the child appended to its log since the last call to on_line.
+  auto read_lines = [&] {
+    if (!on_line) return;
+    std::ifstream in(log_path, std::ios::binary);
+    if (!in) return;
+    in.seekg(log_offset);
+    char buf[65536];
+    while (in.read(buf, sizeof(buf)) || in.gcount() > 0) {
+      const std::streamsize n = in.gcount();
+      log_offset += n;
+      for (std::streamsize i = 0; i < n; ++i) {
+        if (buf[i] == '\n' || buf[i] == '\r') {
+          if (!partial.empty() && on_line(partial)) dirty = true;
+          partial.clear();
+        } else if (partial.size() < 4096) {
+          partial.push_back(buf[i]);
+        }
+      }
+    }
+  };
   posix_spawn_file_actions_t actions;
   posix_spawn_file_actions_init(&actions);
   posix_spawn_file_actions_addopen(&actions, 0, "/dev/null", O_RDONLY, 0);
@@ -213,12 +360,14 @@ absl::StatusOr<int> JobRunner::RunChild(const std::string& id, const std::vector
   if (rc != 0) return absl::FailedPreconditionError(absl::StrCat("cannot start ", argv[0], ": ", strerror(rc)));
 
   const auto t0 = std::chrono::steady_clock::now();
-  auto last_update = t0;
+  auto last_update = t0, last_read = t0;
   const double elapsed_before = job->progress().elapsed_s();
   while (true) {
     int wstatus = 0;
     const pid_t r = waitpid(pid, &wstatus, WNOHANG);
     if (r == pid) {
+      read_lines();
+      if (!partial.empty() && on_line && on_line(partial)) dirty = true;
       if (WIFEXITED(wstatus)) return WEXITSTATUS(wstatus);
       return 128 + (WIFSIGNALED(wstatus) ? WTERMSIG(wstatus) : 0);
     }
@@ -240,8 +389,13 @@ absl::StatusOr<int> JobRunner::RunChild(const std::string& id, const std::vector
       return cancel ? absl::CancelledError("cancelled") : absl::UnavailableError("server stopping");
     }
     const auto now = std::chrono::steady_clock::now();
-    if (now - last_update > std::chrono::seconds(1)) {
+    if (now - last_read > std::chrono::milliseconds(100)) {
+      last_read = now;
+      read_lines();
+    }
+    if (now - last_update > std::chrono::seconds(1) || (dirty && now - last_update > std::chrono::milliseconds(250))) {
       last_update = now;
+      dirty = false;
       job->mutable_progress()->set_elapsed_s(elapsed_before + std::chrono::duration<double>(now - t0).count());
       (void)store_->Put(*job);
     }
@@ -282,11 +436,19 @@ void JobRunner::RunJob(const std::string& id) {
   fs::create_directories(work, ec);
   v1::JobProgress* p = job.mutable_progress();
 
+  const bool with_train = WithTrain(job);
+  const int publish_index = NumStages(with_train) - 1;
+  p->set_num_stages(NumStages(with_train));
+  if (job.config().max_iterations() > 0 && !with_train) {
+    LOG(WARNING) << "job " << id << ": max_iterations " << job.config().max_iterations()
+                 << " asked for, but this build has no `streetsim train`: init only";
+  }
+  absl::StatusOr<std::string> log = ResolveUnderRoot(options_.data_root, job.log_path());
+
   // Stage 0: init (skipped when a previous attempt finished it).
   if (p->stage_index() < 1 && !fs::exists(out_dir)) {
     p->set_stage("init");
     (void)store_->Put(job);
-    absl::StatusOr<std::string> log = ResolveUnderRoot(options_.data_root, job.log_path());
     if (!log.ok()) return fail(log.status());
     std::vector<std::string> argv = options_.init_command;
     argv.insert(argv.end(), {*log, "--out", work + "/scene.ply"});
@@ -298,13 +460,51 @@ void JobRunner::RunJob(const std::string& id) {
     }
     if (!fs::exists(work + "/scene.ply")) return fail(absl::InternalError("init stage wrote no scene.ply"));
     p->set_stage_index(1);
-    p->set_fraction(0.9);
+    p->set_fraction(InitDoneFraction(with_train));
     p->set_num_gaussians(PlyVertexCount(work + "/scene.ply"));
     (void)store_->Put(job);
   }
-  // (The "train" stage goes here once scene/train exists.)
-  // Stage 1: publish.
+  // Stage 1: train (when asked for and available). Re-run after a restart with --resume when the
+  // trainer left a checkpoint; WORK/scene.json (from init) is left alone by the trainer.
+  if (with_train && p->stage_index() < 2 && !fs::exists(out_dir)) {
+    p->set_stage("train");
+    p->set_max_iterations(job.config().max_iterations());
+    (void)store_->Put(job);
+    if (!log.ok()) return fail(log.status());
+    std::vector<std::string> argv = options_.train_command;
+    argv.insert(argv.end(), {"--log", *log, "--out", work, "--iterations", std::to_string(job.config().max_iterations())});
+    if (job.config().seed() != 0) argv.insert(argv.end(), {"--seed", std::to_string(job.config().seed())});
+    if (fs::exists(work + "/checkpoint.bin")) argv.push_back("--resume");
+    auto on_line = [&](const std::string& line) {
+      TrainProgressLine t;
+      if (!ParseTrainProgressLine(line, &t)) return false;
+      p->set_iteration(t.iteration);
+      p->set_max_iterations(t.total);
+      p->set_has_metrics(true);
+      if (std::isfinite(t.loss)) p->set_loss(t.loss);
+      if (std::isfinite(t.psnr_db)) p->set_psnr_db(t.psnr_db);
+      p->set_num_gaussians(t.gaussians);
+      p->set_eta_s(t.eta_s);
+      const double f = std::clamp(static_cast<double>(t.iteration) / static_cast<double>(t.total), 0.0, 1.0);
+      p->set_fraction(InitDoneFraction(true) + (kTrainDoneFraction - InitDoneFraction(true)) * f);
+      return true;
+    };
+    absl::StatusOr<int> code = RunChild(id, argv, store_->JobDir(id) + "/train.log", &job, on_line);
+    if (!code.ok()) return fail(code.status());
+    if (*code != 0) {
+      return fail(absl::InternalError(absl::StrCat("train stage exited with code ", *code, " (see ",
+                                                   store_->JobDir(id), "/train.log)")));
+    }
+    if (!fs::exists(work + "/scene.ply")) return fail(absl::InternalError("train stage left no scene.ply"));
+    p->set_stage_index(2);
+    p->set_fraction(kTrainDoneFraction);
+    p->set_num_gaussians(PlyVertexCount(work + "/scene.ply"));
+    p->set_preview_png(FirstPreviewPng(work));
+    (void)store_->Put(job);
+  }
+  // Last stage: publish.
   if (!fs::exists(out_dir)) {
+    p->set_stage_index(publish_index);
     p->set_stage("publish");
     if (!fs::exists(work + "/scene.json")) {
       SceneManifest m;
@@ -315,7 +515,7 @@ void JobRunner::RunJob(const std::string& id) {
     if (ec) return fail(absl::InternalError(absl::StrCat("cannot publish the scene: ", ec.message())));
   }
   p->set_stage("done");
-  p->set_stage_index(kNumStages);
+  p->set_stage_index(NumStages(with_train));
   p->set_fraction(1.0);
   p->set_eta_s(0);
   p->set_elapsed_s(elapsed_before + std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());

@@ -1,19 +1,26 @@
 // Runs training jobs: a pipeline of stages with progress, cancel, persistence and resume.
 //
-// PLACEHOLDER PIPELINE: until the trainer lands, the pipeline is
+// The pipeline (docs/server.md, "Training jobs"):
 //   1. "init": `<init_command> LOG_ABS_PATH --out WORK/scene.ply` as a child process (default
 //      init_command: the `streetsim init` subcommand next to this binary), its output in
-//      <job dir>/init.log, its exit code checked;
-//   2. "publish": WORK/scene.json written if the stage did not write one, WORK renamed to
+//      <job dir>/init.log, its exit code checked (init also writes WORK/scene.json);
+//   2. "train", only when config.max_iterations > 0 and a trainer exists:
+//      `<train_command> --log LOG_ABS_PATH --out WORK --iterations N [--seed S] [--resume]` (default
+//      train_command: `streetsim train` next to this binary, used when `streetsim --help` lists
+//      it), output in <job dir>/train.log, progress parsed from its stderr lines
+//      ("I/N  loss L  psnr P dB  G Gaussians  R it/s  ETA H:MM:SS"); `--resume` is added when
+//      WORK/checkpoint.bin exists (a re-run after a restart);
+//   3. "publish": WORK/scene.json written if no stage wrote one, WORK renamed to
 //      <state_dir>/scenes/<scene_name> (then loadable by name).
-// The "train" stage (scene/train) will slot in between. Unfinished jobs (QUEUED or RUNNING in
-// their record) are re-queued at start; a stage that had finished is not run again.
+// Unfinished jobs (QUEUED or RUNNING in their record) are re-queued at start; a stage that had
+// finished is not run again.
 #pragma once
 
 #include <sys/types.h>
 
 #include <condition_variable>
 #include <deque>
+#include <functional>
 #include <map>
 #include <mutex>
 #include <set>
@@ -30,8 +37,21 @@ namespace streetsim::server {
 
 struct JobRunnerOptions {
   std::string data_root;
-  std::vector<std::string> init_command;  // argv prefix; empty: {<exe dir>/streetsim, "init"}
+  std::vector<std::string> init_command;   // argv prefix; empty: {<exe dir>/streetsim, "init"}
+  // argv prefix; empty: {<exe dir>/streetsim, "train"} if that binary's --help lists "train"
+  // (probed once), else no train stage. Set: always used.
+  std::vector<std::string> train_command;
 };
+
+// One "I/N  loss L  psnr P dB  G Gaussians  R it/s  ETA H:MM:SS" progress line of
+// `streetsim train` (the bar before it, the rate and the ETA are optional).
+struct TrainProgressLine {
+  int64_t iteration = 0, total = 0;
+  double loss = 0, psnr_db = 0;
+  uint64_t gaussians = 0;
+  double eta_s = -1;
+};
+bool ParseTrainProgressLine(const std::string& line, TrainProgressLine* out);
 
 class JobRunner {
  public:
@@ -52,9 +72,15 @@ class JobRunner {
  private:
   void WorkerLoop();
   void RunJob(const std::string& id);
-  // Runs argv as a child; returns its exit code, or CANCELLED / UNAVAILABLE (stopping).
+  // Runs argv as a child; returns its exit code, or CANCELLED / UNAVAILABLE (stopping). Each
+  // new line the child writes to log_path goes to on_line (if set); it returns true when it
+  // changed *job (the record is then written, at most every 250 ms).
   absl::StatusOr<int> RunChild(const std::string& id, const std::vector<std::string>& argv,
-                               const std::string& log_path, v1::Job* job);
+                               const std::string& log_path, v1::Job* job,
+                               const std::function<bool(const std::string&)>& on_line = nullptr);
+  // Whether the job gets a "train" stage (max_iterations > 0 and a trainer exists).
+  bool WithTrain(const v1::Job& job);
+  bool TrainAvailable();
   bool CancelRequested(const std::string& id);
 
   JobStore* store_;
@@ -67,6 +93,8 @@ class JobRunner {
   std::set<std::string> running_;
   std::vector<std::thread> workers_;
   bool stopping_ = false;
+  std::mutex probe_mu_;
+  int train_available_ = -1;  // -1: not probed yet
 };
 
 bool IsFinal(v1::JobState state);

@@ -90,7 +90,8 @@ absl::StatusOr<std::unique_ptr<Server>> Server::Start(const ServerOptions& optio
   deps.scenes = s->scenes_.get();
   s->sessions_ = std::make_unique<SessionManager>(&deps);
   deps.sessions = s->sessions_.get();
-  s->jobs_ = std::make_unique<JobRunner>(s->job_store_.get(), &deps, JobRunnerOptions{data_root, options.init_command});
+  s->jobs_ = std::make_unique<JobRunner>(s->job_store_.get(), &deps,
+                                         JobRunnerOptions{data_root, options.init_command, options.train_command});
   deps.jobs = s->jobs_.get();
 
   s->services_.push_back(std::make_unique<ServerInfoServiceImpl>(&deps));

@@ -27,7 +27,9 @@ struct ServerOptions {
   std::string tls_key_file;
   std::string auth_token_file;  // bearer token; empty: no auth
   ServerLimits limits;
-  std::vector<std::string> init_command;  // training init stage argv prefix (tests override)
+  std::vector<std::string> init_command;   // training init stage argv prefix (tests override)
+  std::vector<std::string> train_command;  // training train stage argv prefix (tests override;
+                                           // empty: `streetsim train` next to this binary if any)
   int debug_render_delay_ms = 0;          // tests only: a slow renderer
 };
 

@@ -19,5 +19,7 @@ int RunRemoteRenderCommand(const std::vector<std::string>& args);  // render --s
 int RunReplayCommand(const std::vector<std::string>& args);
 int RunLogCommand(const std::vector<std::string>& args);   // log info|preview|poses|camera
 int RunInitCommand(const std::vector<std::string>& args);
+int RunTrainCommand(const std::vector<std::string>& args);
+int RunEvalCommand(const std::vector<std::string>& args);
 
 }  // namespace streetsim

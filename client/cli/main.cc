@@ -32,7 +32,12 @@ void PrintUsage(FILE* out) {
                "              [--listen HOST:PORT] [--data-root DIR] [--state-dir DIR] [--backend B] ...\n"
                "  scenes    list a server's scenes: streetsim scenes --server HOST:PORT\n"
                "  jobs      training jobs on a server: streetsim jobs list|train|watch|get|cancel ...\n"
-               "  replay    scripted replay through a server: streetsim replay SCENARIO.json\n");
+               "  replay    scripted replay through a server: streetsim replay SCENARIO.json\n"
+               "  train     static 3DGS training (docs/training.md): streetsim train --log PATH --out DIR\n"
+               "              [--iterations N] [--resolution-scale S] [--holdout-every K] [--seed K] [--resume]\n"
+               "              [--checkpoint-every N] [--no-sky] [--exposure] [--no-depth] [--deterministic]\n"
+               "  eval      metrics of a trained scene: streetsim eval --scene DIR --log PATH [--split test|train]\n"
+               "              [--holdout-every K]   (JSON on stdout, a table on stderr)\n");
 }
 
 }  // namespace
@@ -54,6 +59,8 @@ int main(int argc, char** argv) {
   if (command == "replay") return streetsim::RunReplayCommand(args);
   if (command == "log") return streetsim::RunLogCommand(args);
   if (command == "init") return streetsim::RunInitCommand(args);
+  if (command == "train") return streetsim::RunTrainCommand(args);
+  if (command == "eval") return streetsim::RunEvalCommand(args);
   std::fprintf(stderr, "streetsim: unknown command '%s' (try streetsim --help)\n", command.c_str());
   return 2;
 }

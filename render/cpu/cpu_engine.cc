@@ -7,6 +7,8 @@
 #include "render/common/thread_pool.h"
 #include "render/cpu/binning.h"
 #include "render/cpu/blend.h"
+#include "render/cpu/blend_backward.h"
+#include "render/cpu/project_bwd.h"
 #include "render/cpu/project.h"
 
 namespace streetsim {
@@ -33,6 +35,16 @@ class CpuScene final : public DeviceScene {
   int sh_degree() const override { return sh_degree_; }
   const GaussianStore& store() const { return store_; }
   const cpu::SceneSoa& soa() const { return soa_; }
+  // Training: new parameters, same layout choice; vectors keep their capacity.
+  void Replace(const GaussianStore& store, bool soa) {
+    sh_degree_ = store.sh_degree;
+    size_ = store.size();
+    if (soa) {
+      soa_ = cpu::SceneSoa::FromStore(store);
+    } else {
+      store_ = store;
+    }
+  }
 
  private:
   int sh_degree_;
@@ -73,10 +85,63 @@ class CpuEngine final : public Engine {
     if (!options.background.allFinite()) {
       return absl::InvalidArgumentError("background colour is not finite");
     }
+    kept_scene_ = nullptr;
     if (options_.precision == CpuPrecision::kDouble) {
       return RenderImpl<double>(*cpu_scene, camera, options, &frame_d_, out);
     }
     return RenderImpl<float>(*cpu_scene, camera, options, &frame_f_, out);
+  }
+
+  absl::Status UpdateScene(const GaussianStore& store, std::unique_ptr<DeviceScene>* scene) override {
+    auto* cpu_scene = scene->get() ? dynamic_cast<CpuScene*>(scene->get()) : nullptr;
+    if (cpu_scene == nullptr) return Engine::UpdateScene(store, scene);
+    if (absl::Status s = store.Validate(); !s.ok()) return s;
+    if (store.size() > (1u << 30)) return absl::InvalidArgumentError("scene too large for the cpu backend");
+    cpu_scene->Replace(store, options_.precision == CpuPrecision::kFloatSimd);
+    if (kept_scene_ == cpu_scene) kept_scene_ = nullptr;
+    return absl::OkStatus();
+  }
+
+  absl::Status RenderBackward(const DeviceScene& scene, const RenderOutputGrads& grads,
+                              const BackwardOptions& options, GaussianGrads* out) override {
+    const auto t0 = Clock::now();
+    const auto* cpu_scene = dynamic_cast<const CpuScene*>(&scene);
+    if (cpu_scene == nullptr || cpu_scene != kept_scene_) {
+      return absl::FailedPreconditionError(
+          "RenderBackward needs the last Render of this scene on this engine with keep_for_backward");
+    }
+    if (grads.rgb == nullptr) return absl::InvalidArgumentError("RenderBackward: dL/drgb is required");
+    if (options_.precision == CpuPrecision::kDouble) {
+      const cpu::Frame<double>& f = frame_d_;
+      const size_t pixels = static_cast<size_t>(f.width) * f.height;
+      std::vector<double> g_rgb(grads.rgb, grads.rgb + pixels * 3), g_d, g_a;
+      if (grads.depth) g_d.assign(grads.depth, grads.depth + pixels);
+      if (grads.alpha) g_a.assign(grads.alpha, grads.alpha + pixels);
+      cpu::BlendBackwardArgs<double> args;
+      args.frame = &f;
+      for (int c = 0; c < 3; ++c) args.background[c] = kept_background_[c];
+      args.d_rgb = g_rgb.data();
+      args.d_depth = grads.depth ? g_d.data() : nullptr;
+      args.d_alpha = grads.alpha ? g_a.data() : nullptr;
+      cpu::BlendBackwardScalar<double>(pool_, args, &bwd_scratch_d_, &splat_grads_d_);
+      cpu::ProjectBackwardStore<double>(pool_, cpu_scene->store(), kept_cam_d_, f, splat_grads_d_, out);
+    } else {
+      cpu::BlendBackwardArgs<float> args;
+      args.frame = &frame_f_;
+      for (int c = 0; c < 3; ++c) args.background[c] = kept_background_[c];
+      args.d_rgb = grads.rgb;
+      args.d_depth = grads.depth;
+      args.d_alpha = grads.alpha;
+      if (options_.precision == CpuPrecision::kFloatSimd) {
+        cpu::BlendBackwardSimd(pool_, args, options.deterministic, &bwd_scratch_f_, &splat_grads_f_);
+        cpu::ProjectBackwardSoa(pool_, cpu_scene->soa(), kept_cam_f_, frame_f_, splat_grads_f_, out);
+      } else {
+        cpu::BlendBackwardScalar<float>(pool_, args, &bwd_scratch_f_, &splat_grads_f_);
+        cpu::ProjectBackwardStore<float>(pool_, cpu_scene->store(), kept_cam_f_, frame_f_, splat_grads_f_, out);
+      }
+    }
+    out->backward_ms = MsSince(t0);
+    return absl::OkStatus();
   }
 
  private:
@@ -126,9 +191,9 @@ class CpuEngine final : public Engine {
       args.depth = options.want_depth ? out->depth.data() : nullptr;
       args.alpha = options.want_alpha ? out->alpha.data() : nullptr;
       args.final_T = frame->final_T.data();
-      // The backward pass (training) will ask for the per-pixel contributor counts; plain
-      // rendering skips them (one store less per pixel and splat in the blend).
-      args.n_contrib = nullptr;
+      // The backward pass (training) needs the per-pixel contributor counts; plain rendering
+      // skips them (one store less per pixel and splat in the blend).
+      args.n_contrib = options.keep_for_backward ? frame->n_contrib.data() : nullptr;
       if (options_.precision == CpuPrecision::kFloatSimd) {
         cpu::BlendSimd(pool_, args);
       } else {
@@ -151,6 +216,15 @@ class CpuEngine final : public Engine {
     }
     out->timings.blend_ms = MsSince(t0);
 
+    if (options.keep_for_backward) {
+      kept_scene_ = &scene;
+      kept_background_ = options.background;
+      if constexpr (std::is_same_v<Real, float>) {
+        kept_cam_f_ = cam;
+      } else {
+        kept_cam_d_ = cam;
+      }
+    }
     out->stats.num_gaussians = scene.size();
     out->stats.num_visible = frame->visible_ids.size();
     out->stats.num_tile_instances = frame->tile_ids.size();
@@ -162,6 +236,15 @@ class CpuEngine final : public Engine {
   ThreadPool pool_;
   cpu::Frame<float> frame_f_;
   cpu::Frame<double> frame_d_;
+  // What the backward pass needs from the last Render with keep_for_backward.
+  const CpuScene* kept_scene_ = nullptr;
+  Eigen::Vector3f kept_background_ = Eigen::Vector3f::Zero();
+  projection::CameraParams<float> kept_cam_f_{};
+  projection::CameraParams<double> kept_cam_d_{};
+  cpu::BlendBackwardScratch<float> bwd_scratch_f_;
+  cpu::BlendBackwardScratch<double> bwd_scratch_d_;
+  std::vector<float> splat_grads_f_;
+  std::vector<double> splat_grads_d_;
 };
 
 }  // namespace

@@ -1,0 +1,116 @@
+// Training-step speed: one iteration of the static trainer (parameters -> device scene, forward
+// with keep_for_backward, L1 + D-SSIM + depth loss and gradients, backward, Adam) on procedural
+// street scenes, per stage. Settings of the issue: 648x420 with 139k Gaussians (OpenSplat's CPU
+// figure) and 1242x375 with 300k.
+//   train_bench [--settings 648x420x139000,1242x375x300000] [--iters 10] [--sh 3] [--deterministic]
+#include <chrono>
+#include <cstdio>
+#include <cstring>
+#include <string>
+#include <vector>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_split.h"
+#include "render/common/thread_pool.h"
+#include "render/engine.h"
+#include "scene/gaussians/synthetic_street.h"
+#include "scene/train/losses.h"
+#include "scene/train/train_state.h"
+
+using namespace streetsim;
+using Clock = std::chrono::steady_clock;
+static double Ms(Clock::time_point t0) { return std::chrono::duration<double, std::milli>(Clock::now() - t0).count(); }
+
+int main(int argc, char** argv) {
+  std::string settings = "648x420x139000,1242x375x300000";
+  int iters = 10, sh = 3;
+  bool deterministic = false;
+  for (int i = 1; i < argc; ++i) {
+    if (!std::strcmp(argv[i], "--settings") && i + 1 < argc) settings = argv[++i];
+    else if (!std::strcmp(argv[i], "--iters") && i + 1 < argc) iters = std::atoi(argv[++i]);
+    else if (!std::strcmp(argv[i], "--sh") && i + 1 < argc) sh = std::atoi(argv[++i]);
+    else if (!std::strcmp(argv[i], "--deterministic")) deterministic = true;
+    else {
+      std::fprintf(stderr, "usage: train_bench [--settings WxHxN,...] [--iters N] [--sh D] [--deterministic]\n");
+      return 2;
+    }
+  }
+  auto engine = CreateEngine(Backend::kCpu);
+  if (!engine.ok()) return 1;
+  std::printf("device: %s\n", (*engine)->device_name().c_str());
+  std::printf("%-18s %8s %8s %8s %8s %8s %8s %8s %9s\n", "setting", "upload", "forward", "loss", "backward", "adam",
+              "total", "visible", "instances");
+  ThreadPool pool(0);
+  for (const std::string& s : std::vector<std::string>(absl::StrSplit(settings, ','))) {
+    std::vector<std::string> p = absl::StrSplit(s, 'x');
+    int w = 0, h = 0;
+    size_t n = 0;
+    if (p.size() != 3 || !absl::SimpleAtoi(p[0], &w) || !absl::SimpleAtoi(p[1], &h) || !absl::SimpleAtoi(p[2], &n)) {
+      std::fprintf(stderr, "bad setting %s\n", s.c_str());
+      return 2;
+    }
+    const GaussianStore street = MakeSyntheticStreet({.num_gaussians = n, .seed = 3, .sh_degree = sh});
+    train::TrainState st = train::TrainState::Init(street, 20.0, 1, 1);
+    PinholeCamera cam;
+    cam.width = w;
+    cam.height = h;
+    cam.fx = cam.fy = 721.5377 * w / 1242.0;
+    cam.cx = (w - 1) / 2.0;
+    cam.cy = (h - 1) / 2.0;
+    cam.T_world_from_cam = StreetCameraPose(10.0);
+    // Target: a render of the scene from 0.3 m aside (so that gradients are non-trivial).
+    std::vector<float> target, d_rgb, d_depth;
+    std::vector<train::DepthSample> lidar;
+    {
+      auto sc = (*engine)->Upload(street);
+      RenderOutput o;
+      PinholeCamera c2 = cam;
+      c2.T_world_from_cam = StreetCameraPose(10.0, 0.3);
+      (void)(*engine)->Render(**sc, c2, {}, &o);
+      target = o.rgb;
+      for (size_t i = 0; i < o.depth.size(); i += 97)
+        if (o.alpha[i] > 0.5f) lidar.push_back({static_cast<uint32_t>(i), o.depth[i] / o.alpha[i]});
+    }
+    std::unique_ptr<DeviceScene> scene;
+    GaussianStore rs;
+    RenderOutput out;
+    GaussianGrads grads;
+    train::Hyper hyper;
+    double t_up = 0, t_fwd = 0, t_loss = 0, t_bwd = 0, t_adam = 0, t_tot = 0;
+    for (int it = 0; it <= iters; ++it) {
+      const auto t0 = Clock::now();
+      auto t = Clock::now();
+      train::RenderStore(st, sh, &rs);
+      (void)(*engine)->UpdateScene(rs, &scene);
+      const double up = Ms(t);
+      t = Clock::now();
+      RenderOptions ro;
+      ro.keep_for_backward = true;
+      (void)(*engine)->Render(*scene, cam, ro, &out);
+      const double fwd = Ms(t);
+      t = Clock::now();
+      const size_t pixels = static_cast<size_t>(w) * h;
+      d_rgb.assign(pixels * 3, 0.0f);
+      d_depth.assign(pixels, 0.0f);
+      train::L1Loss(pool, out.rgb.data(), target.data(), pixels * 3, 1.0f, d_rgb.data());
+      train::Ssim(pool, out.rgb.data(), target.data(), w, h, -0.2f, d_rgb.data());
+      train::DepthLoss(out.depth.data(), lidar, 0.5f, d_depth.data());
+      const double loss = Ms(t);
+      t = Clock::now();
+      BackwardOptions bo;
+      bo.deterministic = deterministic;
+      (void)(*engine)->RenderBackward(*scene, {d_rgb.data(), d_depth.data(), nullptr}, bo, &grads);
+      const double bwd = Ms(t);
+      t = Clock::now();
+      train::AdamStepGaussians(&st, grads, sh, it + 1, hyper, pool);
+      const double adam = Ms(t);
+      if (it == 0) continue;  // warm-up
+      t_up += up, t_fwd += fwd, t_loss += loss, t_bwd += bwd, t_adam += adam, t_tot += Ms(t0);
+    }
+    const double k = 1.0 / iters;
+    std::printf("%-18s %8.1f %8.1f %8.1f %8.1f %8.1f %8.1f %8zu %9zu   ms/iteration\n", s.c_str(), t_up * k,
+                t_fwd * k, t_loss * k, t_bwd * k, t_adam * k, t_tot * k, out.stats.num_visible,
+                out.stats.num_tile_instances);
+  }
+  return 0;
+}

@@ -1,0 +1,127 @@
+// streetsim train: static 3DGS training of a driving log (docs/training.md).
+#include <unistd.h>
+
+#include <cstdio>
+#include <filesystem>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "client/cli/args.h"
+#include "client/cli/commands.h"
+#include "render/engine.h"
+#include "scene/log/open_log.h"
+#include "scene/log/scene_manifest.h"
+#include "scene/train/trainer.h"
+
+namespace streetsim {
+namespace {
+
+int Fail(int code, const absl::Status& status) {
+  std::string msg(status.message());
+  for (char& c : msg) {
+    if (c == '\n') c = ' ';
+  }
+  std::fprintf(stderr, "streetsim train: %s\n", msg.c_str());
+  return code;
+}
+
+std::string Duration(double s) {
+  char buf[32];
+  const int t = static_cast<int>(s + 0.5);
+  std::snprintf(buf, sizeof(buf), "%d:%02d:%02d", t / 3600, (t / 60) % 60, t % 60);
+  return buf;
+}
+
+}  // namespace
+
+int RunTrainCommand(const std::vector<std::string>& argv) {
+  absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(
+      argv, {{"log"}, {"out"}, {"iterations"}, {"resolution-scale"}, {"holdout-every"}, {"seed"}, {"resume", false},
+             {"checkpoint-every"}, {"no-sky", false}, {"exposure", false}, {"no-depth", false},
+             {"deterministic", false}, {"backend"}, {"voxel"}});
+  if (!args.ok()) return Fail(2, args.status());
+  if (!args->positional().empty()) {
+    return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
+  }
+  absl::StatusOr<std::string> log_path = args->Required("log");
+  if (!log_path.ok()) return Fail(2, log_path.status());
+  absl::StatusOr<std::string> out = args->Required("out");
+  if (!out.ok()) return Fail(2, out.status());
+  train::TrainOptions opt;
+  if (auto v = args->Get("iterations"); v && (!absl::SimpleAtoi(*v, &opt.iterations) || opt.iterations < 1 ||
+                                              opt.iterations > 10'000'000)) {
+    return Fail(2, absl::InvalidArgumentError("--iterations must be in 1..10000000"));
+  }
+  if (auto v = args->Get("resolution-scale"); v && (!absl::SimpleAtod(*v, &opt.resolution_scale) ||
+                                                    !(opt.resolution_scale > 0 && opt.resolution_scale <= 1))) {
+    return Fail(2, absl::InvalidArgumentError("--resolution-scale must be in (0, 1]"));
+  }
+  if (auto v = args->Get("holdout-every"); v && (!absl::SimpleAtoi(*v, &opt.holdout_every) || opt.holdout_every < 0 ||
+                                                 opt.holdout_every == 1)) {
+    return Fail(2, absl::InvalidArgumentError("--holdout-every must be 0 (none) or >= 2"));
+  }
+  if (auto v = args->Get("seed"); v && !absl::SimpleAtoi(*v, &opt.seed)) {
+    return Fail(2, absl::InvalidArgumentError("--seed must be a non-negative integer"));
+  }
+  if (auto v = args->Get("checkpoint-every"); v && (!absl::SimpleAtoi(*v, &opt.checkpoint_every) ||
+                                                    opt.checkpoint_every < 0)) {
+    return Fail(2, absl::InvalidArgumentError("--checkpoint-every must be >= 0"));
+  }
+  if (auto v = args->Get("voxel"); v && (!absl::SimpleAtod(*v, &opt.init_voxel_m) || !(opt.init_voxel_m > 0))) {
+    return Fail(2, absl::InvalidArgumentError("--voxel must be a positive number"));
+  }
+  if (auto v = args->Get("backend")) {
+    absl::StatusOr<Backend> b = ParseBackend(*v);
+    if (!b.ok()) return Fail(2, b.status());
+    opt.backend = *b == Backend::kAuto ? Backend::kCpu : *b;
+  }
+  opt.resume = args->Has("resume");
+  opt.sky = !args->Has("no-sky");
+  opt.exposure = args->Has("exposure");
+  opt.depth_loss = !args->Has("no-depth");
+  opt.deterministic = args->Has("deterministic");
+
+  absl::StatusOr<DriveLog> log = OpenLog(*log_path);
+  if (!log.ok()) return Fail(absl::IsInternal(log.status()) ? 1 : 2, log.status());
+  const bool tty = isatty(fileno(stderr));
+  auto progress = [&](const train::Progress& p) {
+    const int width = 30;
+    const int filled = static_cast<int>(width * p.iteration / std::max<int64_t>(1, p.total));
+    std::string bar(filled, '#');
+    bar.resize(width, '.');
+    std::fprintf(stderr, "%s[%s] %lld/%lld  loss %.4f  psnr %.2f dB  %zu Gaussians  %.2f it/s  ETA %s%s",
+                 tty ? "\r" : "", bar.c_str(), static_cast<long long>(p.iteration), static_cast<long long>(p.total),
+                 p.loss, p.psnr, p.gaussians, p.it_per_s, Duration(p.eta_s).c_str(),
+                 tty ? "" : "\n");
+    std::fflush(stderr);
+  };
+  absl::StatusOr<train::TrainResult> r = train::Train(*log, *out, opt, progress);
+  if (tty) std::fprintf(stderr, "\n");
+  if (!r.ok()) {
+    const absl::StatusCode c = r.status().code();
+    return Fail(c == absl::StatusCode::kInvalidArgument || c == absl::StatusCode::kNotFound ||
+                        c == absl::StatusCode::kDataLoss || c == absl::StatusCode::kFailedPrecondition
+                    ? 2 : 1,
+                r.status());
+  }
+  // The log's rig, time range and trajectory beside the scene, for `streetsim serve`.
+  const std::filesystem::path out_dir(*out);
+  if (absl::Status s = WriteSceneManifest(*log, std::filesystem::absolute(out_dir).filename().string(),
+                                          (out_dir / "scene.json").string());
+      !s.ok()) {
+    return Fail(1, s);
+  }
+  std::fprintf(stderr, "streetsim train: %lld iterations, %zu Gaussians, %.1f s -> %s/scene.ply\n",
+               static_cast<long long>(r->iterations), r->gaussians, r->seconds, out->c_str());
+  if (!r->heldout.frames.empty()) {
+    std::fprintf(stderr, "streetsim train: held-out (%zu views): PSNR %.2f dB, SSIM %.4f\n", r->heldout.frames.size(),
+                 r->heldout.mean.psnr, r->heldout.mean.ssim);
+  }
+  if (r->seconds_to_psnr24 >= 0) {
+    std::fprintf(stderr, "streetsim train: training-view PSNR (50-view mean) reached 24 dB after %.1f s\n",
+                 r->seconds_to_psnr24);
+  }
+  return 0;
+}
+
+}  // namespace streetsim

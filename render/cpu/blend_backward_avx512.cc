@@ -1,0 +1,3 @@
+#define STREETSIM_BWD_NS bwd_avx512
+#include "render/cpu/blend_backward.h"
+#include "render/cpu/blend_backward_simd.inc"

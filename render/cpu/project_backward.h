@@ -1,0 +1,255 @@
+// Backward of the per-Gaussian projection (render/common/projection_math.h: ProjectGaussian):
+// dL/d(splat: mean2D, conic, opacity, rgb, depth) -> dL/d(raw parameters: mean, log-scale,
+// quaternion, opacity logit, SH). Templated on the scalar type (float for training, double as the
+// gradient-check reference); straight-line, branch-free code so that a loop over Gaussians
+// calling it can vectorise.
+//
+// Chain: conic <- cov2D (+0.3 low-pass) <- T = J W <- Sigma = R S S^T R^T <- (quaternion, scale);
+// J (EWA Jacobian, with its frustum clamp) <- camera-space mean <- world mean; mean2D <- camera
+// mean; rgb <- SH basis(direction(mean - camera centre)) and SH coefficients.
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+
+#include "render/common/projection_math.h"
+
+namespace streetsim::cpu {
+
+// dL/d of one projected splat (what the blend backward accumulates per Gaussian).
+enum SplatGradIndex { kGx = 0, kGy, kGa, kGb, kGc, kGo, kGr, kGg, kGbl, kGdepth, kSplatGradSize };
+
+template <typename Real>
+struct ParamGrads {
+  Real mean[3];
+  Real log_scale[3];
+  Real quat[4];
+  Real logit;
+  Real sh[16 * 3];  // [k*3 + c]
+  Real radius;      // 3DGS screen radius ceil(3 sqrt(lambda_max)) (not a gradient)
+};
+
+// Derivatives of the real SH basis (projection::ShBasis) w.r.t. the unit direction (x, y, z),
+// contracted with dL/dbasis: returns dL/d(x, y, z) treating them as independent.
+template <typename Real>
+inline void ShBasisBackward(int degree, Real x, Real y, Real z, const Real* d_basis, Real* d_dir) {
+  using projection::kShC1;
+  using projection::kShC2;
+  using projection::kShC3;
+  Real gx = 0, gy = 0, gz = 0;
+  if (degree >= 1) {
+    gy += Real(-kShC1) * d_basis[1];
+    gz += Real(kShC1) * d_basis[2];
+    gx += Real(-kShC1) * d_basis[3];
+  }
+  if (degree >= 2) {
+    const Real c0 = Real(kShC2[0]), c1 = Real(kShC2[1]), c2 = Real(kShC2[2]), c3 = Real(kShC2[3]),
+               c4 = Real(kShC2[4]);
+    // b4 = c0 xy; b5 = c1 yz; b6 = c2 (2zz - xx - yy); b7 = c3 xz; b8 = c4 (xx - yy)
+    gx += d_basis[4] * c0 * y + d_basis[6] * c2 * (-2 * x) + d_basis[7] * c3 * z + d_basis[8] * c4 * (2 * x);
+    gy += d_basis[4] * c0 * x + d_basis[5] * c1 * z + d_basis[6] * c2 * (-2 * y) + d_basis[8] * c4 * (-2 * y);
+    gz += d_basis[5] * c1 * y + d_basis[6] * c2 * (4 * z) + d_basis[7] * c3 * x;
+  }
+  if (degree >= 3) {
+    const Real xx = x * x, yy = y * y, zz = z * z;
+    const Real k0 = Real(kShC3[0]), k1 = Real(kShC3[1]), k2 = Real(kShC3[2]), k3 = Real(kShC3[3]),
+               k4 = Real(kShC3[4]), k5 = Real(kShC3[5]), k6 = Real(kShC3[6]);
+    // b9  = k0 y (3xx - yy)
+    gx += d_basis[9] * k0 * (6 * x * y);
+    gy += d_basis[9] * k0 * (3 * xx - 3 * yy);
+    // b10 = k1 x y z
+    gx += d_basis[10] * k1 * y * z;
+    gy += d_basis[10] * k1 * x * z;
+    gz += d_basis[10] * k1 * x * y;
+    // b11 = k2 y (4zz - xx - yy)
+    gx += d_basis[11] * k2 * y * (-2 * x);
+    gy += d_basis[11] * k2 * (4 * zz - xx - 3 * yy);
+    gz += d_basis[11] * k2 * y * (8 * z);
+    // b12 = k3 z (2zz - 3xx - 3yy)
+    gx += d_basis[12] * k3 * z * (-6 * x);
+    gy += d_basis[12] * k3 * z * (-6 * y);
+    gz += d_basis[12] * k3 * (6 * zz - 3 * xx - 3 * yy);
+    // b13 = k4 x (4zz - xx - yy)
+    gx += d_basis[13] * k4 * (4 * zz - 3 * xx - yy);
+    gy += d_basis[13] * k4 * x * (-2 * y);
+    gz += d_basis[13] * k4 * x * (8 * z);
+    // b14 = k5 z (xx - yy)
+    gx += d_basis[14] * k5 * z * (2 * x);
+    gy += d_basis[14] * k5 * z * (-2 * y);
+    gz += d_basis[14] * k5 * (xx - yy);
+    // b15 = k6 x (xx - 3yy)
+    gx += d_basis[15] * k6 * (3 * xx - 3 * yy);
+    gy += d_basis[15] * k6 * x * (-6 * y);
+  }
+  d_dir[0] = gx;
+  d_dir[1] = gy;
+  d_dir[2] = gz;
+}
+
+// Backward of ProjectGaussian for a visible Gaussian. `g` holds dL/d(splat) (SplatGradIndex).
+// The forward is recomputed here (cheaper than storing its intermediates).
+template <typename Real>
+inline void ProjectGaussianBackward(const projection::CameraParams<Real>& cam, const Real* mean,
+                                    const Real* log_scale, const Real* quat, Real opacity_logit,
+                                    const Real* sh, int sh_degree, const Real* g,
+                                    ParamGrads<Real>* out) {
+  using std::exp;
+  using std::sqrt;
+  const Real* W = cam.R_cam_from_world;
+  const Real px = W[0] * mean[0] + W[1] * mean[1] + W[2] * mean[2] + cam.t_cam_from_world[0];
+  const Real py = W[3] * mean[0] + W[4] * mean[1] + W[5] * mean[2] + cam.t_cam_from_world[1];
+  const Real pz = W[6] * mean[0] + W[7] * mean[1] + W[8] * mean[2] + cam.t_cam_from_world[2];
+  const Real opacity = Real(1) / (Real(1) + exp(-opacity_logit));
+
+  // Rotation from the normalised quaternion.
+  const Real qn2 = quat[0] * quat[0] + quat[1] * quat[1] + quat[2] * quat[2] + quat[3] * quat[3];
+  const Real qinv = Real(1) / sqrt(qn2);
+  const Real qw = quat[0] * qinv, qx = quat[1] * qinv, qy = quat[2] * qinv, qz = quat[3] * qinv;
+  Real R[9];
+  R[0] = 1 - 2 * (qy * qy + qz * qz); R[1] = 2 * (qx * qy - qw * qz);     R[2] = 2 * (qx * qz + qw * qy);
+  R[3] = 2 * (qx * qy + qw * qz);     R[4] = 1 - 2 * (qx * qx + qz * qz); R[5] = 2 * (qy * qz - qw * qx);
+  R[6] = 2 * (qx * qz - qw * qy);     R[7] = 2 * (qy * qz + qw * qx);     R[8] = 1 - 2 * (qx * qx + qy * qy);
+  const Real s[3] = {exp(log_scale[0]), exp(log_scale[1]), exp(log_scale[2])};
+  Real M[9];
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) M[r * 3 + c] = R[r * 3 + c] * s[c];
+  Real Sg[9];  // full symmetric Sigma
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c)
+      Sg[r * 3 + c] = M[r * 3 + 0] * M[c * 3 + 0] + M[r * 3 + 1] * M[c * 3 + 1] + M[r * 3 + 2] * M[c * 3 + 2];
+
+  const Real inv_z = Real(1) / pz;
+  const Real tan_half_x = Real(0.5) * Real(cam.width) / cam.fx;
+  const Real tan_half_y = Real(0.5) * Real(cam.height) / cam.fy;
+  const Real lim_x_pos = (Real(cam.width) - cam.cx) / cam.fx + Real(projection::Limits::kFrustumMargin) * tan_half_x;
+  const Real lim_x_neg = cam.cx / cam.fx + Real(projection::Limits::kFrustumMargin) * tan_half_x;
+  const Real lim_y_pos = (Real(cam.height) - cam.cy) / cam.fy + Real(projection::Limits::kFrustumMargin) * tan_half_y;
+  const Real lim_y_neg = cam.cy / cam.fy + Real(projection::Limits::kFrustumMargin) * tan_half_y;
+  const Real ux = px * inv_z, uy = py * inv_z;
+  const Real ux_c = std::min(lim_x_pos, std::max(-lim_x_neg, ux));
+  const Real uy_c = std::min(lim_y_pos, std::max(-lim_y_neg, uy));
+  const Real x_free = (ux == ux_c) ? Real(1) : Real(0);  // clamp inactive: derivative passes
+  const Real y_free = (uy == uy_c) ? Real(1) : Real(0);
+  const Real j00 = cam.fx * inv_z, j02 = -cam.fx * ux_c * inv_z;
+  const Real j11 = cam.fy * inv_z, j12 = -cam.fy * uy_c * inv_z;
+  const Real T0[3] = {j00 * W[0] + j02 * W[6], j00 * W[1] + j02 * W[7], j00 * W[2] + j02 * W[8]};
+  const Real T1[3] = {j11 * W[3] + j12 * W[6], j11 * W[4] + j12 * W[7], j11 * W[5] + j12 * W[8]};
+  Real S0[3], S1[3];  // Sigma T0^T, Sigma T1^T
+  for (int r = 0; r < 3; ++r) {
+    S0[r] = Sg[r * 3 + 0] * T0[0] + Sg[r * 3 + 1] * T0[1] + Sg[r * 3 + 2] * T0[2];
+    S1[r] = Sg[r * 3 + 0] * T1[0] + Sg[r * 3 + 1] * T1[1] + Sg[r * 3 + 2] * T1[2];
+  }
+  const Real cxx = T0[0] * S0[0] + T0[1] * S0[1] + T0[2] * S0[2] + Real(projection::Limits::kLowPassPx);
+  const Real cxy = T0[0] * S1[0] + T0[1] * S1[1] + T0[2] * S1[2];
+  const Real cyy = T1[0] * S1[0] + T1[1] * S1[1] + T1[2] * S1[2] + Real(projection::Limits::kLowPassPx);
+  const Real det = cxx * cyy - cxy * cxy;
+  const Real inv_det = Real(1) / det;
+  const Real inv_det2 = inv_det * inv_det;
+
+  const Real mid = Real(0.5) * (cxx + cyy);
+  const Real lambda_max = mid + sqrt(std::max(Real(0.1), mid * mid - det));
+  out->radius = std::ceil(Real(3) * sqrt(lambda_max));
+
+  // conic (a, b, c) = (cyy, -cxy, cxx) / det.
+  const Real ga = g[kGa], gb = g[kGb], gc = g[kGc];
+  const Real d_cxx = -ga * cyy * cyy * inv_det2 + gb * cxy * cyy * inv_det2 + gc * (inv_det - cxx * cyy * inv_det2);
+  const Real d_cyy = ga * (inv_det - cxx * cyy * inv_det2) + gb * cxy * cxx * inv_det2 - gc * cxx * cxx * inv_det2;
+  const Real d_cxy = ga * 2 * cxy * cyy * inv_det2 + gb * (-inv_det - 2 * cxy * cxy * inv_det2) +
+                     gc * 2 * cxy * cxx * inv_det2;
+
+  // cov = T Sigma T^T: dT0 = 2 d_cxx S0 + d_cxy S1, dT1 = 2 d_cyy S1 + d_cxy S0;
+  // dSigma (full, then symmetrised through M) = d_cxx T0T0^T + d_cxy T0T1^T + d_cyy T1T1^T.
+  Real dT0[3], dT1[3];
+  for (int k = 0; k < 3; ++k) {
+    dT0[k] = 2 * d_cxx * S0[k] + d_cxy * S1[k];
+    dT1[k] = 2 * d_cyy * S1[k] + d_cxy * S0[k];
+  }
+  Real dSig[9];
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c)
+      dSig[r * 3 + c] = d_cxx * T0[r] * T0[c] + d_cxy * T0[r] * T1[c] + d_cyy * T1[r] * T1[c];
+  // Sigma = M M^T: dM = (dSig + dSig^T) M.
+  Real dM[9];
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) {
+      Real v = 0;
+      for (int k = 0; k < 3; ++k) v += (dSig[r * 3 + k] + dSig[k * 3 + r]) * M[k * 3 + c];
+      dM[r * 3 + c] = v;
+    }
+  // M = R diag(s).
+  Real dR[9];
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) dR[r * 3 + c] = dM[r * 3 + c] * s[c];
+  for (int c = 0; c < 3; ++c) {
+    const Real ds = dM[0 * 3 + c] * R[0 * 3 + c] + dM[1 * 3 + c] * R[1 * 3 + c] + dM[2 * 3 + c] * R[2 * 3 + c];
+    out->log_scale[c] = ds * s[c];
+  }
+  // R(q normalised) -> dq_n.
+  Real dqn[4];
+  dqn[0] = 2 * (-qz * dR[1] + qy * dR[2] + qz * dR[3] - qx * dR[5] - qy * dR[6] + qx * dR[7]);
+  dqn[1] = 2 * (qy * dR[1] + qz * dR[2] + qy * dR[3] - 2 * qx * dR[4] - qw * dR[5] + qz * dR[6] + qw * dR[7] -
+                2 * qx * dR[8]);
+  dqn[2] = 2 * (-2 * qy * dR[0] + qx * dR[1] + qw * dR[2] + qx * dR[3] + qz * dR[5] - qw * dR[6] + qz * dR[7] -
+                2 * qy * dR[8]);
+  dqn[3] = 2 * (-2 * qz * dR[0] - qw * dR[1] + qx * dR[2] + qw * dR[3] - 2 * qz * dR[4] + qy * dR[5] +
+                qx * dR[6] + qy * dR[7]);
+  // Normalisation: dq = (dqn - qn (qn . dqn)) / |q|.
+  const Real qdot = qw * dqn[0] + qx * dqn[1] + qy * dqn[2] + qz * dqn[3];
+  out->quat[0] = (dqn[0] - qw * qdot) * qinv;
+  out->quat[1] = (dqn[1] - qx * qdot) * qinv;
+  out->quat[2] = (dqn[2] - qy * qdot) * qinv;
+  out->quat[3] = (dqn[3] - qz * qdot) * qinv;
+
+  // T = J W -> J entries.
+  const Real dj00 = dT0[0] * W[0] + dT0[1] * W[1] + dT0[2] * W[2];
+  const Real dj02 = dT0[0] * W[6] + dT0[1] * W[7] + dT0[2] * W[8];
+  const Real dj11 = dT1[0] * W[3] + dT1[1] * W[4] + dT1[2] * W[5];
+  const Real dj12 = dT1[0] * W[6] + dT1[1] * W[7] + dT1[2] * W[8];
+  // j00 = fx/pz, j02 = -fx ux_c/pz, ux_c = clamp(px/pz).
+  Real dpx = 0, dpy = 0, dpz = g[kGdepth];
+  dpz += -dj00 * cam.fx * inv_z * inv_z + dj02 * cam.fx * ux_c * inv_z * inv_z;
+  dpz += -dj11 * cam.fy * inv_z * inv_z + dj12 * cam.fy * uy_c * inv_z * inv_z;
+  const Real d_uxc = -dj02 * cam.fx * inv_z * x_free;
+  const Real d_uyc = -dj12 * cam.fy * inv_z * y_free;
+  // Screen position u = fx px/pz + cx: together with the clamp terms, d(px/pz).
+  const Real d_ux = d_uxc + g[kGx] * cam.fx;
+  const Real d_uy = d_uyc + g[kGy] * cam.fy;
+  dpx += d_ux * inv_z;
+  dpz += -d_ux * px * inv_z * inv_z;
+  dpy += d_uy * inv_z;
+  dpz += -d_uy * py * inv_z * inv_z;
+  // p = W mean + t.
+  for (int k = 0; k < 3; ++k) out->mean[k] = W[0 * 3 + k] * dpx + W[1 * 3 + k] * dpy + W[2 * 3 + k] * dpz;
+
+  out->logit = g[kGo] * opacity * (Real(1) - opacity);
+
+  // Colour: rgb_c = max(sum_k basis_k sh_kc + 0.5, 0).
+  const Real dir[3] = {mean[0] - cam.cam_center_world[0], mean[1] - cam.cam_center_world[1],
+                       mean[2] - cam.cam_center_world[2]};
+  const Real inv_len = Real(1) / sqrt(dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2]);
+  const Real ux3 = dir[0] * inv_len, uy3 = dir[1] * inv_len, uz3 = dir[2] * inv_len;
+  Real basis[16];
+  projection::ShBasis(sh_degree, ux3, uy3, uz3, basis);
+  const int K = (sh_degree + 1) * (sh_degree + 1);
+  Real dv[3];
+  for (int c = 0; c < 3; ++c) {
+    Real v = 0;
+    for (int k = 0; k < K; ++k) v += basis[k] * sh[k * 3 + c];
+    dv[c] = (v + Real(0.5) > Real(0)) ? g[kGr + c] : Real(0);
+  }
+  Real d_basis[16];
+  for (int k = 0; k < K; ++k) {
+    d_basis[k] = sh[k * 3 + 0] * dv[0] + sh[k * 3 + 1] * dv[1] + sh[k * 3 + 2] * dv[2];
+    for (int c = 0; c < 3; ++c) out->sh[k * 3 + c] = basis[k] * dv[c];
+  }
+  if (sh_degree > 0) {
+    Real d_unit[3];
+    ShBasisBackward(sh_degree, ux3, uy3, uz3, d_basis, d_unit);
+    const Real dot = ux3 * d_unit[0] + uy3 * d_unit[1] + uz3 * d_unit[2];
+    out->mean[0] += (d_unit[0] - ux3 * dot) * inv_len;
+    out->mean[1] += (d_unit[1] - uy3 * dot) * inv_len;
+    out->mean[2] += (d_unit[2] - uz3 * dot) * inv_len;
+  }
+}
+
+}  // namespace streetsim::cpu

@@ -1,0 +1,46 @@
+// Training / evaluation views of a DriveLog: every camera observation of every frame, its image
+// (undistorted for COLMAP cameras, resized to the resolution scale) and its sparse LiDAR depth
+// samples, split by the held-out protocol (every K-th frame: frames K-1, 2K-1, ...).
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include <opencv2/core.hpp>
+
+#include "absl/status/statusor.h"
+#include "render/camera.h"
+#include "scene/log/drive_log.h"
+#include "scene/train/losses.h"
+
+namespace streetsim::train {
+
+struct View {
+  int frame = 0;  // index into DriveLog::frames
+  int camera_obs = 0;
+  std::string name;
+  PinholeCamera camera;  // at the resolution scale
+  cv::Mat rgb8;          // CV_8UC3, R G B, camera.width x camera.height
+  std::vector<DepthSample> lidar;  // sparse depth (nearest wins per scaled pixel)
+  // Linear RGB floats [H*W*3] in [0,1].
+  std::vector<float> RgbFloat() const;
+};
+
+enum class Split { kTrain, kTest, kAll };
+
+// Frame f is held out when holdout_every > 0 and f % holdout_every == holdout_every - 1.
+bool IsHeldOut(int frame, int holdout_every);
+
+struct DatasetOptions {
+  double resolution_scale = 1.0;
+  int holdout_every = 4;
+  Split split = Split::kTrain;
+  bool load_depth = true;
+};
+
+absl::StatusOr<std::vector<View>> LoadViews(const DriveLog& log, const DatasetOptions& options);
+
+// The pinhole camera of an observation at a resolution scale (OpenCV pixel-centre convention).
+PinholeCamera ScaledCamera(const DriveLog& log, int frame, int camera_obs, double scale);
+
+}  // namespace streetsim::train

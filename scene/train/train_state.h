@@ -1,0 +1,77 @@
+// The whole state of a static-stage training run (S3Gaussian coarse stage,
+// ../shared/docs/s3gaussian-spec.md sections 2, 6, 7): Gaussians, Adam moments, densification
+// statistics, the learned background and per-image exposure, the view queue and the RNG; plus
+// the pieces that act on it: Adam with the spec's parameter groups and schedules, densification
+// (clone / split / prune) and opacity reset, and checkpoints (written atomically).
+#pragma once
+
+#include <cstdint>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "render/common/thread_pool.h"
+#include "render/engine.h"
+#include "scene/gaussians/gaussian_store.h"
+
+namespace streetsim::train {
+
+struct Hyper {
+  // Adam (section 6): eps 1e-15, betas (0.9, 0.999).
+  double xyz_lr_init = 1.6e-4, xyz_lr_final = 1.6e-6;  // times the scene extent E
+  int lr_decay_steps = 30000;
+  double f_dc_lr = 2.5e-3, f_rest_lr = 2.5e-3 / 20, opacity_lr = 0.05, scaling_lr = 5e-3, rotation_lr = 1e-3;
+  double sky_lr = 1e-2, exposure_lr = 1e-3;  // streetsim's additions (not in S3Gaussian)
+  // Losses (section 5).
+  double lambda_dssim = 0.2, lambda_depth = 0.5;
+  // Densification (section 7).
+  int densify_from = 500, densify_until = 25000, densify_interval = 100, opacity_reset_interval = 3000;
+  double densify_grad_threshold = 0.0002, percent_dense = 0.01, min_opacity = 0.005;
+  size_t max_gaussians = 2'000'000;
+  int sh_degree_interval = 1000;
+};
+
+struct TrainState {
+  int64_t iteration = 0;  // completed iterations
+  double extent = 1.0;    // scene extent E (1.1 x max training camera distance from their mean)
+  GaussianStore params;   // sh_degree 3
+  GaussianStore adam_m, adam_v;
+  int64_t adam_step = 0;
+  std::vector<float> grad_accum, denom, max_radii;
+  float sky[3] = {0, 0, 0}, sky_m[3] = {0, 0, 0}, sky_v[3] = {0, 0, 0};
+  int64_t aux_step = 0;  // Adam step of sky / exposure
+  std::vector<float> exposure, exposure_m, exposure_v;  // [views * 12]: 3x3 row-major, then bias
+  std::vector<int> view_queue;
+  std::mt19937_64 rng;
+  // Curve: (iteration, loss, psnr) every few iterations, for the plot.
+  std::vector<double> curve;
+
+  // Identity-initialised state for the given Gaussians (raised to SH degree 3).
+  static TrainState Init(const GaussianStore& init, double extent, int num_views, uint64_t seed);
+  size_t size() const { return params.size(); }
+};
+
+// The store to render at an active SH degree (a copy of the parameters, fewer SH coefficients).
+void RenderStore(const TrainState& s, int active_degree, GaussianStore* out);
+
+double ExpLr(double init, double final_lr, int64_t step, int max_steps);
+
+// One Adam step of every Gaussian parameter with the spec's groups (lr at `iteration`). `grads`
+// holds the rendered scene's gradients (SH for `active_degree` only).
+void AdamStepGaussians(TrainState* s, const GaussianGrads& grads, int active_degree, int64_t iteration,
+                       const Hyper& h, ThreadPool& pool);
+// Adam on a small array (sky, exposure).
+void AdamStepSmall(float* p, const float* g, float* m, float* v, size_t n, double lr, int64_t step);
+
+// Densification statistics of one rendered view (visible = radii > 0).
+void AccumulateStats(TrainState* s, const GaussianGrads& grads, int width, int height);
+// Clone / split (when N < max) then prune (section 7). Returns the number added / removed.
+void DensifyAndPrune(TrainState* s, const Hyper& h, int64_t iteration, size_t* added, size_t* removed);
+// opacity = logit(min(sigmoid(opacity), 0.01)); opacity moments zeroed.
+void ResetOpacity(TrainState* s);
+
+absl::Status SaveCheckpoint(const TrainState& s, const std::string& path);
+absl::StatusOr<TrainState> LoadCheckpoint(const std::string& path);
+
+}  // namespace streetsim::train

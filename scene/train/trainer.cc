@@ -1,0 +1,448 @@
+#include "scene/train/trainer.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+
+#include <nlohmann/json.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "absl/strings/str_cat.h"
+#include "render/common/log.h"
+#include "render/common/thread_pool.h"
+#include "scene/gaussians/ply_io.h"
+#include "scene/init/initial_scene.h"
+#include "scene/train/losses.h"
+
+namespace streetsim::train {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+double SecondsSince(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+
+double SceneExtent(const std::vector<View>& views) {
+  Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+  for (const View& v : views) mean += v.camera.T_world_from_cam.translation();
+  mean /= std::max<size_t>(1, views.size());
+  double r = 0;
+  for (const View& v : views) r = std::max(r, (v.camera.T_world_from_cam.translation() - mean).norm());
+  return r > 1e-6 ? 1.1 * r : 1.0;
+}
+
+int NextView(TrainState* s, int num_views) {
+  if (s->view_queue.empty()) {
+    for (int i = 0; i < num_views; ++i) s->view_queue.push_back(i);
+  }
+  std::uniform_int_distribution<size_t> pick(0, s->view_queue.size() - 1);
+  const size_t k = pick(s->rng);
+  const int v = s->view_queue[k];
+  s->view_queue.erase(s->view_queue.begin() + static_cast<std::ptrdiff_t>(k));
+  return v;
+}
+
+absl::Status WriteText(const std::string& path, const std::string& text) {
+  const std::string tmp = path + ".tmp";
+  {
+    std::ofstream f(tmp, std::ios::trunc);
+    f << text;
+    if (!f) return absl::InternalError(absl::StrCat("cannot write ", tmp));
+  }
+  std::error_code ec;
+  std::filesystem::rename(tmp, path, ec);
+  if (ec) return absl::InternalError(absl::StrCat("cannot rename ", tmp, ": ", ec.message()));
+  return absl::OkStatus();
+}
+
+absl::Status WritePng(const std::string& path, const cv::Mat& rgb8) {
+  cv::Mat bgr;
+  cv::cvtColor(rgb8, bgr, cv::COLOR_RGB2BGR);
+  const std::string tmp = path + ".tmp.png";
+  if (!cv::imwrite(tmp, bgr)) return absl::InternalError(absl::StrCat("cannot write ", path));
+  std::error_code ec;
+  std::filesystem::rename(tmp, path, ec);
+  if (ec) return absl::InternalError(absl::StrCat("cannot rename ", tmp, ": ", ec.message()));
+  return absl::OkStatus();
+}
+
+cv::Mat ToRgb8(const std::vector<float>& rgb, int w, int h) {
+  cv::Mat m(h, w, CV_8UC3);
+  for (int y = 0; y < h; ++y) {
+    uint8_t* row = m.ptr<uint8_t>(y);
+    for (int i = 0; i < w * 3; ++i) {
+      const float v = rgb[static_cast<size_t>(y) * w * 3 + i];
+      row[i] = static_cast<uint8_t>(std::lround(std::min(std::max(v, 0.0f), 1.0f) * 255.0f));
+    }
+  }
+  return m;
+}
+
+// Loss (log scale, left axis) and PSNR (right axis) against iteration.
+cv::Mat PlotCurve(const std::vector<double>& curve) {
+  const int W = 900, H = 420, L = 70, R = 70, T = 30, B = 50;
+  cv::Mat img(H, W, CV_8UC3, cv::Scalar(255, 255, 255));
+  const size_t n = curve.size() / 3;
+  if (n < 2) return img;
+  double it_max = curve[(n - 1) * 3], lmin = 1e9, lmax = -1e9, pmin = 1e9, pmax = -1e9;
+  for (size_t i = 0; i < n; ++i) {
+    const double l = std::log10(std::max(curve[i * 3 + 1], 1e-6));
+    lmin = std::min(lmin, l), lmax = std::max(lmax, l);
+    pmin = std::min(pmin, curve[i * 3 + 2]), pmax = std::max(pmax, curve[i * 3 + 2]);
+  }
+  if (lmax - lmin < 1e-3) lmax = lmin + 1;
+  if (pmax - pmin < 1e-3) pmax = pmin + 1;
+  auto px = [&](double it) { return L + static_cast<int>((W - L - R) * it / std::max(it_max, 1.0)); };
+  auto py = [&](double v, double lo, double hi) { return T + static_cast<int>((H - T - B) * (1 - (v - lo) / (hi - lo))); };
+  cv::rectangle(img, {L, T}, {W - R, H - B}, cv::Scalar(0, 0, 0));
+  for (size_t i = 1; i < n; ++i) {
+    const double l0 = std::log10(std::max(curve[(i - 1) * 3 + 1], 1e-6)), l1 = std::log10(std::max(curve[i * 3 + 1], 1e-6));
+    cv::line(img, {px(curve[(i - 1) * 3]), py(l0, lmin, lmax)}, {px(curve[i * 3]), py(l1, lmin, lmax)}, cv::Scalar(200, 60, 30), 1);
+    cv::line(img, {px(curve[(i - 1) * 3]), py(curve[(i - 1) * 3 + 2], pmin, pmax)},
+             {px(curve[i * 3]), py(curve[i * 3 + 2], pmin, pmax)}, cv::Scalar(30, 60, 200), 1);
+  }
+  auto text = [&](const std::string& s, int x, int y, cv::Scalar c) {
+    cv::putText(img, s, {x, y}, cv::FONT_HERSHEY_SIMPLEX, 0.45, c, 1);
+  };
+  text(absl::StrCat("loss ", std::to_string(std::pow(10, lmax)).substr(0, 6)), 5, T + 10, cv::Scalar(200, 60, 30));
+  text(std::to_string(std::pow(10, lmin)).substr(0, 6), 5, H - B, cv::Scalar(200, 60, 30));
+  text(absl::StrCat(std::to_string(pmax).substr(0, 5), " dB"), W - R + 3, T + 10, cv::Scalar(30, 60, 200));
+  text(absl::StrCat(std::to_string(pmin).substr(0, 5), " dB"), W - R + 3, H - B, cv::Scalar(30, 60, 200));
+  text(absl::StrCat("iteration 0 .. ", static_cast<int64_t>(it_max),
+                    "   (red: loss, log scale; blue: training-view PSNR, 50-view mean)"), L, H - 15, cv::Scalar(0, 0, 0));
+  // The plot was drawn in RGB order.
+  return img;
+}
+
+}  // namespace
+
+absl::StatusOr<EvalResult> Evaluate(Engine& engine, const GaussianStore& scene, const std::vector<View>& views,
+                                    const Eigen::Vector3f& background) {
+  absl::StatusOr<std::unique_ptr<DeviceScene>> dev = engine.Upload(scene);
+  if (!dev.ok()) return dev.status();
+  ThreadPool pool(0);
+  EvalResult result;
+  RenderOptions ro;
+  ro.background = background;
+  RenderOutput out;
+  double sum_psnr = 0, sum_ssim = 0, sum_med = 0, sum_within = 0;
+  int depth_frames = 0;
+  for (const View& v : views) {
+    if (absl::Status s = engine.Render(**dev, v.camera, ro, &out); !s.ok()) return s;
+    const std::vector<float> gt = v.RgbFloat();
+    std::vector<float> clamped(out.rgb.size());
+    for (size_t i = 0; i < clamped.size(); ++i) clamped[i] = std::min(std::max(out.rgb[i], 0.0f), 1.0f);
+    FrameMetrics m;
+    m.name = v.name;
+    m.frame = v.frame;
+    m.psnr = Psnr(clamped.data(), gt.data(), gt.size());
+    m.ssim = Ssim(pool, clamped.data(), gt.data(), v.camera.width, v.camera.height, 0, nullptr);
+    std::vector<double> err;
+    size_t within = 0;
+    for (const DepthSample& d : v.lidar) {
+      const float a = out.alpha[d.pixel];
+      if (!(a > 0.5f) || !(d.depth > 0.01f && d.depth < 80.0f)) continue;
+      const double e = std::abs(out.depth[d.pixel] / a - d.depth);
+      err.push_back(e);
+      within += e <= 0.05 * d.depth;
+    }
+    m.depth_points = err.size();
+    if (!err.empty()) {
+      std::nth_element(err.begin(), err.begin() + err.size() / 2, err.end());
+      m.depth_median_abs_m = err[err.size() / 2];
+      m.depth_within_5pct = static_cast<double>(within) / err.size();
+      sum_med += m.depth_median_abs_m;
+      sum_within += m.depth_within_5pct;
+      ++depth_frames;
+    }
+    sum_psnr += m.psnr;
+    sum_ssim += m.ssim;
+    result.frames.push_back(m);
+  }
+  const double n = std::max<size_t>(1, result.frames.size());
+  result.mean.name = "mean";
+  result.mean.psnr = sum_psnr / n;
+  result.mean.ssim = sum_ssim / n;
+  result.mean.depth_median_abs_m = depth_frames ? sum_med / depth_frames : -1;
+  result.mean.depth_within_5pct = depth_frames ? sum_within / depth_frames : -1;
+  return result;
+}
+
+absl::StatusOr<SceneMeta> ReadSceneMeta(const std::string& dir) {
+  SceneMeta meta;
+  const std::string path = (std::filesystem::path(dir) / "train_meta.json").string();
+  std::ifstream f(path);
+  if (!f) return meta;  // a scene.ply from elsewhere: black background, scale 1
+  try {
+    const nlohmann::json j = nlohmann::json::parse(f);
+    for (int c = 0; c < 3; ++c) meta.background[c] = j.at("background").at(c).get<float>();
+    meta.resolution_scale = j.at("resolution_scale").get<double>();
+    meta.holdout_every = j.at("holdout_every").get<int>();
+  } catch (const std::exception& e) {
+    return absl::DataLossError(absl::StrCat(path, ": ", e.what()));
+  }
+  return meta;
+}
+
+absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_dir, const TrainOptions& opt,
+                                  const std::function<void(const Progress&)>& progress) {
+  const auto t_start = Clock::now();
+  if (opt.iterations < 1) return absl::InvalidArgumentError("iterations must be >= 1");
+  std::error_code ec;
+  std::filesystem::create_directories(out_dir, ec);
+  if (ec) return absl::InternalError(absl::StrCat("cannot create ", out_dir, ": ", ec.message()));
+  const std::string ckpt_path = (std::filesystem::path(out_dir) / "checkpoint.bin").string();
+
+  DatasetOptions dopt;
+  dopt.resolution_scale = opt.resolution_scale;
+  dopt.holdout_every = opt.holdout_every;
+  dopt.split = Split::kTrain;
+  dopt.load_depth = opt.depth_loss;
+  absl::StatusOr<std::vector<View>> views = LoadViews(log, dopt);
+  if (!views.ok()) return views.status();
+  if (views->empty()) return absl::InvalidArgumentError("the log has no training views");
+  const int num_views = static_cast<int>(views->size());
+
+  TrainState st;
+  if (opt.resume && std::filesystem::exists(ckpt_path)) {
+    absl::StatusOr<TrainState> loaded = LoadCheckpoint(ckpt_path);
+    if (!loaded.ok()) return loaded.status();
+    st = std::move(*loaded);
+    if (opt.exposure && st.exposure.size() != static_cast<size_t>(num_views) * 12) {
+      return absl::FailedPreconditionError("checkpoint was written for a different set of views");
+    }
+    LOG(INFO) << "resumed from " << ckpt_path << " at iteration " << st.iteration;
+  } else {
+    // The initial scene sees the training frames only: held-out frames are never used.
+    DriveLog train_log = log;
+    train_log.frames.clear();
+    for (int f = 0; f < static_cast<int>(log.frames.size()); ++f)
+      if (!IsHeldOut(f, opt.holdout_every)) train_log.frames.push_back(log.frames[f]);
+    InitOptions iopt;
+    iopt.voxel_m = opt.init_voxel_m;
+    iopt.seed = static_cast<unsigned>(opt.seed + 1);
+    InitStats istats;
+    absl::StatusOr<GaussianStore> init = BuildInitialScene(train_log, iopt, &istats);
+    if (!init.ok()) return init.status();
+    st = TrainState::Init(*init, SceneExtent(*views), num_views, opt.seed);
+    if (opt.sky) {
+      // Start the environment colour at the mean of the training images' top rows.
+      double acc[3] = {0, 0, 0};
+      size_t cnt = 0;
+      for (const View& v : *views) {
+        for (int y = 0; y < std::max(1, v.rgb8.rows / 10); ++y)
+          for (int x = 0; x < v.rgb8.cols; ++x, ++cnt)
+            for (int c = 0; c < 3; ++c) acc[c] += v.rgb8.at<cv::Vec3b>(y, x)[c] / 255.0;
+      }
+      for (int c = 0; c < 3; ++c) st.sky[c] = static_cast<float>(acc[c] / std::max<size_t>(cnt, 1));
+    }
+    LOG(INFO) << "initial scene: " << st.size() << " Gaussians (" << istats.source << "), extent " << st.extent
+              << " m, " << num_views << " training views";
+  }
+
+  absl::StatusOr<std::unique_ptr<Engine>> engine = CreateEngine(opt.backend);
+  if (!engine.ok()) return engine.status();
+  ThreadPool pool(0);
+  std::unique_ptr<DeviceScene> scene;
+  GaussianStore render_store;
+  RenderOutput out;
+  GaussianGrads grads;
+  std::vector<float> d_rgb, d_depth, d_pre, rgb_exp;
+  std::vector<std::vector<float>> gt_cache(num_views);
+  const Hyper& h = opt.hyper;
+  TrainResult result;
+  double psnr_window = 0;
+  std::vector<double> recent_psnr;
+  double recent_loss = 0;
+  const int64_t first = st.iteration + 1;
+  const auto t_loop = Clock::now();
+
+  for (int64_t it = first; it <= opt.iterations; ++it) {
+    const int active = std::min<int>(3, static_cast<int>(it / h.sh_degree_interval));
+    const int vi = NextView(&st, num_views);
+    const View& view = (*views)[vi];
+    if (gt_cache[vi].empty()) gt_cache[vi] = view.RgbFloat();
+    const std::vector<float>& gt = gt_cache[vi];
+
+    RenderStore(st, active, &render_store);
+    if (absl::Status s = (*engine)->UpdateScene(render_store, &scene); !s.ok()) return s;
+    RenderOptions ro;
+    ro.background = opt.sky ? Eigen::Vector3f(st.sky[0], st.sky[1], st.sky[2]) : Eigen::Vector3f::Zero();
+    ro.keep_for_backward = true;
+    if (absl::Status s = (*engine)->Render(*scene, view.camera, ro, &out); !s.ok()) return s;
+    const int W = view.camera.width, H = view.camera.height;
+    const size_t pixels = static_cast<size_t>(W) * H;
+
+    // Exposure: out = A rgb + b per training image.
+    const float* E = &st.exposure[static_cast<size_t>(vi) * 12];
+    const std::vector<float>* image = &out.rgb;
+    if (opt.exposure) {
+      rgb_exp.resize(pixels * 3);
+      for (size_t p = 0; p < pixels; ++p)
+        for (int r = 0; r < 3; ++r)
+          rgb_exp[p * 3 + r] = E[r * 4] * out.rgb[p * 3] + E[r * 4 + 1] * out.rgb[p * 3 + 1] +
+                               E[r * 4 + 2] * out.rgb[p * 3 + 2] + E[r * 4 + 3];
+      image = &rgb_exp;
+    }
+    d_rgb.assign(pixels * 3, 0.0f);
+    d_depth.assign(pixels, 0.0f);
+    const double l1 = L1Loss(pool, image->data(), gt.data(), pixels * 3, 1.0f, d_rgb.data());
+    const double ssim = Ssim(pool, image->data(), gt.data(), W, H, static_cast<float>(-h.lambda_dssim), d_rgb.data());
+    double ld = 0;
+    if (opt.depth_loss) ld = DepthLoss(out.depth.data(), view.lidar, static_cast<float>(h.lambda_depth), d_depth.data());
+    const double loss = l1 + h.lambda_dssim * (1 - ssim) + h.lambda_depth * ld;
+    const double psnr = Psnr(image->data(), gt.data(), pixels * 3);
+
+    // Back through the exposure to the render.
+    const std::vector<float>* d_render = &d_rgb;
+    if (opt.exposure) {
+      d_pre.assign(pixels * 3, 0.0f);
+      float dE[12] = {0};
+      for (size_t p = 0; p < pixels; ++p) {
+        for (int r = 0; r < 3; ++r) {
+          const float g = d_rgb[p * 3 + r];
+          for (int c = 0; c < 3; ++c) {
+            dE[r * 4 + c] += g * out.rgb[p * 3 + c];
+            d_pre[p * 3 + c] += E[r * 4 + c] * g;
+          }
+          dE[r * 4 + 3] += g;
+        }
+      }
+      AdamStepSmall(&st.exposure[vi * 12], dE, &st.exposure_m[vi * 12], &st.exposure_v[vi * 12], 12, h.exposure_lr,
+                    st.aux_step + 1);
+      d_render = &d_pre;
+    }
+    if (opt.sky) {
+      float dsky[3] = {0, 0, 0};
+      for (size_t p = 0; p < pixels; ++p) {
+        const float T = 1.0f - out.alpha[p];
+        for (int c = 0; c < 3; ++c) dsky[c] += (*d_render)[p * 3 + c] * T;
+      }
+      AdamStepSmall(st.sky, dsky, st.sky_m, st.sky_v, 3, h.sky_lr, st.aux_step + 1);
+    }
+    st.aux_step += 1;
+
+    BackwardOptions bo;
+    bo.deterministic = opt.deterministic;
+    RenderOutputGrads og;
+    og.rgb = d_render->data();
+    og.depth = opt.depth_loss ? d_depth.data() : nullptr;
+    if (absl::Status s = (*engine)->RenderBackward(*scene, og, bo, &grads); !s.ok()) return s;
+
+    bool replaced = false;
+    if (it < h.densify_until) {
+      AccumulateStats(&st, grads, W, H);
+      if (it > h.densify_from && it % h.densify_interval == 0) {
+        size_t added = 0, removed = 0;
+        DensifyAndPrune(&st, h, it, &added, &removed);
+        replaced = true;
+      }
+      if (it % h.opacity_reset_interval == 0) {
+        ResetOpacity(&st);
+        replaced = true;
+      }
+    }
+    // On iterations that replace the Gaussian tensors, 3DGS's Adam sees no gradient for them.
+    if (!replaced) AdamStepGaussians(&st, grads, active, it, h, pool);
+    st.iteration = it;
+
+    recent_psnr.push_back(psnr);
+    psnr_window += psnr;
+    if (recent_psnr.size() > 50) {
+      psnr_window -= recent_psnr.front();
+      recent_psnr.erase(recent_psnr.begin());
+    }
+    recent_loss = recent_loss == 0 ? loss : 0.9 * recent_loss + 0.1 * loss;
+    const double mean_psnr = psnr_window / recent_psnr.size();
+    if (result.seconds_to_psnr24 < 0 && recent_psnr.size() >= 50 && mean_psnr >= 24) {
+      result.seconds_to_psnr24 = SecondsSince(t_start);
+    }
+    if (it % 10 == 0 || it == opt.iterations) {
+      st.curve.push_back(static_cast<double>(it));
+      st.curve.push_back(recent_loss);
+      st.curve.push_back(mean_psnr);
+    }
+    if (progress && (it % 10 == 0 || it == opt.iterations || it == first)) {
+      Progress p;
+      p.iteration = it;
+      p.total = opt.iterations;
+      p.loss = loss;
+      p.psnr = psnr;
+      p.gaussians = st.size();
+      const double el = SecondsSince(t_loop);
+      p.it_per_s = (it - first + 1) / std::max(el, 1e-9);
+      p.eta_s = (opt.iterations - it) / std::max(p.it_per_s, 1e-9);
+      progress(p);
+    }
+    if (opt.checkpoint_every > 0 && it % opt.checkpoint_every == 0) {
+      if (absl::Status s = SaveCheckpoint(st, ckpt_path); !s.ok()) return s;
+    }
+    if (opt.stop_after > 0 && it >= opt.stop_after) {
+      result.iterations = it;
+      result.gaussians = st.size();
+      result.seconds = SecondsSince(t_start);
+      return result;
+    }
+  }
+
+  // Final outputs.
+  if (absl::Status s = SaveCheckpoint(st, ckpt_path); !s.ok()) return s;
+  result.iterations = st.iteration;
+  result.gaussians = st.size();
+  if (opt.write_outputs) {
+    if (absl::Status s = WriteGaussianPly(st.params, (std::filesystem::path(out_dir) / "scene.ply").string()); !s.ok()) {
+      return s;
+    }
+    nlohmann::json meta;
+    meta["background"] = {opt.sky ? st.sky[0] : 0.0f, opt.sky ? st.sky[1] : 0.0f, opt.sky ? st.sky[2] : 0.0f};
+    meta["resolution_scale"] = opt.resolution_scale;
+    meta["holdout_every"] = opt.holdout_every;
+    meta["iterations"] = st.iteration;
+    meta["gaussians"] = st.size();
+    meta["extent_m"] = st.extent;
+    meta["seed"] = opt.seed;
+    meta["sky"] = opt.sky;
+    meta["exposure"] = opt.exposure;
+    if (absl::Status s = WriteText((std::filesystem::path(out_dir) / "train_meta.json").string(), meta.dump(2) + "\n");
+        !s.ok()) {
+      return s;
+    }
+    cv::Mat plot = PlotCurve(st.curve);
+    if (absl::Status s = WritePng((std::filesystem::path(out_dir) / "curve.png").string(), plot); !s.ok()) return s;
+    // Held-out previews (render | ground truth) and metrics.
+    dopt.split = Split::kTest;
+    dopt.load_depth = true;
+    if (opt.holdout_every > 0) {
+      absl::StatusOr<std::vector<View>> test = LoadViews(log, dopt);
+      if (!test.ok()) return test.status();
+      if (!test->empty()) {
+        const Eigen::Vector3f bg = opt.sky ? Eigen::Vector3f(st.sky[0], st.sky[1], st.sky[2]) : Eigen::Vector3f::Zero();
+        absl::StatusOr<EvalResult> ev = Evaluate(**engine, st.params, *test, bg);
+        if (!ev.ok()) return ev.status();
+        result.heldout = *ev;
+        const std::filesystem::path pdir = std::filesystem::path(out_dir) / "preview";
+        std::filesystem::create_directories(pdir, ec);
+        absl::StatusOr<std::unique_ptr<DeviceScene>> dev = (*engine)->Upload(st.params);
+        if (!dev.ok()) return dev.status();
+        RenderOptions ro;
+        ro.background = bg;
+        const size_t step = std::max<size_t>(1, test->size() / 6);
+        for (size_t i = 0; i < test->size(); i += step) {
+          const View& v = (*test)[i];
+          if (absl::Status s = (*engine)->Render(**dev, v.camera, ro, &out); !s.ok()) return s;
+          cv::Mat both;
+          cv::hconcat(ToRgb8(out.rgb, v.camera.width, v.camera.height), v.rgb8, both);
+          char name[64];
+          std::snprintf(name, sizeof(name), "heldout_frame%04d_cam%d.png", v.frame, v.camera_obs);
+          if (absl::Status s = WritePng((pdir / name).string(), both); !s.ok()) return s;
+        }
+      }
+    }
+  }
+  result.seconds = SecondsSince(t_start);
+  return result;
+}
+
+}  // namespace streetsim::train

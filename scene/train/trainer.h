@@ -1,0 +1,79 @@
+// The static-stage trainer (S3Gaussian's coarse stage, ../shared/docs/s3gaussian-spec.md sections
+// 2, 5-7) and held-out evaluation. Data flows one way: DriveLog -> initial scene (scene/init,
+// from the training frames only) -> this loop -> scene.ply + checkpoint. The renderer is reached
+// only through render/engine.h (Render with keep_for_backward, RenderBackward, UpdateScene).
+#pragma once
+
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "render/engine.h"
+#include "scene/log/drive_log.h"
+#include "scene/train/dataset.h"
+#include "scene/train/train_state.h"
+
+namespace streetsim::train {
+
+struct TrainOptions {
+  int iterations = 30000;
+  double resolution_scale = 1.0;
+  int holdout_every = 4;
+  uint64_t seed = 0;
+  bool resume = false;        // continue from out_dir/checkpoint.bin when it exists
+  int checkpoint_every = 1000;  // 0: only at the end
+  bool sky = true;            // learned background (environment) colour
+  bool exposure = false;      // per-image affine colour
+  bool depth_loss = true;
+  bool deterministic = false;  // fixed-order gradient reduction (identical bits run to run)
+  bool write_outputs = true;   // scene.ply, plot, previews at the end
+  int stop_after = 0;          // > 0: stop (as if killed) after this iteration, without final outputs
+  Backend backend = Backend::kCpu;
+  Hyper hyper;
+  double init_voxel_m = 0.15;  // LiDAR init voxel
+};
+
+struct Progress {
+  int64_t iteration = 0, total = 0;
+  double loss = 0, psnr = 0;  // of the last view
+  size_t gaussians = 0;
+  double it_per_s = 0, eta_s = 0;
+};
+
+struct FrameMetrics {
+  std::string name;
+  int frame = 0;
+  double psnr = 0, ssim = 0;
+  double depth_median_abs_m = -1, depth_within_5pct = -1;  // -1: no LiDAR
+  size_t depth_points = 0;
+};
+struct EvalResult {
+  std::vector<FrameMetrics> frames;
+  FrameMetrics mean;
+};
+
+struct TrainResult {
+  int64_t iterations = 0;
+  size_t gaussians = 0;
+  double seconds = 0;
+  double seconds_to_psnr24 = -1;  // first time a training-view PSNR (running mean of 50) >= 24
+  EvalResult heldout;             // when there are held-out views and outputs are written
+};
+
+absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_dir, const TrainOptions& options,
+                                  const std::function<void(const Progress&)>& progress = nullptr);
+
+// Renders every view of `views` and measures it. background: the learned sky colour.
+absl::StatusOr<EvalResult> Evaluate(Engine& engine, const GaussianStore& scene, const std::vector<View>& views,
+                                    const Eigen::Vector3f& background);
+
+// DIR/train_meta.json written by Train: the background colour and the resolution scale.
+struct SceneMeta {
+  Eigen::Vector3f background = Eigen::Vector3f::Zero();
+  double resolution_scale = 1.0;
+  int holdout_every = 4;
+};
+absl::StatusOr<SceneMeta> ReadSceneMeta(const std::string& dir);
+
+}  // namespace streetsim::train

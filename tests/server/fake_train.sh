@@ -1,0 +1,40 @@
+#!/bin/sh
+# Test double of `streetsim train --log LOG --out DIR --iterations N [--resume]` for the
+# training-job tests. Prints the trainer's progress lines on stderr, one per iteration, keeps a
+# "checkpoint" (DIR/checkpoint.bin = last iteration) and on --resume continues from it (noted in
+# DIR/resumed). LOG/train_sleep_s: pause per iteration; LOG/train_fail: exit 5; LOG/preview.png:
+# copied to DIR/preview/ (as the trainer's held-out previews). Leaves
+# DIR/scene.ply (from init) as it is and writes DIR/trained.
+set -e
+log=""; out=""; n=0; resume=0; seed=""
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --log) log="$2"; shift 2 ;;
+    --out) out="$2"; shift 2 ;;
+    --iterations) n="$2"; shift 2 ;;
+    --seed) seed="$2"; shift 2 ;;
+    --resume) resume=1; shift ;;
+    *) echo "fake train: unknown flag $1" >&2; exit 2 ;;
+  esac
+done
+if [ -f "$log/train_fail" ]; then echo "fake train: failing as asked" >&2; exit 5; fi
+i=0
+if [ "$resume" = 1 ] && [ -f "$out/checkpoint.bin" ]; then
+  i=$(cat "$out/checkpoint.bin")
+  echo "$i" >> "$out/resumed"
+fi
+pause=0
+if [ -f "$log/train_sleep_s" ]; then pause=$(cat "$log/train_sleep_s"); fi
+while [ "$i" -lt "$n" ]; do
+  i=$((i + 1))
+  sleep "$pause"
+  echo "I1122 12:00:00.000 trainer.cc:1] a log line that is not progress" >&2
+  printf '[####..........] %d/%d  loss %d.%04d  psnr %d.50 dB  4000 Gaussians  12.50 it/s  ETA 0:00:%02d\n' \
+    "$i" "$n" 0 "$((1000 - i))" "$((20 + i))" "$((n - i))" >&2
+  echo "$i" > "$out/checkpoint.bin"
+done
+if [ -f "$log/preview.png" ]; then
+  mkdir -p "$out/preview"; cp "$log/preview.png" "$out/preview/heldout_frame0001_cam0.png"
+fi
+echo "iterations $n${seed:+ seed $seed}" > "$out/trained"
+echo "streetsim train: $n iterations, 4000 Gaussians -> $out/scene.ply" >&2

@@ -1,0 +1,223 @@
+// The training job's "train" stage (server/job_runner.cc) with a fake trainer
+// (tests/server/fake_train.sh): progress parsed from its stderr, init's scene.json kept, failure,
+// cancel, resume with --resume after a restart, and no train stage when none is asked for or the
+// binary has none.
+#include <thread>
+
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+
+#include "server/job_runner.h"
+#include "tests/server/server_fixture.h"
+
+namespace streetsim::testing {
+namespace {
+
+const std::string kFakeInit = std::string(STREETSIM_SOURCE_DIR) + "/tests/server/fake_init.sh";
+const std::string kFakeTrain = std::string(STREETSIM_SOURCE_DIR) + "/tests/server/fake_train.sh";
+
+// An init double that also writes DIR/scene.json with a rig of its own (like `streetsim init`
+// writes the log's rig), so that the test can tell it survives training and publishing.
+const char kInitWithManifest[] =
+    R"(/bin/sh "$FAKE_INIT" "$@" && printf '%s' '{"cameras": [{"sensor_id": "cam_logged", "width": 320, "height": 96, "fx": 200, "fy": 200, "cx": 159.5, "cy": 47.5, "T_ego_from_cam": [0,0,1,0, -1,0,0,0, 0,-1,0,1.5, 0,0,0,1]}]}' > "$(dirname "$3")/scene.json")";
+
+class TrainStageTest : public ServerTest {
+ protected:
+  server::ServerOptions Options() {
+    server::ServerOptions o = TestOptions(data_root_, state_dir_);
+    o.init_command = {"/usr/bin/env", "FAKE_INIT=" + kFakeInit, "/bin/sh", "-c", kInitWithManifest, "fake_init"};
+    o.train_command = {"/bin/sh", kFakeTrain};
+    return o;
+  }
+  v1::CreateTrainingJobRequest JobFor(const std::string& name, int iterations) {
+    v1::CreateTrainingJobRequest req;
+    req.set_log_path("logs/fake");
+    req.mutable_config()->set_scene_name(name);
+    req.mutable_config()->set_max_iterations(iterations);
+    return req;
+  }
+  void WaitForStage(const std::string& id, const std::string& stage) {
+    for (int i = 0; i < 500; ++i) {
+      absl::StatusOr<v1::Job> j = client_->GetJob(id);
+      if (j.ok() && j->progress().stage() == stage && j->state() == v1::JOB_STATE_RUNNING) return;
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    }
+    FAIL() << "job " << id << " never reached stage " << stage;
+  }
+};
+
+TEST(TrainProgressLine, ParsesTheTrainerFormat) {
+  server::TrainProgressLine p;
+  ASSERT_TRUE(server::ParseTrainProgressLine(
+      "[#########.....................] 120/400  loss 0.0831  psnr 21.37 dB  153204 Gaussians  3.41 it/s  ETA 0:01:22",
+      &p));
+  EXPECT_EQ(p.iteration, 120);
+  EXPECT_EQ(p.total, 400);
+  EXPECT_DOUBLE_EQ(p.loss, 0.0831);
+  EXPECT_DOUBLE_EQ(p.psnr_db, 21.37);
+  EXPECT_EQ(p.gaussians, 153204u);
+  EXPECT_DOUBLE_EQ(p.eta_s, 82);
+  ASSERT_TRUE(server::ParseTrainProgressLine("7/9  loss 1.5  psnr nan dB  10 Gaussians", &p));
+  EXPECT_EQ(p.iteration, 7);
+  EXPECT_DOUBLE_EQ(p.eta_s, -1);
+  EXPECT_FALSE(server::ParseTrainProgressLine("I1122 trainer.cc:1] resumed at iteration 40", &p));
+  EXPECT_FALSE(server::ParseTrainProgressLine("streetsim train: 400 iterations, 1 Gaussians", &p));
+  EXPECT_FALSE(server::ParseTrainProgressLine("3/0  loss 1  psnr 2 dB  5 Gaussians", &p));
+}
+
+TEST_F(TrainStageTest, TrainStageReportsProgressAndKeepsTheInitManifest) {
+  std::ofstream(data_root_ + "/logs/fake/train_sleep_s") << "0.15";
+  ASSERT_TRUE(cv::imwrite(data_root_ + "/logs/fake/preview.png", cv::Mat(100, 800, CV_8UC3, cv::Scalar(10, 200, 30))));
+  StartServer(Options());
+  v1::CreateTrainingJobRequest req = JobFor("trained", 8);
+  req.mutable_config()->set_seed(7);
+  absl::StatusOr<v1::Job> job = client_->CreateTrainingJob(req);
+  ASSERT_TRUE(job.ok()) << job.status();
+  EXPECT_EQ(job->progress().num_stages(), 3);
+  std::vector<v1::Job> updates;
+  absl::StatusOr<v1::Job> done =
+      client_->WatchJob(job->job_id(), [&](const v1::Job& j) { updates.push_back(j); }, 60);
+  ASSERT_TRUE(done.ok()) << done.status();
+  ASSERT_EQ(done->state(), v1::JOB_STATE_SUCCEEDED) << done->error();
+  const v1::JobProgress& p = done->progress();
+  EXPECT_EQ(p.stage(), "done");
+  EXPECT_EQ(p.stage_index(), 3);
+  EXPECT_EQ(p.num_stages(), 3);
+  EXPECT_DOUBLE_EQ(p.fraction(), 1.0);
+  EXPECT_TRUE(p.has_metrics());
+  EXPECT_EQ(p.iteration(), 8);
+  EXPECT_EQ(p.max_iterations(), 8);
+  EXPECT_DOUBLE_EQ(p.loss(), 0.0992);
+  EXPECT_DOUBLE_EQ(p.psnr_db(), 28.5);
+  EXPECT_EQ(p.num_gaussians(), 4000u);
+  // The trainer's held-out preview, scaled down for the record.
+  const std::string& png = p.preview_png();
+  const cv::Mat preview = cv::imdecode(std::vector<uchar>(png.begin(), png.end()), cv::IMREAD_COLOR);
+  ASSERT_FALSE(preview.empty());
+  EXPECT_EQ(preview.cols, 384);
+  EXPECT_EQ(preview.rows, 48);
+  EXPECT_EQ(preview.at<cv::Vec3b>(10, 10), cv::Vec3b(10, 200, 30));
+  // Seen while training: stage "train" with metrics part-way, fractions never going back.
+  bool saw_partial_train = false;
+  double last_fraction = 0;
+  for (const v1::Job& u : updates) {
+    EXPECT_GE(u.progress().fraction(), last_fraction);
+    last_fraction = u.progress().fraction();
+    if (u.progress().stage() == "train" && u.progress().has_metrics() && u.progress().iteration() < 8) {
+      saw_partial_train = true;
+      EXPECT_EQ(u.progress().stage_index(), 1);
+      EXPECT_GT(u.progress().fraction(), 0.0);
+      EXPECT_LT(u.progress().fraction(), 1.0);
+      EXPECT_GE(u.progress().eta_s(), 0);
+    }
+  }
+  EXPECT_TRUE(saw_partial_train) << updates.size() << " updates";
+  // The trainer ran on the job's work dir, which was published with init's scene.json.
+  const std::string published = state_dir_ + "/scenes/trained";
+  std::ifstream trained(published + "/trained");
+  std::string trained_line;
+  std::getline(trained, trained_line);
+  EXPECT_EQ(trained_line, "iterations 8 seed 7");
+  EXPECT_FALSE(fs::exists(published + "/resumed"));
+  absl::StatusOr<v1::Scene> scene = client_->LoadScene("trained", true);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  ASSERT_EQ(scene->rig().cameras_size(), 1);
+  EXPECT_EQ(scene->rig().cameras(0).sensor_id(), "cam_logged");
+  EXPECT_EQ(scene->num_gaussians(), 4000u);
+}
+
+TEST_F(TrainStageTest, NoIterationsMeansNoTrainStage) {
+  StartServer(Options());
+  absl::StatusOr<v1::Job> job = client_->CreateTrainingJob(JobFor("init_only", 0));
+  ASSERT_TRUE(job.ok()) << job.status();
+  absl::StatusOr<v1::Job> done = client_->WatchJob(job->job_id(), [](const v1::Job&) {}, 60);
+  ASSERT_TRUE(done.ok()) << done.status();
+  ASSERT_EQ(done->state(), v1::JOB_STATE_SUCCEEDED) << done->error();
+  EXPECT_EQ(done->progress().num_stages(), 2);
+  EXPECT_FALSE(done->progress().has_metrics());
+  EXPECT_FALSE(fs::exists(state_dir_ + "/scenes/init_only/trained"));
+}
+
+TEST_F(TrainStageTest, WithoutATrainerOnlyInitRuns) {
+  // Default train command: `streetsim` next to this test binary, which has none.
+  server::ServerOptions o = Options();
+  o.train_command.clear();
+  StartServer(o);
+  absl::StatusOr<v1::Job> job = client_->CreateTrainingJob(JobFor("no_trainer", 50));
+  ASSERT_TRUE(job.ok()) << job.status();
+  EXPECT_EQ(job->progress().num_stages(), 2);
+  absl::StatusOr<v1::Job> done = client_->WatchJob(job->job_id(), [](const v1::Job&) {}, 60);
+  ASSERT_TRUE(done.ok()) << done.status();
+  ASSERT_EQ(done->state(), v1::JOB_STATE_SUCCEEDED) << done->error();
+  EXPECT_EQ(done->progress().num_stages(), 2);
+  EXPECT_FALSE(done->progress().has_metrics());
+  EXPECT_TRUE(client_->LoadScene("no_trainer", true).ok());
+}
+
+TEST_F(TrainStageTest, FailingTrainerFailsTheJob) {
+  std::ofstream(data_root_ + "/logs/fake/train_fail") << "1";
+  StartServer(Options());
+  absl::StatusOr<v1::Job> job = client_->CreateTrainingJob(JobFor("bad", 5));
+  ASSERT_TRUE(job.ok());
+  absl::StatusOr<v1::Job> done = client_->WatchJob(job->job_id(), [](const v1::Job&) {}, 60);
+  ASSERT_TRUE(done.ok());
+  EXPECT_EQ(done->state(), v1::JOB_STATE_FAILED);
+  EXPECT_EQ(done->progress().stage(), "train");
+  EXPECT_NE(done->error().find("train stage exited with code 5"), std::string::npos) << done->error();
+  EXPECT_NE(done->error().find("train.log"), std::string::npos) << done->error();
+  EXPECT_EQ(client_->LoadScene("bad", false).status().code(), absl::StatusCode::kNotFound);
+}
+
+TEST_F(TrainStageTest, CancelStopsTheTrainer) {
+  std::ofstream(data_root_ + "/logs/fake/train_sleep_s") << "0.5";
+  StartServer(Options());
+  absl::StatusOr<v1::Job> job = client_->CreateTrainingJob(JobFor("slow", 1000));
+  ASSERT_TRUE(job.ok());
+  WaitForStage(job->job_id(), "train");
+  const auto t0 = std::chrono::steady_clock::now();
+  absl::StatusOr<v1::Job> cancelled = client_->CancelJob(job->job_id());
+  ASSERT_TRUE(cancelled.ok());
+  EXPECT_EQ(cancelled->state(), v1::JOB_STATE_CANCELLED);
+  EXPECT_LT(std::chrono::steady_clock::now() - t0, std::chrono::seconds(5));
+  EXPECT_EQ(client_->LoadScene("slow", false).status().code(), absl::StatusCode::kNotFound);
+}
+
+TEST_F(TrainStageTest, RestartResumesTheTrainerFromItsCheckpoint) {
+  std::ofstream(data_root_ + "/logs/fake/train_sleep_s") << "0.1";
+  StartServer(Options());
+  absl::StatusOr<v1::Job> job = client_->CreateTrainingJob(JobFor("resumed", 20));
+  ASSERT_TRUE(job.ok());
+  // Wait until the trainer has checkpointed a few iterations.
+  for (int i = 0; i < 500; ++i) {
+    absl::StatusOr<v1::Job> j = client_->GetJob(job->job_id());
+    if (j.ok() && j->progress().stage() == "train" && j->progress().iteration() >= 3) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  absl::StatusOr<v1::Job> mid = client_->GetJob(job->job_id());
+  ASSERT_TRUE(mid.ok());
+  ASSERT_EQ(mid->progress().stage(), "train");
+  ASSERT_GE(mid->progress().iteration(), 3);
+  ASSERT_LT(mid->progress().iteration(), 20);
+  client_.reset();
+  server_->Shutdown();  // as on SIGTERM: the trainer is stopped, the record stays unfinished
+  server_.reset();
+  StartServer(Options());
+  absl::StatusOr<v1::Job> done = client_->WatchJob(job->job_id(), [](const v1::Job&) {}, 60);
+  ASSERT_TRUE(done.ok()) << done.status();
+  ASSERT_EQ(done->state(), v1::JOB_STATE_SUCCEEDED) << done->error();
+  EXPECT_EQ(done->attempts(), 2);
+  EXPECT_EQ(done->progress().iteration(), 20);
+  // The second run got --resume and continued from the checkpoint (not from 0); init did not
+  // run again (the manifest it wrote is still the one published).
+  std::ifstream resumed(state_dir_ + "/scenes/resumed/resumed");
+  int from = -1;
+  resumed >> from;
+  EXPECT_GE(from, 3);
+  EXPECT_LT(from, 20);
+  absl::StatusOr<v1::Scene> scene = client_->LoadScene("resumed", true);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  EXPECT_EQ(scene->rig().cameras(0).sensor_id(), "cam_logged");
+}
+
+}  // namespace
+}  // namespace streetsim::testing

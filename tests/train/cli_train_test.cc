@@ -1,0 +1,78 @@
+// streetsim train / eval from the command line: exit codes, outputs, and eval's JSON contract
+// ({"mean": {"psnr", "ssim", ...}, "frames": [...]}).
+#include <algorithm>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+
+#include <nlohmann/json.hpp>
+
+#include "gtest/gtest.h"
+
+namespace {
+
+const std::string kBinary = std::string(STREETSIM_BINARY_DIR) + "/bin/streetsim";
+const std::string kKitti = std::string(STREETSIM_DATA_DIR) + "/kitti_raw/2011_09_26/2011_09_26_drive_sfnd_sync";
+
+struct Result {
+  int code;
+  std::string out, err;
+};
+
+Result RunCli(const std::string& args) {
+  const auto dir = std::filesystem::temp_directory_path();
+  const std::string out = (dir / "streetsim_cli_train_out.txt").string();
+  const std::string err = (dir / "streetsim_cli_train_err.txt").string();
+  const int status = std::system((kBinary + " " + args + " >" + out + " 2>" + err).c_str());
+  auto slurp = [](const std::string& p) {
+    std::ifstream f(p);
+    std::stringstream s;
+    s << f.rdbuf();
+    return s.str();
+  };
+  return {WEXITSTATUS(status), slurp(out), slurp(err)};
+}
+
+TEST(CliTrain, TrainThenEvalGivesTheJsonContract) {
+  const std::string dir = (std::filesystem::temp_directory_path() / "streetsim_cli_train_scene").string();
+  std::filesystem::remove_all(dir);
+  Result r = RunCli("train --log " + kKitti + " --out " + dir +
+                 " --iterations 20 --resolution-scale 0.12 --holdout-every 4 --seed 3 --checkpoint-every 10");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("20/20"), std::string::npos);
+  EXPECT_NE(r.err.find("Gaussians"), std::string::npos);
+  for (const char* f : {"scene.ply", "checkpoint.bin", "curve.png", "train_meta.json"}) {
+    EXPECT_TRUE(std::filesystem::exists(dir + "/" + f)) << f;
+  }
+  // --resume of a finished run: nothing left to do, same outputs.
+  r = RunCli("train --log " + kKitti + " --out " + dir + " --iterations 20 --resolution-scale 0.12 --resume");
+  EXPECT_EQ(r.code, 0) << r.err;
+
+  r = RunCli("eval --scene " + dir + " --log " + kKitti + " --split test --holdout-every 4");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const nlohmann::json j = nlohmann::json::parse(r.out);
+  ASSERT_TRUE(j.contains("mean"));
+  ASSERT_TRUE(j.contains("frames"));
+  EXPECT_TRUE(j["mean"]["psnr"].is_number());
+  EXPECT_TRUE(j["mean"]["ssim"].is_number());
+  EXPECT_TRUE(j["mean"].contains("depth_median_abs_m"));
+  EXPECT_TRUE(j["mean"].contains("depth_within_5pct"));
+  EXPECT_EQ(j["frames"].size(), 19u);  // frames 3, 7, ..., 75 of 78
+  EXPECT_EQ(j["frames"][0]["frame"], 3);
+  EXPECT_NE(r.err.find("mean"), std::string::npos);  // the table
+}
+
+TEST(CliTrain, BadArgumentsExitTwoWithOneLine) {
+  for (const std::string& args :
+       {std::string("train --out /tmp/x"), "train --log " + kKitti + " --out /tmp/x --iterations 0",
+        "train --log " + kKitti + " --out /tmp/x --resolution-scale 2",
+        "train --log " + kKitti + " --out /tmp/x --holdout-every -1", std::string("train --log /nonexistent --out /tmp/x"),
+        "eval --scene /nonexistent --log " + kKitti, "eval --scene /tmp --log " + kKitti + " --split bogus"}) {
+    const Result r = RunCli(args);
+    EXPECT_EQ(r.code, 2) << args << ": " << r.err;
+    EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << args << ": " << r.err;
+  }
+}
+
+}  // namespace
