@@ -1,5 +1,8 @@
 #include "client/cli/args.h"
 
+#include <algorithm>
+#include <cstdio>
+
 #include "absl/strings/str_cat.h"
 
 namespace streetsim {
@@ -49,6 +52,13 @@ absl::StatusOr<std::string> ParsedArgs::Required(const std::string& name) const 
     return absl::InvalidArgumentError(absl::StrCat("--", name, " is required"));
   }
   return it->second;
+}
+
+int ReportFailure(const std::string& command, int exit_code, const absl::Status& status) {
+  std::string msg(status.message());
+  std::replace(msg.begin(), msg.end(), '\n', ' ');
+  std::fprintf(stderr, "streetsim %s: %s\n", command.c_str(), msg.c_str());
+  return exit_code;
 }
 
 }  // namespace streetsim

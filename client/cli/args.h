@@ -31,4 +31,8 @@ class ParsedArgs {
   std::vector<std::string> positional_;
 };
 
+// Prints "streetsim <command>: <message>" as one line on stderr (newlines in the message become
+// spaces) and returns exit_code: every subcommand reports failures this way.
+int ReportFailure(const std::string& command, int exit_code, const absl::Status& status);
+
 }  // namespace streetsim

@@ -17,14 +17,7 @@
 namespace streetsim {
 namespace {
 
-int Fail(int code, const absl::Status& status) {
-  std::string msg(status.message());
-  for (char& c : msg) {
-    if (c == '\n') c = ' ';
-  }
-  std::fprintf(stderr, "streetsim eval: %s\n", msg.c_str());
-  return code;
-}
+int Fail(int code, const absl::Status& status) { return ReportFailure("eval", code, status); }
 
 nlohmann::json Metrics(const train::FrameMetrics& m) {
   nlohmann::json j;

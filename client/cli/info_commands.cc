@@ -18,8 +18,7 @@ namespace streetsim {
 namespace {
 
 int Fail(const char* command, int code, const absl::Status& status) {
-  std::fprintf(stderr, "streetsim %s: %s\n", command, std::string(status.message()).c_str());
-  return code;
+  return ReportFailure(command, code, status);
 }
 
 double Percentile(std::vector<float> v, double q) {

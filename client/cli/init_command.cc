@@ -14,14 +14,7 @@
 namespace streetsim {
 namespace {
 
-int Fail(int code, const absl::Status& status) {
-  std::string msg(status.message());
-  for (char& c : msg) {
-    if (c == '\n') c = ' ';
-  }
-  std::fprintf(stderr, "streetsim init: %s\n", msg.c_str());
-  return code;
-}
+int Fail(int code, const absl::Status& status) { return ReportFailure("init", code, status); }
 
 absl::Status PositiveDouble(const ParsedArgs& args, const std::string& flag, double* value) {
   if (auto v = args.Get(flag); v && (!absl::SimpleAtod(*v, value) || !(*value > 0) || !(*value < 1e6))) {

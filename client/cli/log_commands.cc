@@ -25,12 +25,7 @@ namespace streetsim {
 namespace {
 
 int Fail(const std::string& command, int code, const absl::Status& status) {
-  std::string msg(status.message());
-  for (char& c : msg) {
-    if (c == '\n') c = ' ';
-  }
-  std::fprintf(stderr, "streetsim log %s: %s\n", command.c_str(), msg.c_str());
-  return code;
+  return ReportFailure("log " + command, code, status);
 }
 
 // Reading a log fails for bad input (2) unless the machine itself failed (1).

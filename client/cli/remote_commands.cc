@@ -31,10 +31,7 @@ namespace v1 = ::streetsim::v1;
 using nlohmann::json;
 
 int Fail(const char* command, int code, const absl::Status& status) {
-  std::string msg(status.message());
-  std::replace(msg.begin(), msg.end(), '\n', ' ');
-  std::fprintf(stderr, "streetsim %s: %s\n", command, msg.c_str());
-  return code;
+  return ReportFailure(command, code, status);
 }
 
 // Bad input from the caller (exit 2) vs. a failure on the way (exit 1).

@@ -16,14 +16,7 @@
 namespace streetsim {
 namespace {
 
-int Fail(int code, const absl::Status& status) {
-  std::string msg(status.message());
-  for (char& c : msg) {
-    if (c == '\n') c = ' ';
-  }
-  std::fprintf(stderr, "streetsim render: %s\n", msg.c_str());
-  return code;
-}
+int Fail(int code, const absl::Status& status) { return ReportFailure("render", code, status); }
 
 absl::StatusOr<Eigen::Vector3f> ParseBackground(const std::string& text) {
   const std::vector<std::string> parts = absl::StrSplit(text, ',');

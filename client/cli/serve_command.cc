@@ -12,10 +12,7 @@
 namespace streetsim {
 namespace {
 
-int Fail(int code, const absl::Status& status) {
-  std::fprintf(stderr, "streetsim serve: %s\n", std::string(status.message()).c_str());
-  return code;
-}
+int Fail(int code, const absl::Status& status) { return ReportFailure("serve", code, status); }
 
 template <typename T>
 absl::Status ParseInt(const ParsedArgs& args, const std::string& flag, T min, T* out) {

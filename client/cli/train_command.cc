@@ -16,14 +16,7 @@
 namespace streetsim {
 namespace {
 
-int Fail(int code, const absl::Status& status) {
-  std::string msg(status.message());
-  for (char& c : msg) {
-    if (c == '\n') c = ' ';
-  }
-  std::fprintf(stderr, "streetsim train: %s\n", msg.c_str());
-  return code;
-}
+int Fail(int code, const absl::Status& status) { return ReportFailure("train", code, status); }
 
 std::string Duration(double s) {
   char buf[32];
