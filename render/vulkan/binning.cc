@@ -78,7 +78,7 @@ BinningResult RecordSortAndBin(Recorder& rec, const Kernels& k, const ScanScratc
                        kArgsIcThreads * kArgsSlotBytes);
   rec.Barrier();
   return BinningResult{packed ? bins.inst_keys[t] : bins.inst_vals[t],
-                       packed ? (1u << rank_bits) - 1 : ~0u};
+                       packed ? (1u << rank_bits) - 1 : ~0u, scene.ids[d]};
 }
 
 }  // namespace streetsim::vulkan

@@ -52,6 +52,21 @@ bool HasInstanceExtension(const char* name) {
   return false;
 }
 
+bool HasDeviceExtension(VkPhysicalDevice device, const char* name) {
+  uint32_t count = 0;
+  if (vkEnumerateDeviceExtensionProperties(device, nullptr, &count, nullptr) != VK_SUCCESS) {
+    return false;
+  }
+  std::vector<VkExtensionProperties> exts(count);
+  if (vkEnumerateDeviceExtensionProperties(device, nullptr, &count, exts.data()) != VK_SUCCESS) {
+    return false;
+  }
+  for (const VkExtensionProperties& ext : exts) {
+    if (std::strcmp(ext.extensionName, name) == 0) return true;
+  }
+  return false;
+}
+
 SubgroupInfo QuerySubgroup(VkPhysicalDevice device) {
   VkPhysicalDeviceSubgroupProperties subgroup{
       VK_STRUCTURE_TYPE_PHYSICAL_DEVICE_SUBGROUP_PROPERTIES};
@@ -372,6 +387,26 @@ absl::StatusOr<std::unique_ptr<Context>> Context::Create(VulkanDevicePreference 
   VkDeviceCreateInfo device_info{VK_STRUCTURE_TYPE_DEVICE_CREATE_INFO};
   device_info.queueCreateInfoCount = 1;
   device_info.pQueueCreateInfos = &queue_info;
+  // Float atomic add on storage buffers (the backward's gradient sums), when offered.
+  VkPhysicalDeviceShaderAtomicFloatFeaturesEXT atomic_float{
+      VK_STRUCTURE_TYPE_PHYSICAL_DEVICE_SHADER_ATOMIC_FLOAT_FEATURES_EXT};
+  const char* atomic_float_ext = VK_EXT_SHADER_ATOMIC_FLOAT_EXTENSION_NAME;
+  if (HasDeviceExtension(ctx->physical_device_, atomic_float_ext) &&
+      std::getenv("STREETSIM_VK_NO_FLOAT_ATOMICS") == nullptr) {
+    VkPhysicalDeviceFeatures2 features2{VK_STRUCTURE_TYPE_PHYSICAL_DEVICE_FEATURES_2};
+    features2.pNext = &atomic_float;
+    vkGetPhysicalDeviceFeatures2(ctx->physical_device_, &features2);
+    if (atomic_float.shaderBufferFloat32AtomicAdd) {
+      VkPhysicalDeviceShaderAtomicFloatFeaturesEXT wanted{
+          VK_STRUCTURE_TYPE_PHYSICAL_DEVICE_SHADER_ATOMIC_FLOAT_FEATURES_EXT};
+      wanted.shaderBufferFloat32AtomicAdd = VK_TRUE;
+      atomic_float = wanted;
+      device_info.pNext = &atomic_float;
+      device_info.enabledExtensionCount = 1;
+      device_info.ppEnabledExtensionNames = &atomic_float_ext;
+      ctx->float_atomic_add_ = true;
+    }
+  }
   STREETSIM_VK_RETURN_IF_ERROR(
       vkCreateDevice(ctx->physical_device_, &device_info, nullptr, &ctx->device_),
       "vkCreateDevice");
@@ -398,6 +433,7 @@ Context::~Context() {
 std::string Context::description() const {
   return absl::StrCat("vulkan: ", properties_.deviceName, " (",
                       DeviceTypeName(properties_.deviceType), ", subgroup ", subgroup_.size,
+                      float_atomic_add_ ? "" : ", no float atomics",
                       instance_->validation_enabled() ? ", validation" : "", ")");
 }
 

@@ -87,6 +87,13 @@ class Context {
   const VkPhysicalDeviceProperties& properties() const { return properties_; }
   const VkPhysicalDeviceLimits& limits() const { return properties_.limits; }
   const SubgroupInfo& subgroup() const { return subgroup_; }
+  // VK_EXT_shader_atomic_float's shaderBufferFloat32AtomicAdd, enabled at device creation when
+  // supported (the backward's float atomics; else a compare-and-swap loop).
+  bool has_float_atomic_add() const { return float_atomic_add_; }
+  // Subgroup arithmetic (subgroupAdd/Max): needed by the backward pass only.
+  bool has_subgroup_arithmetic() const {
+    return (subgroup_.operations & VK_SUBGROUP_FEATURE_ARITHMETIC_BIT) != 0;
+  }
   bool is_cpu() const { return properties_.deviceType == VK_PHYSICAL_DEVICE_TYPE_CPU; }
   // Timestamps are usable when the queue reports valid bits; period converts ticks to ns.
   bool has_timestamps() const { return timestamp_valid_bits_ > 0; }
@@ -114,6 +121,7 @@ class Context {
   VkPhysicalDeviceProperties properties_{};
   VkPhysicalDeviceMemoryProperties memory_properties_{};
   SubgroupInfo subgroup_;
+  bool float_atomic_add_ = false;
   uint32_t timestamp_valid_bits_ = 0;
 };
 

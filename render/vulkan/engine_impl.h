@@ -52,6 +52,10 @@ class VulkanEngine : public Engine {
   absl::StatusOr<std::unique_ptr<DeviceScene>> Upload(const GaussianStore& store) override;
   absl::Status Render(const DeviceScene& scene, const PinholeCamera& camera,
                       const RenderOptions& options, RenderOutput* out) override;
+  absl::Status RenderBackward(const DeviceScene& scene, const RenderOutputGrads& grads,
+                              const BackwardOptions& options, GaussianGrads* out) override;
+  absl::Status UpdateScene(const GaussianStore& store,
+                           std::unique_ptr<DeviceScene>* scene) override;
 
   // For testing.cc.
   const Context& context() const { return *ctx_; }
@@ -73,6 +77,9 @@ class VulkanEngine : public Engine {
                           const RenderOptions& options, uint32_t* counts);
   absl::Status Readback(const PinholeCamera& camera, const RenderOptions& options,
                         RenderOutput* out);
+  // Copies the store's parameters into the scene's buffers (sizes already match).
+  absl::Status UploadParams(const GaussianStore& store, VulkanScene* scene);
+  absl::Status EnsureBackwardResources(const VulkanScene& scene, uint32_t pixels);
 
   std::shared_ptr<Context> ctx_;
   std::unique_ptr<Kernels> kernels_;
@@ -91,6 +98,16 @@ class VulkanEngine : public Engine {
   uint64_t last_instances_ = 0;
   int rerenders_ = 0;
   bool force_pair_mode_ = false;
+  // What RenderBackward needs from the last Render with keep_for_backward (its buffers stay
+  // untouched until the next Render).
+  struct Kept {
+    const VulkanScene* scene = nullptr;
+    ProjectPush push{};
+    BlendParams blend{};
+    BinningResult bins{};
+  } kept_;
+  Buffer pixel_grads_, pixel_grads_staging_, splat_grads_, param_grads_, bwd_readback_;
+  std::array<Buffer, kMaxShGroups> sh_grads_;
   std::unique_ptr<Profiler> profiler_;  // STREETSIM_VK_PROFILE=1
   std::mutex mu_;                       // Render/Upload share the frame resources
 };

@@ -59,6 +59,12 @@ struct Kernels {
   std::unique_ptr<ComputePipeline> scan_block, scan_block_saturating, scan_add, scan_add_saturating;
   std::unique_ptr<ComputePipeline> radix_hist, radix_scatter, radix_scatter_keys_only;
   std::unique_ptr<ComputePipeline> gather_sorted, emit, tile_ranges, blend;
+  // Backward (backward.cc). blend_backward is null on devices without subgroup arithmetic; it is
+  // the float-atomic variant when the device has shaderBufferFloat32AtomicAdd, else the
+  // compare-and-swap one.
+  // project_backward: one pipeline per SH degree (specialization constant).
+  std::unique_ptr<ComputePipeline> blend_backward;
+  std::array<std::unique_ptr<ComputePipeline>, 4> project_backward;
 
   static absl::StatusOr<std::unique_ptr<Kernels>> Create(const Context& ctx);
 };
@@ -157,6 +163,7 @@ struct BinningBuffers {
 struct BinningResult {
   const Buffer* list;  // tile-sorted instances: depth rank j in the low bits (& rank_mask)
   uint32_t rank_mask;
+  const Buffer* sorted_ids;  // Gaussian id by depth rank (the depth sort's result)
 };
 // Stages c..g: depth sort, touched-tiles scan (I -> counts[kCountI]), emit, tile sort, tile
 // ranges. rank_bits: RankBits() (or 0 to force pair mode).
@@ -180,5 +187,24 @@ struct BlendParams {
 };
 void RecordBlend(Recorder& rec, const Kernels& k, const Buffer& ranges, const BinningResult& bins,
                  const Buffer& sorted_splats, const ImageBuffers& image, const BlendParams& params);
+
+// --- backward.cc ---------------------------------------------------------------------------------
+inline constexpr uint32_t kSplatGradFloats = 12;  // common.glsl: SPLAT_GRAD_STRIDE
+inline constexpr uint32_t kParamGradFloats = 16;  // 4 vec4 per Gaussian (common.glsl)
+
+struct BackwardBuffers {
+  const Buffer* pixel_grads;                 // rgb [3P] | depth [P] | alpha [P]
+  const Buffer* splat_grads;                 // kSplatGradFloats per depth rank, zeroed here
+  const Buffer* param_grads;                 // kParamGradFloats per Gaussian, zeroed here
+  const Buffer* sh_grads[kMaxShGroups];      // scene SH group layout; unused groups: any buffer
+  VkDeviceSize sh_grad_bytes[kMaxShGroups];  // bytes to zero per group (0: unused)
+};
+// The blend backward (per tile, back to front) then the projection backward (per visible
+// Gaussian, indirect over V) of the frame recorded last with these buffers; `push` is that
+// frame's camera.
+void RecordBackward(Recorder& rec, const Kernels& k, const SceneBuffers& scene,
+                    const Buffer& ranges, const BinningResult& bins, const ImageBuffers& image,
+                    const BlendParams& params, const Buffer& counts, const Buffer& args,
+                    const ProjectPush& push, const BackwardBuffers& bwd);
 
 }  // namespace streetsim::vulkan

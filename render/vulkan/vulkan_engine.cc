@@ -77,6 +77,23 @@ absl::StatusOr<std::unique_ptr<Kernels>> Kernels::Create(const Context& ctx) {
     if (!p.ok()) return p.status();
     *s.out = *std::move(p);
   }
+  for (uint32_t degree = 0; degree < k->project_backward.size(); ++degree) {
+    const SpecConstant sh_degree[] = {{0, degree}};
+    auto p = ComputePipeline::Create(ctx, "project_backward", spirv::project_backward, 13,
+                                     sizeof(ProjectPush), sh_degree);
+    if (!p.ok()) return p.status();
+    k->project_backward[degree] = *std::move(p);
+  }
+  // The blend backward needs subgroup arithmetic (else RenderBackward is FailedPrecondition) and
+  // uses float atomic adds when the device has them, a compare-and-swap loop otherwise.
+  if (ctx.has_subgroup_arithmetic()) {
+    const bool native = ctx.has_float_atomic_add();
+    auto p = ComputePipeline::Create(ctx, native ? "blend_backward" : "blend_backward_cas",
+                                     native ? spirv::blend_backward : spirv::blend_backward_cas, 7,
+                                     28);
+    if (!p.ok()) return p.status();
+    k->blend_backward = *std::move(p);
+  }
   return k;
 }
 
@@ -183,6 +200,15 @@ absl::StatusOr<std::unique_ptr<DeviceScene>> VulkanEngine::Upload(const Gaussian
       return s;
     }
   }
+  if (absl::Status s = UploadParams(store, scene.get()); !s.ok()) return s;
+  return std::unique_ptr<DeviceScene>(std::move(scene));
+}
+
+absl::Status VulkanEngine::UploadParams(const GaussianStore& store, VulkanScene* scene) {
+  const Context& c = *ctx_;
+  const size_t n = store.size();
+  const VkDeviceSize n64 = n;
+  const int K = store.sh_coeffs();
   // Pack (mean, logit), (log-scale, 0), quaternion as 3 vec4 per Gaussian: aligned loads.
   absl::Status s =
       UploadWith(c, scene->gauss, n * 48, 48, [&](size_t begin, size_t end, std::byte* out) {
@@ -212,7 +238,7 @@ absl::StatusOr<std::unique_ptr<DeviceScene>> VulkanEngine::Upload(const Gaussian
                    });
     if (!s.ok()) return s;
   }
-  return std::unique_ptr<DeviceScene>(std::move(scene));
+  return absl::OkStatus();
 }
 
 absl::Status VulkanEngine::EnsureFrameResources(uint32_t n, uint32_t width, uint32_t height,
@@ -294,8 +320,8 @@ absl::Status VulkanEngine::RenderOnce(const VulkanScene& scene, const PinholeCam
   timestamp(0);
 
   const SceneBuffers sb = scene.view();
-  RecordProjectAndCompact(rec, *kernels_, scratch_, sb, counts_, args_,
-                          MakeProjectPush(camera, n, scene.sh_degree()));
+  const ProjectPush project_push = MakeProjectPush(camera, n, scene.sh_degree());
+  RecordProjectAndCompact(rec, *kernels_, scratch_, sb, counts_, args_, project_push);
   timestamp(1);
   const BinningBuffers bins{
       {&inst_keys_[0], &inst_keys_[1]}, {&inst_vals_[0], &inst_vals_[1]}, &hist_, &ranges_};
@@ -310,6 +336,8 @@ absl::Status VulkanEngine::RenderOnce(const VulkanScene& scene, const PinholeCam
                           {options.background.x(), options.background.y(), options.background.z()}};
   RecordBlend(rec, *kernels_, ranges_, sorted, *sb.sorted_splats,
               ImageBuffers{&rgb_, &depth_, &alpha_, &final_t_, &n_contrib_}, blend);
+  // The blend always writes final T and n_contrib; a backward pass needs only what was recorded.
+  if (options.keep_for_backward) kept_ = Kept{nullptr, project_push, blend, sorted};
   timestamp(3);
 
   // Readback layout: counts | rgb | depth | alpha; only what the caller wants is copied.
@@ -348,6 +376,7 @@ absl::Status VulkanEngine::Render(const DeviceScene& scene, const PinholeCamera&
         "vulkan: Render: the scene was not uploaded by this vulkan engine");
   }
   std::lock_guard<std::mutex> lock(mu_);
+  kept_.scene = nullptr;
   const uint32_t n = static_cast<uint32_t>(vscene->size());
   // Instance capacity from an estimate; the device clamps its writes to it, and the rare frame
   // that needs more is rendered again with room for all of them.
@@ -380,6 +409,7 @@ absl::Status VulkanEngine::Render(const DeviceScene& scene, const PinholeCamera&
     ++rerenders_;
   }
   last_instances_ = counts[kCountI];
+  if (options.keep_for_backward) kept_.scene = vscene;
 
   if (absl::Status s = Readback(camera, options, out); !s.ok()) return s;
   out->stats.num_gaussians = n;
@@ -423,6 +453,168 @@ absl::Status VulkanEngine::Readback(const PinholeCamera& camera, const RenderOpt
   if (options.want_alpha) {
     std::memcpy(out->alpha.data(), base + kCountsBytes + pixels * 16, pixels * 4);
   }
+  return absl::OkStatus();
+}
+
+absl::Status VulkanEngine::UpdateScene(const GaussianStore& store,
+                                       std::unique_ptr<DeviceScene>* scene) {
+  auto* vscene = scene->get() ? dynamic_cast<VulkanScene*>(scene->get()) : nullptr;
+  if (vscene == nullptr || vscene->engine_id() != id_ || vscene->size() != store.size() ||
+      vscene->sh_degree() != store.sh_degree) {
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      if (kept_.scene == vscene) kept_.scene = nullptr;
+    }
+    return Engine::UpdateScene(store, scene);
+  }
+  if (absl::Status s = store.Validate(); !s.ok()) return s;
+  std::lock_guard<std::mutex> lock(mu_);
+  if (kept_.scene == vscene) kept_.scene = nullptr;  // the kept splats no longer match
+  return UploadParams(store, vscene);
+}
+
+absl::Status VulkanEngine::EnsureBackwardResources(const VulkanScene& scene, uint32_t pixels) {
+  const Context& c = *ctx_;
+  const VkDeviceSize n = scene.size();
+  const int K = (scene.sh_degree() + 1) * (scene.sh_degree() + 1);
+  VkDeviceSize sh_bytes = 0;
+  for (int g = 0; g < kMaxShGroups; ++g) {
+    const VkDeviceSize bytes = n * ShGroupFloats(K, g) * 4;
+    sh_bytes += bytes;
+    if (g == 0 || bytes > 0) {
+      if (absl::Status s = EnsureBuffer(c, &sh_grads_[g], bytes, Buffer::Kind::kDevice, "sh_grads");
+          !s.ok()) {
+        return s;
+      }
+    }
+  }
+  for (auto [buffer, bytes, kind, name] :
+       {std::tuple{&pixel_grads_, VkDeviceSize{pixels} * 20, Buffer::Kind::kDevice, "pixel_grads"},
+        std::tuple{&pixel_grads_staging_, VkDeviceSize{pixels} * 20, Buffer::Kind::kStaging,
+                   "pixel_grads_staging"},
+        std::tuple{&splat_grads_, n * kSplatGradFloats * 4, Buffer::Kind::kDevice, "splat_grads"},
+        std::tuple{&param_grads_, n * kParamGradFloats * 4, Buffer::Kind::kDevice, "param_grads"},
+        std::tuple{&bwd_readback_, n * kParamGradFloats * 4 + sh_bytes, Buffer::Kind::kReadback,
+                   "bwd_readback"}}) {
+    if (absl::Status s = EnsureBuffer(c, buffer, bytes, kind, name); !s.ok()) return s;
+  }
+  return absl::OkStatus();
+}
+
+absl::Status VulkanEngine::RenderBackward(const DeviceScene& scene, const RenderOutputGrads& grads,
+                                          const BackwardOptions& options, GaussianGrads* out) {
+  const auto start = std::chrono::steady_clock::now();
+  if (out == nullptr) return absl::InvalidArgumentError("vulkan: RenderBackward: out is null");
+  if (grads.rgb == nullptr) {
+    return absl::InvalidArgumentError("vulkan: RenderBackward: dL/drgb is required");
+  }
+  if (options.deterministic) {
+    return absl::UnimplementedError(
+        "vulkan: RenderBackward: no deterministic mode (gradients are summed with float atomics)");
+  }
+  std::lock_guard<std::mutex> lock(mu_);
+  const auto* vscene = dynamic_cast<const VulkanScene*>(&scene);
+  if (vscene == nullptr || vscene != kept_.scene) {
+    return absl::FailedPreconditionError(
+        "vulkan: RenderBackward needs the last Render of this scene on this engine with "
+        "keep_for_backward");
+  }
+  if (kernels_->blend_backward == nullptr) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        device_name(), ": the backward pass needs subgroup arithmetic operations"));
+  }
+  const Context& c = *ctx_;
+  const uint32_t n = static_cast<uint32_t>(vscene->size());
+  const int K = (vscene->sh_degree() + 1) * (vscene->sh_degree() + 1);
+  const size_t pixels = size_t{kept_.blend.width} * kept_.blend.height;
+  if (absl::Status s = EnsureBackwardResources(*vscene, static_cast<uint32_t>(pixels)); !s.ok()) {
+    return s;
+  }
+  // dL/d(outputs) into the staging buffer: rgb | depth | alpha, zeros for a null pointer.
+  auto* staging = static_cast<float*>(pixel_grads_staging_.mapped());
+  std::memcpy(staging, grads.rgb, pixels * 12);
+  for (auto [src, offset] : {std::pair{grads.depth, pixels * 3}, std::pair{grads.alpha, pixels * 4}}) {
+    if (src != nullptr) {
+      std::memcpy(staging + offset, src, pixels * 4);
+    } else {
+      std::memset(staging + offset, 0, pixels * 4);
+    }
+  }
+
+  STREETSIM_VK_RETURN_IF_ERROR(vkResetCommandBuffer(cmd_, 0), "vkResetCommandBuffer");
+  if (absl::Status s = arena_->Reset(); !s.ok()) return s;
+  VkCommandBufferBeginInfo begin{VK_STRUCTURE_TYPE_COMMAND_BUFFER_BEGIN_INFO};
+  begin.flags = VK_COMMAND_BUFFER_USAGE_ONE_TIME_SUBMIT_BIT;
+  STREETSIM_VK_RETURN_IF_ERROR(vkBeginCommandBuffer(cmd_, &begin), "vkBeginCommandBuffer");
+  Recorder rec(c, cmd_, arena_.get());
+  if (profiler_) {
+    profiler_->Begin(cmd_);
+    rec.set_profiler(profiler_.get());
+  }
+  rec.Copy(pixel_grads_staging_, 0, pixel_grads_, 0, pixels * 20);
+  BackwardBuffers bwd{&pixel_grads_, &splat_grads_, &param_grads_, {}, {}};
+  VkDeviceSize sh_offsets[kMaxShGroups] = {};
+  VkDeviceSize offset = VkDeviceSize{n} * kParamGradFloats * 4;
+  for (int g = 0; g < kMaxShGroups; ++g) {
+    bwd.sh_grad_bytes[g] = VkDeviceSize{n} * ShGroupFloats(K, g) * 4;
+    bwd.sh_grads[g] = bwd.sh_grad_bytes[g] > 0 ? &sh_grads_[g] : &sh_grads_[0];
+    sh_offsets[g] = offset;
+    offset += bwd.sh_grad_bytes[g];
+  }
+  const SceneBuffers sb = vscene->view();
+  RecordBackward(rec, *kernels_, sb, ranges_, kept_.bins,
+                 ImageBuffers{&rgb_, &depth_, &alpha_, &final_t_, &n_contrib_}, kept_.blend,
+                 counts_, args_, kept_.push, bwd);
+  rec.Copy(param_grads_, 0, bwd_readback_, 0, VkDeviceSize{n} * kParamGradFloats * 4);
+  for (int g = 0; g < kMaxShGroups; ++g) {
+    if (bwd.sh_grad_bytes[g] > 0) {
+      rec.Copy(sh_grads_[g], 0, bwd_readback_, sh_offsets[g], bwd.sh_grad_bytes[g]);
+    }
+  }
+  rec.HostReadBarrier();
+  if (!rec.status().ok()) {
+    vkEndCommandBuffer(cmd_);
+    return rec.status();
+  }
+  STREETSIM_VK_RETURN_IF_ERROR(vkEndCommandBuffer(cmd_), "vkEndCommandBuffer");
+  STREETSIM_VK_RETURN_IF_ERROR(vkResetFences(c.device(), 1, &fence_), "vkResetFences");
+  VkSubmitInfo submit{VK_STRUCTURE_TYPE_SUBMIT_INFO};
+  submit.commandBufferCount = 1;
+  submit.pCommandBuffers = &cmd_;
+  STREETSIM_VK_RETURN_IF_ERROR(vkQueueSubmit(c.queue(), 1, &submit, fence_), "vkQueueSubmit");
+  STREETSIM_VK_RETURN_IF_ERROR(vkWaitForFences(c.device(), 1, &fence_, VK_TRUE, UINT64_MAX),
+                               "vkWaitForFences");
+  if (absl::Status s = bwd_readback_.InvalidateForHost(); !s.ok()) return s;
+  if (profiler_) profiler_->Report(c);
+
+  // Unpack into the GaussianStore layouts.
+  const auto* base = static_cast<const std::byte*>(bwd_readback_.mapped());
+  const float* pg = reinterpret_cast<const float*>(base);
+  out->means.resize(size_t{n} * 3);
+  out->log_scales.resize(size_t{n} * 3);
+  out->rotations.resize(size_t{n} * 4);
+  out->opacity_logits.resize(n);
+  out->sh.resize(size_t{n} * K * 3);
+  out->means2d.resize(size_t{n} * 2);
+  out->radii.resize(n);
+  for (size_t i = 0; i < n; ++i) {
+    const float* p = pg + i * kParamGradFloats;
+    std::memcpy(&out->means[i * 3], p, 12);
+    out->opacity_logits[i] = p[3];
+    std::memcpy(&out->log_scales[i * 3], p + 4, 12);
+    out->radii[i] = p[7];
+    std::memcpy(&out->rotations[i * 4], p + 8, 16);
+    std::memcpy(&out->means2d[i * 2], p + 12, 8);
+  }
+  for (int g = 0; g < kMaxShGroups; ++g) {
+    const size_t floats = ShGroupFloats(K, g);
+    if (floats == 0) continue;
+    const float* src = reinterpret_cast<const float*>(base + sh_offsets[g]);
+    for (size_t i = 0; i < n; ++i) {
+      std::memcpy(&out->sh[(i * K + g * kShGroup) * 3], src + i * floats, floats * 4);
+    }
+  }
+  out->backward_ms = MsSince(start);
   return absl::OkStatus();
 }
 

@@ -51,6 +51,23 @@ uint ShGroupFloats(uint K, uint g) {
 // Gaussian id; gather_sorted.comp copies them into depth order for the blender):
 //   [0] = (x, y, conic a, conic b), [1] = (conic c, opacity, r, g),
 //   [2] = (b, depth, band half height, 0): the blender loads the first 10 words.
+// dL/d(splat) of the backward, SPLAT_GRAD_STRIDE floats per visible Gaussian by depth rank, in
+// the order of render/cpu/project_backward.h's SplatGradIndex:
+#define SPLAT_GRAD_STRIDE 12u
+#define SG_X 0u
+#define SG_Y 1u
+#define SG_A 2u
+#define SG_B 3u
+#define SG_C 4u
+#define SG_O 5u
+#define SG_R 6u
+#define SG_G 7u
+#define SG_BL 8u
+#define SG_DEPTH 9u
+// Parameter gradients of the backward, 4 vec4 per Gaussian (zero where not visible):
+//   [0] = (d mean xyz, d opacity logit), [1] = (d log-scale xyz, screen radius),
+//   [2] = d quaternion (w, x, y, z), [3] = (d u, d v of the 2D mean, 0, 0);
+// SH gradients in the scene's SH group layout.
 // Tile rect, uvec2 per Gaussian: (x0 | y0 << 16, x1 | y1 << 16), half-open, in tiles.
 
 uint linear_group_id() { return gl_WorkGroupID.y * gl_NumWorkGroups.x + gl_WorkGroupID.x; }

@@ -1,0 +1,362 @@
+// The vulkan backward pass (render/vulkan/backward.cc): gradients against the cpu backward
+// (relative error per parameter group, small random scenes, SH 0..3, odd image sizes) and
+// against central finite differences of the cpu double-precision forward (the approach of
+// tests/train/grad_check_test.cc), with float atomics and with the compare-and-swap fallback.
+// ctest also runs it at lavapipe subgroup sizes 4 and 16 (LP_NATIVE_VECTOR_WIDTH=128 / 512).
+//
+// STREETSIM_BWD_BENCH=1 adds the timing of the setting (648x420, 139k Gaussians).
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <random>
+
+#include "gtest/gtest.h"
+#include "render/cpu/binning.h"
+#include "render/cpu/blend.h"
+#include "render/cpu/cpu_engine.h"
+#include "render/cpu/project.h"
+#include "render/vulkan/testing.h"
+#include "render/vulkan/vulkan_engine.h"
+#include "scene/gaussians/synthetic_street.h"
+
+namespace streetsim {
+namespace {
+
+Engine* Vulkan() {
+  static Engine* e = [] {
+    absl::StatusOr<std::unique_ptr<Engine>> vk = CreateVulkanEngine(VulkanDevicePreference::kLavapipe);
+    return vk.ok() ? vk->release() : nullptr;
+  }();
+  return e;
+}
+
+// A second engine created without VK_EXT_shader_atomic_float: the compare-and-swap blend backward.
+Engine* VulkanCas() {
+  static Engine* e = [] {
+    setenv("STREETSIM_VK_NO_FLOAT_ATOMICS", "1", 1);
+    absl::StatusOr<std::unique_ptr<Engine>> vk = CreateVulkanEngine(VulkanDevicePreference::kLavapipe);
+    unsetenv("STREETSIM_VK_NO_FLOAT_ATOMICS");
+    return vk.ok() ? vk->release() : nullptr;
+  }();
+  return e;
+}
+
+struct Scene {
+  GaussianStore store;
+  PinholeCamera cam;
+  Eigen::Vector3f background;
+  std::vector<double> w_rgb, w_depth, w_alpha;  // the loss: sum of w . outputs
+};
+
+// As tests/train/grad_check_test.cc: Gaussians in front of the camera, opacities below the clamp.
+Scene RandomScene(unsigned seed, int n, int degree, int width, int height) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<float> u(0, 1);
+  Scene s;
+  s.cam.width = width;
+  s.cam.height = height;
+  s.cam.fx = 60;
+  s.cam.fy = 64;
+  s.cam.cx = width * 0.47;
+  s.cam.cy = height * 0.53;
+  Eigen::Isometry3d pose = Eigen::Isometry3d::Identity();
+  pose.linear() = Eigen::AngleAxisd(0.1, Eigen::Vector3d(0.3, 1, 0.2).normalized()).toRotationMatrix();
+  pose.translation() = Eigen::Vector3d(0.2, -0.1, -0.3);
+  s.cam.T_world_from_cam = pose;
+  s.background = Eigen::Vector3f(0.2f, 0.5f, 0.1f);
+  GaussianStore& g = s.store;
+  g.sh_degree = degree;
+  g.Resize(n);
+  const int K = g.sh_coeffs();
+  for (int i = 0; i < n; ++i) {
+    const double z = 2.5 + 3.0 * u(rng);
+    const Eigen::Vector3d p_cam((u(rng) - 0.5) * 1.1 * z * width / s.cam.fx,
+                                (u(rng) - 0.5) * 1.1 * z * height / s.cam.fy, z);
+    const Eigen::Vector3d p = pose * p_cam;
+    for (int k = 0; k < 3; ++k) {
+      g.means[i * 3 + k] = static_cast<float>(p[k]);
+      g.log_scales[i * 3 + k] = std::log(0.04f + 0.12f * u(rng));
+    }
+    for (int k = 0; k < 4; ++k) g.rotations[i * 4 + k] = u(rng) - 0.5f + (k == 0 ? 0.6f : 0.0f);
+    g.opacity_logits[i] = -1.5f + 2.5f * u(rng);
+    for (int k = 0; k < K * 3; ++k) g.sh[i * K * 3 + k] = (k < 3 ? 1.2f : 0.35f) * (u(rng) - 0.5f);
+  }
+  const size_t pix = static_cast<size_t>(width) * height;
+  for (size_t i = 0; i < pix * 3; ++i) s.w_rgb.push_back(u(rng) - 0.3);
+  for (size_t i = 0; i < pix; ++i) s.w_depth.push_back(0.1 * (u(rng) - 0.5));
+  for (size_t i = 0; i < pix; ++i) s.w_alpha.push_back(u(rng) - 0.5);
+  return s;
+}
+
+double LossDouble(ThreadPool& pool, const Scene& s, const GaussianStore& store) {
+  cpu::Frame<double> f;
+  const auto cam = cpu::MakeCameraParams<double>(s.cam);
+  f.width = s.cam.width;
+  f.height = s.cam.height;
+  f.tiles_x = cam.tiles_x;
+  f.tiles_y = cam.tiles_y;
+  cpu::ProjectGaussians<double>(pool, store, cam, &f);
+  cpu::SortByDepth(&f);
+  cpu::BinTiles(pool, &f);
+  const size_t pix = static_cast<size_t>(f.width) * f.height;
+  std::vector<double> rgb(pix * 3), depth(pix), alpha(pix);
+  cpu::BlendArgs<double> args;
+  args.frame = &f;
+  for (int c = 0; c < 3; ++c) args.background[c] = s.background[c];
+  args.rgb = rgb.data();
+  args.depth = depth.data();
+  args.alpha = alpha.data();
+  cpu::BlendScalar<double>(pool, args);
+  double loss = 0;
+  for (size_t i = 0; i < pix * 3; ++i) loss += s.w_rgb[i] * rgb[i];
+  for (size_t i = 0; i < pix; ++i) loss += s.w_depth[i] * depth[i] + s.w_alpha[i] * alpha[i];
+  return loss;
+}
+
+GaussianGrads Analytic(Engine& engine, const Scene& s, bool with_depth_alpha = true) {
+  auto scene = engine.Upload(s.store);
+  EXPECT_TRUE(scene.ok()) << scene.status();
+  if (!scene.ok()) return {};
+  RenderOptions opt;
+  opt.background = s.background;
+  opt.keep_for_backward = true;
+  RenderOutput out;
+  absl::Status st = engine.Render(**scene, s.cam, opt, &out);
+  EXPECT_TRUE(st.ok()) << st;
+  std::vector<float> g_rgb(s.w_rgb.begin(), s.w_rgb.end()), g_d(s.w_depth.begin(), s.w_depth.end()),
+      g_a(s.w_alpha.begin(), s.w_alpha.end());
+  GaussianGrads grads;
+  RenderOutputGrads og{g_rgb.data(), with_depth_alpha ? g_d.data() : nullptr,
+                       with_depth_alpha ? g_a.data() : nullptr};
+  st = engine.RenderBackward(**scene, og, {}, &grads);
+  EXPECT_TRUE(st.ok()) << st;
+  return grads;
+}
+
+struct Group {
+  const char* name;
+  std::vector<float> GaussianStore::*params;
+  std::vector<float> GaussianGrads::*grads;
+};
+const Group kGroups[] = {{"means", &GaussianStore::means, &GaussianGrads::means},
+                         {"log_scales", &GaussianStore::log_scales, &GaussianGrads::log_scales},
+                         {"rotations", &GaussianStore::rotations, &GaussianGrads::rotations},
+                         {"opacity_logits", &GaussianStore::opacity_logits, &GaussianGrads::opacity_logits},
+                         {"sh", &GaussianStore::sh, &GaussianGrads::sh}};
+
+double RelError(const std::vector<float>& ref, const std::vector<float>& x) {
+  EXPECT_EQ(ref.size(), x.size());
+  double num = 0, den = 0;
+  for (size_t i = 0; i < std::min(ref.size(), x.size()); ++i) {
+    num += (double(ref[i]) - x[i]) * (double(ref[i]) - x[i]);
+    den += double(ref[i]) * ref[i];
+  }
+  return std::sqrt(num / std::max(den, 1e-300));
+}
+
+class VulkanBackward : public testing::Test {
+ protected:
+  void SetUp() override {
+    if (Vulkan() == nullptr) GTEST_SKIP() << "no Vulkan device on this machine";
+  }
+};
+
+struct Case {
+  int degree, n, width, height;
+};
+
+// Against the cpu backward (vectorised float and double) on the same scene: both follow the same
+// rules in float and differ in exp/rounding and summation order; a threshold (1/255, T 1e-4)
+// flipping at one pixel moves a gradient slightly.
+TEST_F(VulkanBackward, AgreesWithCpuBackward) {
+  const Case cases[] = {{0, 60, 73, 41}, {1, 80, 101, 67}, {2, 50, 47, 95}, {3, 120, 129, 77}};
+  auto cpu_double = CreateCpuEngine({.precision = CpuPrecision::kDouble});
+  auto cpu_simd = CreateCpuEngine();
+  std::printf("subgroup size %u, %s\n", vulkan_testing::SubgroupSize(*Vulkan()),
+              Vulkan()->device_name().c_str());
+  for (const Case& c : cases) {
+    const Scene s = RandomScene(31 + c.degree, c.n, c.degree, c.width, c.height);
+    const GaussianGrads ref = Analytic(*cpu_double, s);
+    const GaussianGrads simd = Analytic(*cpu_simd, s);
+    const GaussianGrads vk = Analytic(*Vulkan(), s);
+    for (const Group& g : kGroups) {
+      const double e_vk = RelError(ref.*(g.grads), vk.*(g.grads));
+      const double e_simd = RelError(ref.*(g.grads), simd.*(g.grads));
+      std::printf("degree %d %dx%d %-15s rel. error vs cpu double: vulkan %.2e  cpu simd %.2e\n",
+                  c.degree, c.width, c.height, g.name, e_vk, e_simd);
+      EXPECT_LT(e_vk, 3e-5) << g.name << " degree " << c.degree;
+    }
+    const double e2d = RelError(ref.means2d, vk.means2d);
+    std::printf("degree %d %dx%d %-15s rel. error vs cpu double: vulkan %.2e\n", c.degree, c.width,
+                c.height, "means2d", e2d);
+    EXPECT_LT(e2d, 3e-5);
+    EXPECT_EQ(ref.radii, vk.radii);
+  }
+}
+
+TEST_F(VulkanBackward, AgreesWithFiniteDifferences) {
+  ThreadPool pool(0);
+  for (int degree : {0, 1, 3}) {
+    const Scene s = RandomScene(17 + degree, 24, degree, 72, 56);
+    const GaussianGrads vk = Analytic(*Vulkan(), s);
+    int visible = 0;
+    for (float r : vk.radii) visible += r > 0;
+    EXPECT_GE(visible, 18);
+    for (const Group& group : kGroups) {
+      GaussianStore store = s.store;
+      std::vector<float>& p = store.*(group.params);
+      const std::vector<float>& an = vk.*(group.grads);
+      double num = 0, den = 0;
+      size_t skipped = 0;
+      for (size_t i = 0; i < p.size(); ++i) {
+        const float x = p[i];
+        auto diff = [&](double h) {
+          const float xp = static_cast<float>(x + h), xm = static_cast<float>(x - h);
+          p[i] = xp;
+          const double lp = LossDouble(pool, s, store);
+          p[i] = xm;
+          const double lm = LossDouble(pool, s, store);
+          p[i] = x;
+          return (lp - lm) / (double(xp) - double(xm));
+        };
+        const double h = 1e-4 * std::max(1.0, std::abs(double(x)));
+        const double d1 = diff(h), d2 = diff(h / 4);
+        if (std::abs(d1 - d2) > 0.02 * std::max(std::abs(d2), 1e-3)) {
+          ++skipped;  // a discontinuity inside the step (tile edge, the 1/255 cut)
+          continue;
+        }
+        num += (d2 - an[i]) * (d2 - an[i]);
+        den += d2 * d2;
+      }
+      const double e = std::sqrt(num / std::max(den, 1e-300));
+      std::printf("degree %d %-15s vulkan rel. error vs finite differences %.2e (%zu of %zu left out)\n",
+                  degree, group.name, e, skipped, p.size());
+      EXPECT_LT(skipped, p.size() / 4 + 1) << group.name;
+      EXPECT_LT(e, 2e-5) << group.name << " degree " << degree;
+    }
+  }
+}
+
+TEST_F(VulkanBackward, CompareAndSwapFallbackAgrees) {
+  Engine* cas = VulkanCas();
+  ASSERT_NE(cas, nullptr);
+  EXPECT_NE(cas->device_name().find("no float atomics"), std::string::npos) << cas->device_name();
+  const Scene s = RandomScene(7, 150, 3, 97, 63);
+  const GaussianGrads a = Analytic(*Vulkan(), s);
+  const GaussianGrads b = Analytic(*cas, s);
+  for (const Group& g : kGroups) EXPECT_LT(RelError(a.*(g.grads), b.*(g.grads)), 1e-5) << g.name;
+  EXPECT_EQ(a.radii, b.radii);
+}
+
+TEST_F(VulkanBackward, NullDepthAndAlphaGradsMeanZero) {
+  const Scene s = RandomScene(9, 40, 1, 61, 45);
+  Scene s0 = s;
+  std::fill(s0.w_depth.begin(), s0.w_depth.end(), 0.0);
+  std::fill(s0.w_alpha.begin(), s0.w_alpha.end(), 0.0);
+  const GaussianGrads a = Analytic(*Vulkan(), s, /*with_depth_alpha=*/false);
+  const GaussianGrads b = Analytic(*Vulkan(), s0);
+  for (const Group& g : kGroups) EXPECT_LT(RelError(b.*(g.grads), a.*(g.grads)), 1e-6) << g.name;
+}
+
+TEST_F(VulkanBackward, PreconditionsAndUpdateScene) {
+  Engine& vk = *Vulkan();
+  const Scene s = RandomScene(3, 30, 2, 50, 40);
+  auto scene = vk.Upload(s.store);
+  ASSERT_TRUE(scene.ok());
+  RenderOutput out;
+  ASSERT_TRUE(vk.Render(**scene, s.cam, {}, &out).ok());
+  std::vector<float> g(out.rgb.size(), 1.0f);
+  GaussianGrads grads;
+  // Without keep_for_backward.
+  EXPECT_EQ(vk.RenderBackward(**scene, {g.data()}, {}, &grads).code(),
+            absl::StatusCode::kFailedPrecondition);
+  RenderOptions keep;
+  keep.keep_for_backward = true;
+  ASSERT_TRUE(vk.Render(**scene, s.cam, keep, &out).ok());
+  EXPECT_EQ(vk.RenderBackward(**scene, {nullptr}, {}, &grads).code(),
+            absl::StatusCode::kInvalidArgument);
+  BackwardOptions det;
+  det.deterministic = true;
+  EXPECT_EQ(vk.RenderBackward(**scene, {g.data()}, det, &grads).code(),
+            absl::StatusCode::kUnimplemented);
+  EXPECT_TRUE(vk.RenderBackward(**scene, {g.data()}, {}, &grads).ok());
+  // Backward may run twice on one kept forward (same result up to atomics order).
+  GaussianGrads again;
+  EXPECT_TRUE(vk.RenderBackward(**scene, {g.data()}, {}, &again).ok());
+  EXPECT_LT(RelError(grads.means, again.means), 1e-5);
+
+  // UpdateScene in place: renders what a fresh upload of the new parameters renders, and the
+  // kept forward is invalidated.
+  GaussianStore moved = s.store;
+  for (float& m : moved.means) m += 0.01f;
+  const DeviceScene* before = scene->get();
+  ASSERT_TRUE(vk.UpdateScene(moved, &*scene).ok());
+  EXPECT_EQ(scene->get(), before);
+  EXPECT_EQ(vk.RenderBackward(**scene, {g.data()}, {}, &grads).code(),
+            absl::StatusCode::kFailedPrecondition);
+  RenderOutput updated, fresh;
+  ASSERT_TRUE(vk.Render(**scene, s.cam, {}, &updated).ok());
+  auto fresh_scene = vk.Upload(moved);
+  ASSERT_TRUE(fresh_scene.ok());
+  ASSERT_TRUE(vk.Render(**fresh_scene, s.cam, {}, &fresh).ok());
+  EXPECT_EQ(updated.rgb, fresh.rgb);
+  // A different size re-uploads.
+  moved.Resize(20);
+  ASSERT_TRUE(vk.UpdateScene(moved, &*scene).ok());
+  EXPECT_EQ((*scene)->size(), 20u);
+  EXPECT_EQ(vulkan_testing::ValidationMessages(vk), 0);  // 0 unless validation is on
+}
+
+TEST_F(VulkanBackward, Benchmark) {
+  if (std::getenv("STREETSIM_BWD_BENCH") == nullptr) GTEST_SKIP() << "STREETSIM_BWD_BENCH=1";
+  const GaussianStore street = MakeSyntheticStreet({.num_gaussians = 139000, .seed = 3, .sh_degree = 3});
+  PinholeCamera cam;
+  cam.width = 648;
+  cam.height = 420;
+  cam.fx = cam.fy = 721.5377 * 648 / 1242.0;
+  cam.cx = (648 - 1) / 2.0;
+  cam.cy = (420 - 1) / 2.0;
+  cam.T_world_from_cam = StreetCameraPose(10.0);
+  const size_t pix = size_t{648} * 420;
+  std::mt19937 rng(1);
+  std::uniform_real_distribution<float> u(-1, 1);
+  std::vector<float> g_rgb(pix * 3), g_d(pix), g_a(pix);
+  for (float& v : g_rgb) v = u(rng) * 1e-3f;
+  for (float& v : g_d) v = u(rng) * 1e-4f;
+  for (float& v : g_a) v = u(rng) * 1e-3f;
+  auto cpu = CreateCpuEngine();
+  GaussianGrads results[2];
+  Engine* engines[2] = {cpu.get(), Vulkan()};
+  for (int e = 0; e < 2; ++e) {
+    Engine& engine = *engines[e];
+    auto scene = engine.Upload(street);
+    ASSERT_TRUE(scene.ok());
+    RenderOptions opt;
+    opt.keep_for_backward = true;
+    RenderOutput out;
+    std::vector<double> fwd, bwd;
+    for (int it = 0; it < 4; ++it) {
+      ASSERT_TRUE(engine.Render(**scene, cam, opt, &out).ok());
+      ASSERT_TRUE(engine.RenderBackward(**scene, {g_rgb.data(), g_d.data(), g_a.data()}, {},
+                                        &results[e]).ok());
+      if (it > 0) {
+        fwd.push_back(out.timings.total_ms);
+        bwd.push_back(results[e].backward_ms);
+      }
+    }
+    std::sort(fwd.begin(), fwd.end());
+    std::sort(bwd.begin(), bwd.end());
+    std::printf("%s: 648x420, 139k Gaussians (%zu visible, %zu instances): forward %.1f ms, "
+                "backward %.1f ms (median of %zu)\n",
+                engine.device_name().c_str(), out.stats.num_visible, out.stats.num_tile_instances,
+                fwd[fwd.size() / 2], bwd[bwd.size() / 2], bwd.size());
+  }
+  for (const Group& g : kGroups) {
+    std::printf("street %-15s rel. error vulkan vs cpu %.2e\n", g.name,
+                RelError(results[0].*(g.grads), results[1].*(g.grads)));
+  }
+}
+
+}  // namespace
+}  // namespace streetsim
