@@ -72,7 +72,6 @@ int main(int argc, char** argv) {
         if (o.alpha[i] > 0.5f) lidar.push_back({static_cast<uint32_t>(i), o.depth[i] / o.alpha[i]});
     }
     std::unique_ptr<DeviceScene> scene;
-    GaussianStore rs;
     RenderOutput out;
     GaussianGrads grads;
     train::Hyper hyper;
@@ -80,8 +79,7 @@ int main(int argc, char** argv) {
     for (int it = 0; it <= iters; ++it) {
       const auto t0 = Clock::now();
       auto t = Clock::now();
-      train::RenderStore(st, sh, &rs);
-      (void)(*engine)->UpdateScene(rs, &scene);
+      (void)(*engine)->UpdateSceneParams(train::ParamsView(st, sh), &scene);
       const double up = Ms(t);
       t = Clock::now();
       RenderOptions ro;

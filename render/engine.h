@@ -91,6 +91,20 @@ struct GaussianGrads {
   double backward_ms = 0;             // wall time of the backward pass
 };
 
+// Training: Gaussian parameters in the caller's layout (the GaussianStore one, but SH with a stride
+// of `sh_stride` coefficients per channel of which the first ShCoeffsForDegree(sh_degree) are
+// uploaded), for Engine::UpdateSceneParams. Pointers must stay valid for the call only.
+struct GaussianParamsView {
+  size_t n = 0;
+  int sh_degree = 0;                      // degree to upload
+  int sh_stride = 0;                      // coefficients per channel per Gaussian in `sh` (>= K)
+  const float* means = nullptr;           // [n*3]
+  const float* log_scales = nullptr;      // [n*3]
+  const float* rotations = nullptr;       // [n*4] (w, x, y, z)
+  const float* opacity_logits = nullptr;  // [n]
+  const float* sh = nullptr;              // [n*sh_stride*3]
+};
+
 // A scene living in a backend's memory. Opaque; created by Engine::Upload.
 class DeviceScene {
  public:
@@ -130,6 +144,25 @@ class Engine {
     if (!s.ok()) return s.status();
     *scene = std::move(*s);
     return absl::OkStatus();
+  }
+
+  // Training: like UpdateScene from a view of the parameters (no GaussianStore copy). Backends may
+  // update their copy in place and check only what rendering needs (finite values, non-zero
+  // rotations). The default copies into a store and calls UpdateScene.
+  virtual absl::Status UpdateSceneParams(const GaussianParamsView& params, std::unique_ptr<DeviceScene>* scene) {
+    GaussianStore store;
+    store.sh_degree = params.sh_degree;
+    const size_t n = params.n;
+    const int K = ShCoeffsForDegree(params.sh_degree);
+    if (params.sh_stride < K) return absl::InvalidArgumentError("UpdateSceneParams: sh_stride < SH coefficients");
+    store.means.assign(params.means, params.means + n * 3);
+    store.log_scales.assign(params.log_scales, params.log_scales + n * 3);
+    store.rotations.assign(params.rotations, params.rotations + n * 4);
+    store.opacity_logits.assign(params.opacity_logits, params.opacity_logits + n);
+    store.sh.resize(n * K * 3);
+    for (size_t i = 0; i < n; ++i)
+      for (int k = 0; k < K * 3; ++k) store.sh[i * K * 3 + k] = params.sh[i * params.sh_stride * 3 + k];
+    return UpdateScene(store, scene);
   }
 };
 

@@ -35,6 +35,8 @@ class CpuScene final : public DeviceScene {
   int sh_degree() const override { return sh_degree_; }
   const GaussianStore& store() const { return store_; }
   const cpu::SceneSoa& soa() const { return soa_; }
+  cpu::SceneSoa& mutable_soa() { return soa_; }
+  void SetShape(size_t size, int sh_degree) { size_ = size, sh_degree_ = sh_degree; }
   // Training: new parameters, same layout choice; vectors keep their capacity.
   void Replace(const GaussianStore& store, bool soa) {
     sh_degree_ = store.sh_degree;
@@ -100,6 +102,24 @@ class CpuEngine final : public Engine {
     cpu_scene->Replace(store, options_.precision == CpuPrecision::kFloatSimd);
     if (kept_scene_ == cpu_scene) kept_scene_ = nullptr;
     return absl::OkStatus();
+  }
+
+  // Training: the SoA copy is overwritten in place (no store, no allocation when the size is
+  // unchanged, no full validation: finiteness and zero rotations are checked while copying).
+  absl::Status UpdateSceneParams(const GaussianParamsView& params, std::unique_ptr<DeviceScene>* scene) override {
+    auto* cpu_scene = scene->get() ? dynamic_cast<CpuScene*>(scene->get()) : nullptr;
+    if (cpu_scene == nullptr || options_.precision != CpuPrecision::kFloatSimd) {
+      return Engine::UpdateSceneParams(params, scene);
+    }
+    if (params.n > (1u << 30)) return absl::InvalidArgumentError("scene too large for the cpu backend");
+    if (kept_scene_ == cpu_scene) kept_scene_ = nullptr;
+    absl::Status s = cpu_scene->mutable_soa().Assign(pool_, params);
+    cpu_scene->SetShape(params.n, params.sh_degree);
+    if (!s.ok()) {
+      cpu_scene->mutable_soa() = cpu::SceneSoa();  // do not leave a half-written scene renderable
+      cpu_scene->SetShape(0, params.sh_degree);
+    }
+    return s;
   }
 
   absl::Status RenderBackward(const DeviceScene& scene, const RenderOutputGrads& grads,

@@ -7,15 +7,31 @@
 namespace streetsim::cpu {
 namespace {
 
-void ResizeZero(size_t n, int K, GaussianGrads* out) {
-  auto z = [](std::vector<float>& v, size_t m) { v.assign(m, 0.0f); };
-  z(out->means, n * 3);
-  z(out->log_scales, n * 3);
-  z(out->rotations, n * 4);
-  z(out->opacity_logits, n);
-  z(out->sh, n * K * 3);
-  z(out->means2d, n * 2);
-  z(out->radii, n);
+// Sizes the outputs without clearing them: RunBackward writes every element once (visible
+// Gaussians their gradients, the others zeros), so the arrays are not zeroed in a separate pass.
+void Resize(size_t n, int K, GaussianGrads* out) {
+  out->means.resize(n * 3);
+  out->log_scales.resize(n * 3);
+  out->rotations.resize(n * 4);
+  out->opacity_logits.resize(n);
+  out->sh.resize(n * K * 3);
+  out->means2d.resize(n * 2);
+  out->radii.resize(n);
+}
+
+// Zeros Gaussians [g0, g1) of every output array.
+void ZeroRange(size_t g0, size_t g1, int K, GaussianGrads* out) {
+  if (g1 <= g0) return;
+  auto z = [&](std::vector<float>& v, size_t stride) {
+    std::fill(v.begin() + g0 * stride, v.begin() + g1 * stride, 0.0f);
+  };
+  z(out->means, 3);
+  z(out->log_scales, 3);
+  z(out->rotations, 4);
+  z(out->opacity_logits, 1);
+  z(out->sh, static_cast<size_t>(K) * 3);
+  z(out->means2d, 2);
+  z(out->radii, 1);
 }
 
 // Gathers Gaussian i's parameters (Real working copies) from either layout.
@@ -24,13 +40,21 @@ void RunBackward(ThreadPool& pool, const Source& src, size_t n, int degree,
                  const projection::CameraParams<Real>& cam, const Frame<Real>& frame,
                  const std::vector<Real>& splat_grads, GaussianGrads* out) {
   const int K = (degree + 1) * (degree + 1);
-  ResizeZero(n, K, out);
-  const std::vector<uint32_t>& ids = frame.visible_ids;
+  Resize(n, K, out);
+  const std::vector<uint32_t>& ids = frame.visible_ids;  // ascending
+  if (ids.empty()) {
+    ZeroRange(0, n, K, out);
+    return;
+  }
   pool.ParallelFor(static_cast<int64_t>(ids.size()), 1024, [&](int64_t b, int64_t e, int) {
+    // This chunk also zeros the invisible Gaussians before each of its ids (and after the last).
+    size_t prev_end = b > 0 ? static_cast<size_t>(ids[b - 1]) + 1 : 0;
     Real mean[3], ls[3], q[4], logit, sh[48], g[kSplatGradSize];
     ParamGrads<Real> pg;
     for (int64_t j = b; j < e; ++j) {
       const uint32_t i = ids[j];
+      ZeroRange(prev_end, i, K, out);
+      prev_end = static_cast<size_t>(i) + 1;
       src.Get(i, K, mean, ls, q, &logit, sh);
       for (int k = 0; k < kSplatGradSize; ++k) g[k] = splat_grads[static_cast<size_t>(i) * kSplatGradSize + k];
       ProjectGaussianBackward<Real>(cam, mean, ls, q, logit, sh, degree, g, &pg);
@@ -46,6 +70,7 @@ void RunBackward(ThreadPool& pool, const Source& src, size_t n, int degree,
       out->means2d[i * 2 + 1] = static_cast<float>(g[kGy]);
       out->radii[i] = static_cast<float>(pg.radius);
     }
+    if (e == static_cast<int64_t>(ids.size())) ZeroRange(prev_end, n, K, out);
   });
 }
 

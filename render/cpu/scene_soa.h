@@ -5,6 +5,9 @@
 
 #include <vector>
 
+#include "absl/status/status.h"
+#include "render/common/thread_pool.h"
+#include "render/engine.h"
 #include "scene/gaussians/gaussian_store.h"
 
 namespace streetsim::cpu {
@@ -20,6 +23,10 @@ struct SceneSoa {
   std::vector<float> sh;
 
   static SceneSoa FromStore(const GaussianStore& store);
+  // Training: overwrites this copy from a parameter view in place (vectors keep their capacity),
+  // in parallel, checking only what rendering needs: finite values and non-zero rotations.
+  // On error the contents are unspecified.
+  absl::Status Assign(ThreadPool& pool, const GaussianParamsView& p);
 };
 
 }  // namespace streetsim::cpu

@@ -22,138 +22,189 @@ const Window& Win() {
   return w;
 }
 
-// Separable Gaussian blur with zero padding of `count` planes [count][H][W] (in -> out).
-void Blur(ThreadPool& pool, const float* in, float* out, int count, int width, int height, std::vector<float>* tmp) {
-  const size_t plane = static_cast<size_t>(width) * height;
-  tmp->resize(plane * count);
+// Sum of v[0..n) in fixed-size blocks summed in order (deterministic for any thread count).
+constexpr size_t kBlock = 4096;
+
+// Horizontal 11-tap blur of one zero-padded row: dst[x] = sum_k w[k] row[x + k] (row holds
+// kHalf zeros on each side), taps summed in k order.
+inline void BlurRowH(const float* __restrict row, float* __restrict dst, int width) {
   const float* w = Win().w;
-  // Horizontal.
-  pool.ParallelFor(static_cast<int64_t>(count) * height, 16, [&](int64_t b, int64_t e, int) {
-    std::vector<float> row(width + 2 * kHalf, 0.0f);
-    for (int64_t r = b; r < e; ++r) {
-      const float* src = in + r * width;
-      std::copy(src, src + width, row.begin() + kHalf);
-      float* dst = tmp->data() + r * width;
-      for (int x = 0; x < width; ++x) dst[x] = 0;
-      for (int k = 0; k < kWin; ++k) {
-        const float wk = w[k];
-        const float* s = row.data() + k;
-        for (int x = 0; x < width; ++x) dst[x] += wk * s[x];
-      }
-    }
-  });
-  // Vertical.
-  pool.ParallelFor(static_cast<int64_t>(count) * height, 16, [&](int64_t b, int64_t e, int) {
-    for (int64_t r = b; r < e; ++r) {
-      const int64_t p = r / height;
-      const int y = static_cast<int>(r % height);
-      float* dst = out + r * width;
-      for (int x = 0; x < width; ++x) dst[x] = 0;
-      for (int k = 0; k < kWin; ++k) {
-        const int yy = y + k - kHalf;
-        if (yy < 0 || yy >= height) continue;
-        const float wk = w[k];
-        const float* s = tmp->data() + (p * height + yy) * width;
-        for (int x = 0; x < width; ++x) dst[x] += wk * s[x];
-      }
-    }
-  });
+  for (int x = 0; x < width; ++x) dst[x] = 0;
+  for (int k = 0; k < kWin; ++k) {
+    const float wk = w[k];
+    const float* s = row + k;
+    for (int x = 0; x < width; ++x) dst[x] += wk * s[x];
+  }
 }
 
-// Sum of v[0..n) in fixed-size blocks summed in order (deterministic for any thread count).
-double BlockSum(ThreadPool& pool, const float* v, size_t n) {
-  constexpr size_t kBlock = 4096;
-  const size_t blocks = (n + kBlock - 1) / kBlock;
-  std::vector<double> partial(blocks, 0.0);
-  pool.ParallelFor(static_cast<int64_t>(blocks), 4, [&](int64_t b, int64_t e, int) {
-    for (int64_t i = b; i < e; ++i) {
-      double s = 0;
-      for (size_t j = i * kBlock; j < std::min(n, (i + 1) * kBlock); ++j) s += v[j];
-      partial[i] = s;
-    }
-  });
-  double s = 0;
-  for (double p : partial) s += p;
+// Vertical 11-tap blur at row y of a plane [H][W] (zero padding), taps in k order.
+inline void BlurRowV(const float* __restrict plane, float* __restrict dst, int y, int width, int height) {
+  const float* w = Win().w;
+  for (int x = 0; x < width; ++x) dst[x] = 0;
+  for (int k = 0; k < kWin; ++k) {
+    const int yy = y + k - kHalf;
+    if (yy < 0 || yy >= height) continue;
+    const float wk = w[k];
+    const float* s = plane + static_cast<size_t>(yy) * width;
+    for (int x = 0; x < width; ++x) dst[x] += wk * s[x];
+  }
+}
+
+// Scratch kept across calls (the training loop calls these every iteration on the same size):
+// no allocation or page faults per call.
+struct SsimScratch {
+  std::vector<float> hb;      // horizontally blurred planes: [3 channels][5: x, y, xx, yy, xy][H][W]
+  std::vector<float> dm;      // d-maps A, B, C: [3][3][H][W], then their horizontal blurs in hb
+  std::vector<double> rows;   // per (row, channel) SSIM sums
+};
+SsimScratch& Scratch() {
+  thread_local SsimScratch s;
   return s;
+}
+struct RowScratch {
+  std::vector<float> buf;
+  float* Get(size_t n) {
+    if (buf.size() < n) buf.resize(n);
+    return buf.data();
+  }
+};
+float* RowBuf(size_t n) {
+  thread_local RowScratch r;
+  return r.Get(n);
 }
 
 }  // namespace
 
 double L1Loss(ThreadPool& pool, const float* render, const float* target, size_t n, float weight, float* grad) {
-  std::vector<float> absd(n);
   const float g = weight / static_cast<float>(n);
-  pool.ParallelFor(static_cast<int64_t>(n), 1 << 15, [&](int64_t b, int64_t e, int) {
-    for (int64_t i = b; i < e; ++i) {
-      const float d = render[i] - target[i];
-      absd[i] = std::abs(d);
-      if (grad) grad[i] += d > 0 ? g : (d < 0 ? -g : 0.0f);
+  const size_t blocks = (n + kBlock - 1) / kBlock;
+  std::vector<double> partial(blocks, 0.0);
+  pool.ParallelFor(static_cast<int64_t>(blocks), 8, [&](int64_t b, int64_t e, int) {
+    for (int64_t blk = b; blk < e; ++blk) {
+      const size_t j0 = blk * kBlock, j1 = std::min(n, j0 + kBlock);
+      double s = 0;
+      for (size_t j = j0; j < j1; ++j) {
+        const float d = render[j] - target[j];
+        s += std::abs(d);
+        if (grad) grad[j] += d > 0 ? g : (d < 0 ? -g : 0.0f);
+      }
+      partial[blk] = s;
     }
   });
-  return BlockSum(pool, absd.data(), n) / static_cast<double>(n);
+  double s = 0;
+  for (double p : partial) s += p;
+  return s / static_cast<double>(n);
 }
 
+// Fused: per row, the 5 products are blurred horizontally straight from the interleaved images;
+// the vertical blur of a row is followed at once by the SSIM map and its 3 d-maps (never stored
+// as planes); with a gradient, the d-maps are blurred the same way and the vertical pass adds the
+// gradient. Same taps in the same order as a plain separable blur.
 double Ssim(ThreadPool& pool, const float* render, const float* target, int width, int height, float weight,
             float* grad) {
-  const size_t plane = static_cast<size_t>(width) * height;
-  const size_t n3 = plane * 3;
-  // Planes: x, y, xx, yy, xy per channel (5 x 3).
-  std::vector<float> in(n3 * 5), mu(n3 * 5), tmp;
-  pool.ParallelFor(static_cast<int64_t>(plane), 1 << 14, [&](int64_t b, int64_t e, int) {
-    for (int c = 0; c < 3; ++c) {
-      float* x = in.data() + (0 * 3 + c) * plane;
-      float* y = in.data() + (1 * 3 + c) * plane;
-      float* xx = in.data() + (2 * 3 + c) * plane;
-      float* yy = in.data() + (3 * 3 + c) * plane;
-      float* xy = in.data() + (4 * 3 + c) * plane;
-      for (int64_t i = b; i < e; ++i) {
-        const float a = render[i * 3 + c], t = target[i * 3 + c];
-        x[i] = a;
-        y[i] = t;
-        xx[i] = a * a;
-        yy[i] = t * t;
-        xy[i] = a * t;
-      }
-    }
-  });
-  Blur(pool, in.data(), mu.data(), 15, width, height, &tmp);
-  const float C1 = 0.01f * 0.01f, C2 = 0.03f * 0.03f;
-  std::vector<float> smap(n3);
-  std::vector<float> dmaps;  // A (d/d mu_x), B (d/d E[xx]), C (d/d E[xy]) per channel
-  if (grad) dmaps.resize(n3 * 3);
-  pool.ParallelFor(static_cast<int64_t>(n3), 1 << 14, [&](int64_t b, int64_t e, int) {
-    for (int64_t i = b; i < e; ++i) {
-      const float mx = mu[0 * n3 + i], my = mu[1 * n3 + i];
-      const float sxx = mu[2 * n3 + i] - mx * mx, syy = mu[3 * n3 + i] - my * my;
-      const float sxy = mu[4 * n3 + i] - mx * my;
-      const float n1 = 2 * mx * my + C1, n2 = 2 * sxy + C2;
-      const float d1 = mx * mx + my * my + C1, d2 = sxx + syy + C2;
-      const float s = (n1 * n2) / (d1 * d2);
-      smap[i] = s;
-      if (grad) {
-        const float inv = 1.0f / (d1 * d2);
-        dmaps[i] = 2 * my * (n2 - n1) * inv - 2 * mx * s * (1 / d1 - 1 / d2);
-        dmaps[n3 + i] = -s / d2;
-        dmaps[2 * n3 + i] = 2 * n1 * inv;
-      }
-    }
-  });
-  const double mean = BlockSum(pool, smap.data(), n3) / static_cast<double>(n3);
-  if (grad) {
-    std::vector<float> bd(n3 * 3);
-    Blur(pool, dmaps.data(), bd.data(), 9, width, height, &tmp);
-    const float scale = weight / static_cast<float>(n3);
-    pool.ParallelFor(static_cast<int64_t>(plane), 1 << 14, [&](int64_t b, int64_t e, int) {
+  const size_t W = static_cast<size_t>(width);
+  const size_t plane = W * height;
+  SsimScratch& sc = Scratch();
+  sc.hb.resize(plane * 15);
+  if (grad) sc.dm.resize(plane * 9);
+  sc.rows.assign(static_cast<size_t>(height) * 3, 0.0);
+  float* hb = sc.hb.data();
+  float* dm = sc.dm.data();
+  constexpr int64_t kRows = 4;
+  // Horizontal blur of x, y, xx, yy, xy.
+  pool.ParallelFor(height, kRows, [&](int64_t b, int64_t e, int) {
+    const size_t padded = W + 2 * kHalf;
+    float* buf = RowBuf(padded * 5);
+    std::fill(buf, buf + padded * 5, 0.0f);
+    for (int64_t y = b; y < e; ++y) {
       for (int c = 0; c < 3; ++c) {
-        const float* A = bd.data() + c * plane;
-        const float* B = bd.data() + n3 + c * plane;
-        const float* C = bd.data() + 2 * n3 + c * plane;
-        for (int64_t i = b; i < e; ++i) {
-          const float x = render[i * 3 + c], y = target[i * 3 + c];
-          grad[i * 3 + c] += scale * (A[i] + 2 * x * B[i] + y * C[i]);
+        float* px = buf + kHalf;
+        float* py = px + padded;
+        float* pxx = py + padded;
+        float* pyy = pxx + padded;
+        float* pxy = pyy + padded;
+        const float* r = render + y * W * 3 + c;
+        const float* t = target + y * W * 3 + c;
+        for (size_t x = 0; x < W; ++x) {
+          const float a = r[x * 3], v = t[x * 3];
+          px[x] = a, py[x] = v, pxx[x] = a * a, pyy[x] = v * v, pxy[x] = a * v;
         }
+        for (int q = 0; q < 5; ++q) BlurRowH(buf + q * padded, hb + (c * 5 + q) * plane + y * W, width);
       }
-    });
-  }
+    }
+  });
+  const float C1 = 0.01f * 0.01f, C2 = 0.03f * 0.03f;
+  // Vertical blur, SSIM map, d-maps (A: d/d mu_x, B: d/d E[xx], C: d/d E[xy]).
+  pool.ParallelFor(height, kRows, [&](int64_t b, int64_t e, int) {
+    float* mu = RowBuf(W * 5);
+    for (int64_t y = b; y < e; ++y) {
+      for (int c = 0; c < 3; ++c) {
+        for (int q = 0; q < 5; ++q) BlurRowV(hb + (c * 5 + q) * plane, mu + q * W, static_cast<int>(y), width, height);
+        const float* __restrict mux = mu;
+        const float* __restrict muy = mu + W;
+        const float* __restrict exx = mu + 2 * W;
+        const float* __restrict eyy = mu + 3 * W;
+        const float* __restrict exy = mu + 4 * W;
+        double sum = 0;
+        if (grad) {
+          float* __restrict A = dm + (c * 3 + 0) * plane + y * W;
+          float* __restrict B = dm + (c * 3 + 1) * plane + y * W;
+          float* __restrict C = dm + (c * 3 + 2) * plane + y * W;
+          for (size_t x = 0; x < W; ++x) {
+            const float mx = mux[x], my = muy[x];
+            const float sxx = exx[x] - mx * mx, syy = eyy[x] - my * my, sxy = exy[x] - mx * my;
+            const float n1 = 2 * mx * my + C1, n2 = 2 * sxy + C2;
+            const float d1 = mx * mx + my * my + C1, d2 = sxx + syy + C2;
+            const float s = (n1 * n2) / (d1 * d2);
+            sum += s;
+            const float inv = 1.0f / (d1 * d2);
+            A[x] = 2 * my * (n2 - n1) * inv - 2 * mx * s * (1 / d1 - 1 / d2);
+            B[x] = -s / d2;
+            C[x] = 2 * n1 * inv;
+          }
+        } else {
+          for (size_t x = 0; x < W; ++x) {
+            const float mx = mux[x], my = muy[x];
+            const float sxx = exx[x] - mx * mx, syy = eyy[x] - my * my, sxy = exy[x] - mx * my;
+            const float n1 = 2 * mx * my + C1, n2 = 2 * sxy + C2;
+            const float d1 = mx * mx + my * my + C1, d2 = sxx + syy + C2;
+            sum += (n1 * n2) / (d1 * d2);
+          }
+        }
+        sc.rows[y * 3 + c] = sum;
+      }
+    }
+  });
+  double total = 0;
+  for (double r : sc.rows) total += r;
+  const double mean = total / static_cast<double>(plane * 3);
+  if (!grad) return mean;
+  // Horizontal blur of the d-maps (into hb's first 9 planes).
+  pool.ParallelFor(height, kRows, [&](int64_t b, int64_t e, int) {
+    const size_t padded = W + 2 * kHalf;
+    float* buf = RowBuf(padded);
+    std::fill(buf, buf + padded, 0.0f);
+    for (int64_t y = b; y < e; ++y) {
+      for (int p = 0; p < 9; ++p) {
+        std::copy(dm + p * plane + y * W, dm + p * plane + (y + 1) * W, buf + kHalf);
+        BlurRowH(buf, hb + p * plane + y * W, width);
+      }
+    }
+  });
+  const float scale = weight / static_cast<float>(plane * 3);
+  // Vertical blur and the gradient: scale * (A + 2 x B + y C).
+  pool.ParallelFor(height, kRows, [&](int64_t b, int64_t e, int) {
+    float* abc = RowBuf(W * 3);
+    for (int64_t y = b; y < e; ++y) {
+      for (int c = 0; c < 3; ++c) {
+        for (int j = 0; j < 3; ++j) BlurRowV(hb + (c * 3 + j) * plane, abc + j * W, static_cast<int>(y), width, height);
+        const float* r = render + y * W * 3 + c;
+        const float* t = target + y * W * 3 + c;
+        float* g = grad + y * W * 3 + c;
+        for (size_t x = 0; x < W; ++x) g[x * 3] += scale * (abc[x] + 2 * r[x * 3] * abc[W + x] + t[x * 3] * abc[2 * W + x]);
+      }
+    }
+  });
   return mean;
 }
 

@@ -111,6 +111,19 @@ void RenderStore(const TrainState& s, int active_degree, GaussianStore* out) {
   for (size_t i = 0; i < n; ++i) std::memcpy(&out->sh[i * K * 3], &s.params.sh[i * kK * 3], K * 3 * sizeof(float));
 }
 
+GaussianParamsView ParamsView(const TrainState& s, int active_degree) {
+  GaussianParamsView v;
+  v.n = s.size();
+  v.sh_degree = active_degree;
+  v.sh_stride = kK;
+  v.means = s.params.means.data();
+  v.log_scales = s.params.log_scales.data();
+  v.rotations = s.params.rotations.data();
+  v.opacity_logits = s.params.opacity_logits.data();
+  v.sh = s.params.sh.data();
+  return v;
+}
+
 double ExpLr(double init, double final_lr, int64_t step, int max_steps) {
   const double t = std::min(std::max(static_cast<double>(step) / max_steps, 0.0), 1.0);
   return std::exp((1 - t) * std::log(init) + t * std::log(final_lr));
@@ -160,13 +173,31 @@ void AdamStepGaussians(TrainState* s, const GaussianGrads& grads, int active_deg
               step(h.rotation_lr), isb2);
     AdamRange(&p.opacity_logits[b], &grads.opacity_logits[b], &m.opacity_logits[b], &v.opacity_logits[b], len,
               step(h.opacity_lr), isb2);
-    float g[kK * 3];
+    // SH: one pass over the chunk's [len * 48] coefficients; per-coefficient step size (f_dc for
+    // the 3 DC terms, f_rest for the others) and zero gradient beyond the active degree.
+    alignas(64) float lr_tab[kK * 3];
+    for (int k = 0; k < kK * 3; ++k) lr_tab[k] = k < 3 ? step(h.f_dc_lr) : step(h.f_rest_lr);
+    const int ka3 = Ka * 3;
     for (int64_t i = b; i < e; ++i) {
-      std::fill(g, g + kK * 3, 0.0f);
-      std::memcpy(g, &grads.sh[i * Ka * 3], Ka * 3 * sizeof(float));
-      AdamRange(&p.sh[i * kK * 3], g, &m.sh[i * kK * 3], &v.sh[i * kK * 3], 3, step(h.f_dc_lr), isb2);
-      AdamRange(&p.sh[i * kK * 3 + 3], g + 3, &m.sh[i * kK * 3 + 3], &v.sh[i * kK * 3 + 3], (kK - 1) * 3,
-                step(h.f_rest_lr), isb2);
+      float* __restrict pp = &p.sh[i * kK * 3];
+      float* __restrict mm = &m.sh[i * kK * 3];
+      float* __restrict vv = &v.sh[i * kK * 3];
+      const float* __restrict gg = &grads.sh[i * ka3];
+      for (int k = 0; k < ka3; ++k) {
+        const float gi = gg[k];
+        const float mi = kBeta1 * mm[k] + (1 - kBeta1) * gi;
+        const float vi = kBeta2 * vv[k] + (1 - kBeta2) * gi * gi;
+        mm[k] = mi;
+        vv[k] = vi;
+        pp[k] -= lr_tab[k] * mi / (std::sqrt(vi) * isb2 + kEps);
+      }
+      for (int k = ka3; k < kK * 3; ++k) {
+        const float mi = kBeta1 * mm[k];
+        const float vi = kBeta2 * vv[k];
+        mm[k] = mi;
+        vv[k] = vi;
+        pp[k] -= lr_tab[k] * mi / (std::sqrt(vi) * isb2 + kEps);
+      }
     }
   });
 }

@@ -55,6 +55,9 @@ struct TrainState {
 // The store to render at an active SH degree (a copy of the parameters, fewer SH coefficients).
 void RenderStore(const TrainState& s, int active_degree, GaussianStore* out);
 
+// The parameters at an active SH degree as a view for Engine::UpdateSceneParams (no copy).
+GaussianParamsView ParamsView(const TrainState& s, int active_degree);
+
 double ExpLr(double init, double final_lr, int64_t step, int max_steps);
 
 // One Adam step of every Gaussian parameter with the spec's groups (lr at `iteration`). `grads`

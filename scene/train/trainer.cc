@@ -246,7 +246,6 @@ absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_di
   if (!engine.ok()) return engine.status();
   ThreadPool pool(0);
   std::unique_ptr<DeviceScene> scene;
-  GaussianStore render_store;
   RenderOutput out;
   GaussianGrads grads;
   std::vector<float> d_rgb, d_depth, d_pre, rgb_exp;
@@ -266,8 +265,7 @@ absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_di
     if (gt_cache[vi].empty()) gt_cache[vi] = view.RgbFloat();
     const std::vector<float>& gt = gt_cache[vi];
 
-    RenderStore(st, active, &render_store);
-    if (absl::Status s = (*engine)->UpdateScene(render_store, &scene); !s.ok()) return s;
+    if (absl::Status s = (*engine)->UpdateSceneParams(ParamsView(st, active), &scene); !s.ok()) return s;
     RenderOptions ro;
     ro.background = opt.sky ? Eigen::Vector3f(st.sky[0], st.sky[1], st.sky[2]) : Eigen::Vector3f::Zero();
     ro.keep_for_backward = true;
