@@ -8,6 +8,7 @@
 namespace streetsim {
 
 int RunRenderCommand(const std::vector<std::string>& args);
+int RunLidarRenderCommand(const std::vector<std::string>& args);  // render --lidar (docs/lidar.md)
 int RunPlyInfoCommand(const std::vector<std::string>& args);
 int RunDevicesCommand(const std::vector<std::string>& args);
 

@@ -51,6 +51,9 @@ int RunRenderCommand(const std::vector<std::string>& argv) {
   for (const std::string& a : argv) {
     if (a == "--server" || a.rfind("--server=", 0) == 0) return RunRemoteRenderCommand(argv);
   }
+  for (const std::string& a : argv) {
+    if (a == "--lidar") return RunLidarRenderCommand(argv);
+  }
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(
       argv, {{"ply"}, {"camera"}, {"out-rgb"}, {"out-depth"}, {"out-alpha"}, {"background"},
              {"backend"}});

@@ -1,0 +1,95 @@
+// cpu LiDAR renderer: a range image (beams x columns) of a Gaussian scene from one sensor pose.
+//
+// Every Gaussian is projected into the sensor's spherical image (column coordinate from azimuth,
+// beam coordinate from elevation through the beam table, lidar_model.h) with an EWA-style local
+// linearisation: the 2D covariance is J W Sigma W^T J^T with J the Jacobian of (column, beam)
+// with respect to the sensor-frame point at the Gaussian's mean. Splats are then binned into
+// 16x16 tiles, sorted by range (ties by index) and blended front to back per ray with the camera
+// path's 3DGS rules (docs/rendering.md; docs/lidar.md states the differences).
+//
+// Static pose: the whole sweep is rendered from one sensor pose (the rolling sweep's per-column
+// poses are a later step; LidarModel::ColumnTimeOffsetUs gives each column's time for the points).
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <vector>
+
+#include <Eigen/Geometry>
+
+#include "absl/status/status.h"
+#include "render/lidar/lidar_model.h"
+#include "scene/gaussians/gaussian_store.h"
+
+namespace streetsim {
+
+class ThreadPool;
+
+struct LidarRenderOptions {
+  // Per-Gaussian reflectance in [0, 1] ([N], the store's order); null: 0.5 for every Gaussian.
+  const std::vector<float>* reflectance = nullptr;
+  // A ray returns when its accumulated alpha >= this threshold (deterministic drop) ...
+  float return_alpha_threshold = 0.5f;
+  // ... or, when sample_drop is set, with probability alpha, drawn from a hash of (seed, beam,
+  // column): the same seed gives the same drops on any thread count.
+  bool sample_drop = false;
+  uint64_t seed = 0;
+  // Point cloud of the returns (LidarRenderOutput::points).
+  bool want_points = false;
+  enum class PointFrame { kSensor, kEgo };
+  PointFrame point_frame = PointFrame::kSensor;  // kEgo: through LidarModel::T_ego_from_lidar
+  int64_t sweep_start_us = 0;                    // per-point times are this + column offset
+};
+
+struct LidarPoints {
+  std::vector<Eigen::Vector3f> xyz;
+  std::vector<float> intensity;
+  std::vector<int64_t> time_us;
+  std::vector<uint16_t> beam;
+  std::vector<uint16_t> column;
+  size_t size() const { return xyz.size(); }
+};
+
+struct LidarRenderOutput {
+  int beams = 0;
+  int columns = 0;
+  // All [beams * columns], row-major (row = beam).
+  std::vector<float> range;          // metres: expected range / alpha where the ray returns, else 0
+  std::vector<float> intensity;      // sum(reflectance alpha T) / alpha where it returns, else 0
+  std::vector<float> alpha;          // 1 - final transmittance (return probability)
+  std::vector<float> range_sum;      // sum(range alpha T), not normalised (as the camera's depth)
+  std::vector<float> intensity_sum;  // sum(reflectance alpha T), not normalised
+  LidarPoints points;                // when LidarRenderOptions::want_points
+  size_t num_gaussians = 0;
+  size_t num_visible = 0;         // splats after culls (wrap-around copies counted)
+  size_t num_tile_instances = 0;  // (splat, tile) pairs
+  double projection_ms = 0, sort_ms = 0, blend_ms = 0, total_ms = 0;
+};
+
+class LidarRenderer {
+ public:
+  // num_threads <= 0: STREETSIM_THREADS if set, else the hardware's count (ThreadPool).
+  explicit LidarRenderer(int num_threads = 0);
+  ~LidarRenderer();
+
+  // InvalidArgument for an invalid model, a non-finite or non-rigid pose, a store that fails
+  // Validate() or a reflectance array of the wrong size.
+  absl::Status Render(const GaussianStore& store, const LidarModel& model,
+                      const Eigen::Isometry3d& T_world_from_lidar, const LidarRenderOptions& options,
+                      LidarRenderOutput* out);
+
+ private:
+  struct Work;
+  std::unique_ptr<ThreadPool> pool_;
+  std::unique_ptr<Work> work_;
+};
+
+// Bins a point cloud (sensor frame) into the model's range image: each point goes to the nearest
+// beam by elevation (dropped beyond half a beam spacing past the first/last beam) and the column
+// of its azimuth; the nearest point wins a pixel. Points outside [min, max] range are dropped.
+// range [beams * columns] (0 = no return); intensity likewise when not null.
+void BinPointsToRangeImage(const LidarModel& model, const std::vector<Eigen::Vector3f>& points,
+                           const std::vector<float>* reflectance, std::vector<float>* range,
+                           std::vector<float>* intensity = nullptr);
+
+}  // namespace streetsim

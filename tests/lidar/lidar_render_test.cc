@@ -1,0 +1,333 @@
+// LiDAR sensor model and cpu range-image renderer (render/lidar/).
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <memory>
+#include <sstream>
+#include <string>
+
+#include "gtest/gtest.h"
+#include "render/lidar/lidar_model.h"
+#include "render/lidar/lidar_renderer.h"
+#include "scene/init/initial_scene.h"
+#include "scene/log/open_log.h"
+
+namespace streetsim {
+namespace {
+
+const std::string kData = STREETSIM_DATA_DIR;
+const std::string kRaw = kData + "/kitti_raw/2011_09_26/2011_09_26_drive_sfnd_sync";
+
+// A Gaussian appended to a store (SH degree 0).
+void AddGaussian(GaussianStore* s, const Eigen::Vector3d& mean, const Eigen::Vector3d& scale,
+                 float opacity, const Eigen::Quaterniond& q = Eigen::Quaterniond::Identity()) {
+  for (int k = 0; k < 3; ++k) {
+    s->means.push_back(static_cast<float>(mean[k]));
+    s->log_scales.push_back(static_cast<float>(std::log(scale[k])));
+    s->sh.push_back(0.0f);
+  }
+  s->rotations.insert(s->rotations.end(), {static_cast<float>(q.w()), static_cast<float>(q.x()),
+                                           static_cast<float>(q.y()), static_cast<float>(q.z())});
+  s->opacity_logits.push_back(std::log(opacity / (1 - opacity)));
+}
+
+// A non-trivial sensor pose: 3 m along x, 1.7 m up, yawed 30 degrees, pitched 2.
+Eigen::Isometry3d SensorPose() {
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.translate(Eigen::Vector3d(3, -1, 1.7));
+  T.rotate(Eigen::AngleAxisd(30 * M_PI / 180, Eigen::Vector3d::UnitZ()));
+  T.rotate(Eigen::AngleAxisd(2 * M_PI / 180, Eigen::Vector3d::UnitY()));
+  return T;
+}
+
+TEST(LidarModel, KittiTableAndCoordinates) {
+  const LidarModel m = KittiHdl64e(2048);
+  ASSERT_TRUE(m.Validate().ok()) << m.Validate();
+  EXPECT_EQ(m.beams(), 64);
+  EXPECT_NEAR(m.beam_elevation_deg.front(), 2.0, 0.5);
+  EXPECT_NEAR(m.beam_elevation_deg.back(), -24.0, 1.0);
+  for (int b = 0; b < m.beams(); ++b) EXPECT_NEAR(m.BeamCoordinate(m.BeamElevationRad(b)), b, 1e-9);
+  // Between beams 10 and 11: linear in elevation; beyond the ends: extrapolated.
+  const double mid = 0.5 * (m.BeamElevationRad(10) + m.BeamElevationRad(11));
+  EXPECT_NEAR(m.BeamCoordinate(mid), 10.5, 1e-9);
+  EXPECT_LT(m.BeamCoordinate(m.BeamElevationRad(0) + 0.01), 0);
+  EXPECT_GT(m.BeamCoordinate(m.BeamElevationRad(63) - 0.01), 63);
+  for (int c : {0, 1, 700, 1023, 1024, 2047}) EXPECT_NEAR(m.ColumnCoordinate(m.ColumnAzimuthRad(c)), c, 1e-6);
+  // Straight ahead is between the two middle columns; left (+y) is left of the middle.
+  EXPECT_NEAR(m.ColumnCoordinate(0.0), 1023.5, 1e-9);
+  EXPECT_LT(m.ColumnCoordinate(0.5), 1023.5);
+  EXPECT_EQ(m.ColumnTimeOffsetUs(0), 24);
+  EXPECT_EQ(m.ColumnTimeOffsetUs(2047), 99'976);
+  LidarModel bad = m;
+  std::swap(bad.beam_elevation_deg[3], bad.beam_elevation_deg[4]);
+  EXPECT_FALSE(bad.Validate().ok());
+}
+
+// The shipped table is what the estimator prints from the shared scans.
+TEST(LidarModel, ShippedTableMatchesTheEstimate) {
+  const std::string cmd = std::string(STREETSIM_BINARY_DIR) + "/tests/lidar/estimate_beam_table " + kRaw +
+                          "/velodyne_points/data";
+  FILE* p = popen(cmd.c_str(), "r");
+  ASSERT_NE(p, nullptr);
+  std::string text;
+  char buf[4096];
+  while (size_t got = fread(buf, 1, sizeof buf, p)) text.append(buf, got);
+  ASSERT_EQ(pclose(p), 0) << text;
+  const size_t brace = text.find('{');
+  ASSERT_NE(brace, std::string::npos) << text;
+  std::string nums = text.substr(brace + 1);
+  std::replace(nums.begin(), nums.end(), ',', ' ');
+  std::replace(nums.begin(), nums.end(), '}', ' ');
+  std::istringstream in(nums);
+  const LidarModel m = KittiHdl64e();
+  double v;
+  int b = 0;
+  while (in >> v) {
+    ASSERT_LT(b, 64);
+    EXPECT_NEAR(v, m.beam_elevation_deg[b], 1e-9) << "beam " << b;
+    ++b;
+  }
+  EXPECT_EQ(b, 64);
+}
+
+TEST(LidarRender, SingleGaussianReturnsItsRangeOnItsBeamAndColumn) {
+  const LidarModel m = KittiHdl64e(2048);
+  const int beam = 20, column = 700;
+  const double range = 15.0;
+  const Eigen::Isometry3d T_wl = SensorPose();
+  GaussianStore s;
+  AddGaussian(&s, T_wl * (m.RayDirection(beam, column) * range), Eigen::Vector3d::Constant(0.05), 0.95f);
+  LidarRenderer renderer(2);
+  LidarRenderOutput out;
+  std::vector<float> refl = {0.8f};
+  LidarRenderOptions opt;
+  opt.reflectance = &refl;
+  opt.want_points = true;
+  ASSERT_TRUE(renderer.Render(s, m, T_wl, opt, &out).ok());
+  ASSERT_EQ(out.range.size(), 64u * 2048);
+  const size_t pix = static_cast<size_t>(beam) * 2048 + column;
+  const size_t argmax = std::max_element(out.alpha.begin(), out.alpha.end()) - out.alpha.begin();
+  EXPECT_EQ(argmax, pix);
+  EXPECT_NEAR(out.alpha[pix], 0.95, 1e-3);
+  EXPECT_NEAR(out.range[pix], range, 1e-3);
+  EXPECT_NEAR(out.intensity[pix], 0.8, 1e-5);
+  // 5 cm at 15 m is 0.19 degrees: returns only on this pixel and its column neighbours.
+  int returns = 0;
+  for (size_t p = 0; p < out.range.size(); ++p) {
+    if (out.range[p] > 0) {
+      ++returns;
+      EXPECT_EQ(p / 2048, static_cast<size_t>(beam));
+      EXPECT_LE(std::abs(static_cast<int>(p % 2048) - column), 1);
+    }
+  }
+  EXPECT_GE(returns, 1);
+  ASSERT_EQ(out.points.size(), static_cast<size_t>(returns));
+  for (size_t i = 0; i < out.points.size(); ++i) {
+    if (out.points.column[i] == column) {
+      EXPECT_LT((out.points.xyz[i].cast<double>() - m.RayDirection(beam, column) * range).norm(), 1e-3);
+      EXPECT_EQ(out.points.time_us[i], m.ColumnTimeOffsetUs(column));
+    }
+  }
+  // Behind the sensor (azimuth pi): drawn on both ends of the columns.
+  GaussianStore back;
+  AddGaussian(&back, T_wl * (Eigen::Vector3d(-10, 0, 0)), Eigen::Vector3d::Constant(0.05), 0.95f);
+  ASSERT_TRUE(renderer.Render(back, m, T_wl, {}, &out).ok());
+  const int row = static_cast<int>(std::lround(m.BeamCoordinate(0)));
+  EXPECT_GT(out.alpha[row * 2048 + 0], 0.5);
+  EXPECT_GT(out.alpha[row * 2048 + 2047], 0.5);
+  EXPECT_NEAR(out.range[row * 2048 + 0], 10.0, 1e-3);
+}
+
+// The EWA footprint: a Gaussian of sigma s at range r spreads over s / r radians, i.e.
+// s / r * columns / 2pi columns and s / r / (beam spacing) beams (+0.3 px^2 low-pass).
+TEST(LidarRender, FootprintFollowsTheSphericalJacobian) {
+  const LidarModel m = KittiHdl64e(2048);
+  const int beam = 40, column = 1500;
+  const double r = 20, sigma = 0.3;
+  GaussianStore s;
+  AddGaussian(&s, m.RayDirection(beam, column) * r, Eigen::Vector3d::Constant(sigma), 0.5f);
+  LidarRenderer renderer(1);
+  LidarRenderOutput out;
+  ASSERT_TRUE(renderer.Render(s, m, Eigen::Isometry3d::Identity(), {}, &out).ok());
+  // Along the row (elevation fixed): the horizontal distance is r cos(el).
+  const double el = m.BeamElevationRad(beam);
+  const double su = sigma / (r * std::cos(el)) * 2048 / (2 * M_PI);
+  const double spacing_rad = (m.beam_elevation_deg[beam] - m.beam_elevation_deg[beam + 1]) * M_PI / 180;
+  const double sv = sigma / r / spacing_rad;
+  const double a0 = out.alpha[beam * 2048 + column];
+  EXPECT_NEAR(a0, 0.5, 1e-4);
+  for (int dc : {2, 4, 6}) {
+    const double expect = std::exp(-0.5 * dc * dc / (su * su + 0.3));
+    EXPECT_NEAR(out.alpha[beam * 2048 + column + dc] / a0, expect, 0.01) << dc;
+    EXPECT_NEAR(out.alpha[beam * 2048 + column - dc] / a0, expect, 0.01) << dc;
+  }
+  const double expect_down = std::exp(-0.5 / (sv * sv + 0.3));
+  EXPECT_NEAR(out.alpha[(beam + 1) * 2048 + column] / a0, expect_down, 0.02);
+}
+
+// A wall 10 m ahead (plane x = 10 in the sensor frame) of flat Gaussians: range 10 / (cos el cos az).
+TEST(LidarRender, WallAtKnownDistance) {
+  const LidarModel m = KittiHdl64e(2048);
+  const Eigen::Isometry3d T_wl = SensorPose();
+  GaussianStore s;
+  const double spacing = 0.04;
+  for (double y = -4; y <= 4; y += spacing)
+    for (double z = -3; z <= 0.6; z += spacing)
+      AddGaussian(&s, T_wl * Eigen::Vector3d(10, y, z), Eigen::Vector3d(0.005, spacing, spacing), 0.7f);
+  LidarRenderer renderer(2);
+  LidarRenderOutput out;
+  ASSERT_TRUE(renderer.Render(s, m, T_wl, {}, &out).ok());
+  double max_err = 0;
+  std::vector<double> errs;
+  int checked = 0;
+  for (int b = 0; b < m.beams(); ++b) {
+    for (int c = 0; c < m.columns; ++c) {
+      const Eigen::Vector3d d = m.RayDirection(b, c);
+      if (d.x() <= 0) continue;
+      const Eigen::Vector3d hit = d * (10 / d.x());
+      // Well inside the wall (its edges fade).
+      if (std::abs(hit.y()) > 3.5 || hit.z() < -2.5 || hit.z() > 0.2) {
+        continue;
+      }
+      const float r = out.range[static_cast<size_t>(b) * m.columns + c];
+      ASSERT_GT(r, 0) << "beam " << b << " column " << c;
+      max_err = std::max(max_err, std::abs(r - hit.norm()));
+      errs.push_back(std::abs(r - hit.norm()));
+      ++checked;
+    }
+  }
+  std::sort(errs.begin(), errs.end());
+  std::printf("wall: %d rays checked, |range error| median %.4f m, max %.4f m\n", checked,
+              errs[errs.size() / 2], max_err);
+  EXPECT_GT(checked, 3000);
+  // Oblique rays (up to 20 degrees off the normal) are biased towards the nearer Gaussians of the
+  // footprint, as the camera's expected depth is: a few cm at most.
+  EXPECT_LT(errs[errs.size() / 2], 0.02);
+  EXPECT_LT(max_err, 0.05);
+  // Rays that miss the wall return nothing: beam 0 straight behind, the bottom beam far right.
+  EXPECT_EQ(out.range[0], 0.0f);
+  EXPECT_EQ(out.range[63 * 2048 + 1800], 0.0f);
+}
+
+TEST(LidarRender, SampledDropIsDeterministicAcrossThreadCounts) {
+  const LidarModel m = KittiHdl64e(1024);
+  GaussianStore s;
+  for (int i = 0; i < 2000; ++i) {
+    const double a = i * 0.0031, e = -0.3 + (i % 37) * 0.01;
+    AddGaussian(&s, Eigen::Vector3d(8 * std::cos(a) * std::cos(e), 8 * std::sin(a) * std::cos(e), 8 * std::sin(e)),
+                Eigen::Vector3d::Constant(0.08), 0.3f);
+  }
+  LidarRenderOptions opt;
+  opt.sample_drop = true;
+  opt.seed = 42;
+  LidarRenderOutput a, b, c;
+  LidarRenderer one(1), two(2);
+  ASSERT_TRUE(one.Render(s, m, Eigen::Isometry3d::Identity(), opt, &a).ok());
+  ASSERT_TRUE(two.Render(s, m, Eigen::Isometry3d::Identity(), opt, &b).ok());
+  EXPECT_EQ(a.range, b.range);
+  EXPECT_EQ(a.alpha, b.alpha);
+  opt.seed = 43;
+  ASSERT_TRUE(two.Render(s, m, Eigen::Isometry3d::Identity(), opt, &c).ok());
+  EXPECT_NE(a.range, c.range);
+  // Returns follow alpha: the fraction of partly covered rays that return is near their mean alpha.
+  double sum_alpha = 0, returned = 0;
+  for (size_t p = 0; p < a.alpha.size(); ++p) {
+    if (a.alpha[p] > 0.05f && a.alpha[p] < 0.95f) {
+      sum_alpha += a.alpha[p];
+      returned += a.range[p] > 0;
+    }
+  }
+  ASSERT_GT(sum_alpha, 100);
+  EXPECT_NEAR(returned / sum_alpha, 1.0, 0.1);
+}
+
+TEST(LidarRender, RejectsBadInputs) {
+  LidarRenderer r(1);
+  LidarRenderOutput out;
+  GaussianStore s;
+  AddGaussian(&s, Eigen::Vector3d(5, 0, 0), Eigen::Vector3d::Constant(0.1), 0.5f);
+  std::vector<float> refl(2, 0.5f);
+  LidarRenderOptions opt;
+  opt.reflectance = &refl;
+  EXPECT_EQ(r.Render(s, KittiHdl64e(), Eigen::Isometry3d::Identity(), opt, &out).code(),
+            absl::StatusCode::kInvalidArgument);
+  LidarModel m = KittiHdl64e();
+  m.columns = 0;
+  EXPECT_FALSE(r.Render(s, m, Eigen::Isometry3d::Identity(), {}, &out).ok());
+  Eigen::Isometry3d bad = Eigen::Isometry3d::Identity();
+  bad.linear() *= 2;
+  EXPECT_FALSE(r.Render(s, KittiHdl64e(), bad, {}, &out).ok());
+}
+
+// The LiDAR init scene of the KITTI clip (every other frame) rendered from a held-out frame's
+// LiDAR pose against that frame's real scan binned into the same range image.
+TEST(LidarRender, KittiInitSceneMatchesAHeldOutScan) {
+  absl::StatusOr<DriveLog> log = OpenLog(kRaw);
+  ASSERT_TRUE(log.ok()) << log.status();
+  ASSERT_FALSE(log->lidars.empty());
+  InitOptions init;
+  init.frames.first = 0;
+  init.frames.last = 40;
+  init.frames.stride = 2;
+  init.drop_dynamic = true;  // moving vehicles would smear along their paths
+  InitStats stats;
+  absl::StatusOr<GaussianStore> scene = BuildInitialScene(*log, init, &stats);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  const int k = 21;  // held out (odd)
+  const Frame& frame = log->frames[k];
+  ASSERT_FALSE(frame.lidars.empty());
+  LidarModel m = KittiHdl64e(2048);
+  m.T_ego_from_lidar = log->lidars[0].T_ego_from_lidar;
+  const Eigen::Isometry3d T_wl = frame.T_world_from_ego * m.T_ego_from_lidar;
+  absl::StatusOr<LidarScan> scan = LoadLidarScan(frame.lidars[0].path);
+  ASSERT_TRUE(scan.ok()) << scan.status();
+  std::vector<float> real;
+  BinPointsToRangeImage(m, scan->points, nullptr, &real);
+
+  LidarRenderer renderer;
+  LidarRenderOutput out;
+  ASSERT_TRUE(renderer.Render(*scene, m, T_wl, {}, &out).ok());
+  // All rays where both return, and those within the left camera's horizontal field of view
+  // (+-40 degrees about the sensor's x axis), the only part of the scene the init keeps (it keeps
+  // LiDAR points some camera saw, so outside that cone rays pass through to far structure).
+  std::vector<double> err, err_fov;
+  size_t rendered = 0, real_returns = 0;
+  for (size_t p = 0; p < real.size(); ++p) {
+    rendered += out.range[p] > 0;
+    real_returns += real[p] > 0;
+    if (out.range[p] > 0 && real[p] > 0) {
+      const double e = std::abs(out.range[p] - real[p]);
+      err.push_back(e);
+      const double az = m.ColumnAzimuthRad(static_cast<int>(p % m.columns));
+      if (std::abs(az) < 40 * M_PI / 180) err_fov.push_back(e);
+    }
+  }
+  ASSERT_GT(err.size(), 1000u);
+  ASSERT_GT(err_fov.size(), 1000u);
+  auto quantile = [](std::vector<double> v, double q) {
+    std::sort(v.begin(), v.end());
+    return v[static_cast<size_t>(q * (v.size() - 1))];
+  };
+  size_t real_fov = 0, rendered_fov = 0;
+  for (size_t p = 0; p < real.size(); ++p) {
+    if (std::abs(m.ColumnAzimuthRad(static_cast<int>(p % m.columns))) >= 40 * M_PI / 180) continue;
+    real_fov += real[p] > 0;
+    rendered_fov += out.range[p] > 0;
+  }
+  std::printf("KITTI frame %d: %zu Gaussians (%zu splats), %.1f ms\n"
+              "  all rays: real returns %zu, rendered %zu, both %zu; |range error| median %.3f m, p90 %.3f m\n"
+              "  camera fov (|az| < 40 deg): real %zu, rendered %zu, both %zu; |range error| median %.3f m, "
+              "p75 %.3f m, p90 %.3f m\n",
+              k, scene->size(), out.num_visible, out.total_ms, real_returns, rendered, err.size(),
+              quantile(err, 0.5), quantile(err, 0.9), real_fov, rendered_fov, err_fov.size(),
+              quantile(err_fov, 0.5), quantile(err_fov, 0.75), quantile(err_fov, 0.9));
+  // Measured 0.51 m (all) and 0.70 m (fov). Most of it is the init scene, not the renderer: its
+  // isotropic Gaussians (nearest-neighbour scale, median 0.13 m: ~0.75 degrees, 2-3 beams, at
+  // 10 m) and opacity 0.1 bleed across depth edges, so rays passing just above a near object take
+  // part of its range (a frame's own scan alone gives 0.46 m; docs/lidar.md). Regression bounds:
+  EXPECT_LT(quantile(err, 0.5), 0.6);
+  EXPECT_LT(quantile(err_fov, 0.5), 0.8);
+}
+
+}  // namespace
+}  // namespace streetsim
