@@ -1,4 +1,5 @@
 #include "render/cpu/blend.h"
+#include "render/cpu/simd_dispatch.h"
 
 #include <algorithm>
 #include <cmath>
@@ -15,16 +16,12 @@ struct SimdChoice {
 };
 
 SimdChoice ChooseSimd() {
-#if defined(__x86_64__)
-  __builtin_cpu_init();
-  if (__builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw") &&
-      __builtin_cpu_supports("avx512dq") && __builtin_cpu_supports("avx512vl")) {
-    return {&simd_avx512::BlendTiles, "avx512"};
+  switch (DetectSimdIsa()) {
+    case SimdIsa::kAvx512: return {&simd_avx512::BlendTiles, "avx512"};
+    case SimdIsa::kAvx2: return {&simd_avx2::BlendTiles, "avx2"};
+    case SimdIsa::kGeneric: break;
   }
-  return {&simd_avx2::BlendTiles, "avx2"};
-#else
   return {&simd_avx2::BlendTiles, "generic"};
-#endif
 }
 
 const SimdChoice& Simd() {

@@ -1,4 +1,5 @@
 #include "render/cpu/blend_backward.h"
+#include "render/cpu/simd_dispatch.h"
 
 #include <algorithm>
 #include <cmath>
@@ -9,16 +10,7 @@ namespace {
 
 using BwdFn = void (*)(const BlendBackwardArgs<float>&, int64_t, int64_t, float*, float*);
 
-BwdFn ChooseBwd() {
-#if defined(__x86_64__)
-  __builtin_cpu_init();
-  if (__builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw") &&
-      __builtin_cpu_supports("avx512dq") && __builtin_cpu_supports("avx512vl")) {
-    return &bwd_avx512::BlendBackwardTiles;
-  }
-#endif
-  return &bwd_avx2::BlendBackwardTiles;
-}
+BwdFn ChooseBwd() { return PickSimd<BwdFn>(&bwd_avx2::BlendBackwardTiles, &bwd_avx512::BlendBackwardTiles); }
 
 constexpr int64_t kTileGrain = 4;
 

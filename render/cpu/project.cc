@@ -1,4 +1,5 @@
 #include "render/cpu/project.h"
+#include "render/cpu/simd_dispatch.h"
 
 #include <algorithm>
 
@@ -98,16 +99,7 @@ void ProjectGaussiansSimd(ThreadPool& pool, const SceneSoa& scene,
   frame->splats.resize(scene.n);
   frame->rects.resize(scene.n);
   frame->visible.resize(scene.n);
-  static const auto range_fn = [] {
-#if defined(__x86_64__)
-    __builtin_cpu_init();
-    if (__builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw") &&
-        __builtin_cpu_supports("avx512dq") && __builtin_cpu_supports("avx512vl")) {
-      return &project_avx512::ProjectRange;
-    }
-#endif
-    return &project_avx2::ProjectRange;
-  }();
+  static const auto range_fn = PickSimd(&project_avx2::ProjectRange, &project_avx512::ProjectRange);
   pool.ParallelFor(static_cast<int64_t>(scene.n), 4096, [&](int64_t begin, int64_t end, int) {
     range_fn(scene, cam, begin, end, frame);
   });
