@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <optional>
 
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -188,13 +189,7 @@ absl::StatusOr<SceneMeta> ReadSceneMeta(const std::string& dir) {
 
 absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_dir, const TrainOptions& opt,
                                   const std::function<void(const Progress&)>& progress) {
-  const auto t_start = Clock::now();
   if (opt.iterations < 1) return absl::InvalidArgumentError("iterations must be >= 1");
-  std::error_code ec;
-  std::filesystem::create_directories(out_dir, ec);
-  if (ec) return absl::InternalError(absl::StrCat("cannot create ", out_dir, ": ", ec.message()));
-  const std::string ckpt_path = (std::filesystem::path(out_dir) / "checkpoint.bin").string();
-
   DatasetOptions dopt;
   dopt.resolution_scale = opt.resolution_scale;
   dopt.holdout_every = opt.holdout_every;
@@ -203,6 +198,46 @@ absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_di
   absl::StatusOr<std::vector<View>> views = LoadViews(log, dopt);
   if (!views.ok()) return views.status();
   if (views->empty()) return absl::InvalidArgumentError("the log has no training views");
+  std::vector<View> test;
+  if (opt.write_outputs && opt.holdout_every > 0) {
+    dopt.split = Split::kTest;
+    dopt.load_depth = true;
+    absl::StatusOr<std::vector<View>> t = LoadViews(log, dopt);
+    if (!t.ok()) return t.status();
+    test = std::move(*t);
+  }
+  const std::string ckpt_path = (std::filesystem::path(out_dir) / "checkpoint.bin").string();
+  std::optional<GaussianStore> init;
+  if (!(opt.resume && std::filesystem::exists(ckpt_path))) {
+    // The initial scene sees the training frames only: held-out frames are never used.
+    DriveLog train_log = log;
+    train_log.frames.clear();
+    for (int f = 0; f < static_cast<int>(log.frames.size()); ++f)
+      if (!IsHeldOut(f, opt.holdout_every)) train_log.frames.push_back(log.frames[f]);
+    InitOptions iopt;
+    iopt.voxel_m = opt.init_voxel_m;
+    iopt.seed = static_cast<unsigned>(opt.seed + 1);
+    InitStats istats;
+    absl::StatusOr<GaussianStore> built = BuildInitialScene(train_log, iopt, &istats);
+    if (!built.ok()) return built.status();
+    init = std::move(*built);
+    LOG(INFO) << "initial scene: " << init->size() << " Gaussians (" << istats.source << ")";
+  }
+  return TrainOnViews(*views, init ? &*init : nullptr, test, out_dir, opt, progress);
+}
+
+absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, const GaussianStore* init,
+                                         const std::vector<View>& heldout, const std::string& out_dir,
+                                         const TrainOptions& opt,
+                                         const std::function<void(const Progress&)>& progress) {
+  const auto t_start = Clock::now();
+  if (opt.iterations < 1) return absl::InvalidArgumentError("iterations must be >= 1");
+  if (train_views.empty()) return absl::InvalidArgumentError("no training views");
+  std::error_code ec;
+  std::filesystem::create_directories(out_dir, ec);
+  if (ec) return absl::InternalError(absl::StrCat("cannot create ", out_dir, ": ", ec.message()));
+  const std::string ckpt_path = (std::filesystem::path(out_dir) / "checkpoint.bin").string();
+  const std::vector<View>* views = &train_views;
   const int num_views = static_cast<int>(views->size());
 
   TrainState st;
@@ -215,17 +250,7 @@ absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_di
     }
     LOG(INFO) << "resumed from " << ckpt_path << " at iteration " << st.iteration;
   } else {
-    // The initial scene sees the training frames only: held-out frames are never used.
-    DriveLog train_log = log;
-    train_log.frames.clear();
-    for (int f = 0; f < static_cast<int>(log.frames.size()); ++f)
-      if (!IsHeldOut(f, opt.holdout_every)) train_log.frames.push_back(log.frames[f]);
-    InitOptions iopt;
-    iopt.voxel_m = opt.init_voxel_m;
-    iopt.seed = static_cast<unsigned>(opt.seed + 1);
-    InitStats istats;
-    absl::StatusOr<GaussianStore> init = BuildInitialScene(train_log, iopt, &istats);
-    if (!init.ok()) return init.status();
+    if (init == nullptr) return absl::InvalidArgumentError("no initial scene");
     st = TrainState::Init(*init, SceneExtent(*views), num_views, opt.seed);
     if (opt.sky) {
       // Start the environment colour at the mean of the training images' top rows.
@@ -238,8 +263,8 @@ absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_di
       }
       for (int c = 0; c < 3; ++c) st.sky[c] = static_cast<float>(acc[c] / std::max<size_t>(cnt, 1));
     }
-    LOG(INFO) << "initial scene: " << st.size() << " Gaussians (" << istats.source << "), extent " << st.extent
-              << " m, " << num_views << " training views";
+    LOG(INFO) << "initial scene: " << st.size() << " Gaussians, extent " << st.extent << " m, " << num_views
+              << " training views";
   }
 
   absl::StatusOr<std::unique_ptr<Engine>> engine = CreateEngine(opt.backend);
@@ -330,11 +355,14 @@ absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_di
     if (absl::Status s = (*engine)->RenderBackward(*scene, og, bo, &grads); !s.ok()) return s;
 
     bool replaced = false;
-    if (it < h.densify_until) {
+    // Not on the last iteration: nothing would repair the fresh clones / split children / reset
+    // opacities before the scene is written and evaluated (3DGS's runs end long after densify_until).
+    if (it < h.densify_until && it < opt.iterations) {
       AccumulateStats(&st, grads, W, H);
       if (it > h.densify_from && it % h.densify_interval == 0) {
         size_t added = 0, removed = 0;
         DensifyAndPrune(&st, h, it, &added, &removed);
+        LOG(INFO) << "iteration " << it << ": densified +" << added << " -" << removed << " -> " << st.size();
         replaced = true;
       }
       if (it % h.opacity_reset_interval == 0) {
@@ -354,6 +382,7 @@ absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_di
     }
     recent_loss = recent_loss == 0 ? loss : 0.9 * recent_loss + 0.1 * loss;
     const double mean_psnr = psnr_window / recent_psnr.size();
+    result.train_psnr_mean50 = mean_psnr;
     if (result.seconds_to_psnr24 < 0 && recent_psnr.size() >= 50 && mean_psnr >= 24) {
       result.seconds_to_psnr24 = SecondsSince(t_start);
     }
@@ -410,32 +439,27 @@ absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_di
     cv::Mat plot = PlotCurve(st.curve);
     if (absl::Status s = WritePng((std::filesystem::path(out_dir) / "curve.png").string(), plot); !s.ok()) return s;
     // Held-out previews (render | ground truth) and metrics.
-    dopt.split = Split::kTest;
-    dopt.load_depth = true;
-    if (opt.holdout_every > 0) {
-      absl::StatusOr<std::vector<View>> test = LoadViews(log, dopt);
-      if (!test.ok()) return test.status();
-      if (!test->empty()) {
-        const Eigen::Vector3f bg = opt.sky ? Eigen::Vector3f(st.sky[0], st.sky[1], st.sky[2]) : Eigen::Vector3f::Zero();
-        absl::StatusOr<EvalResult> ev = Evaluate(**engine, st.params, *test, bg);
-        if (!ev.ok()) return ev.status();
-        result.heldout = *ev;
-        const std::filesystem::path pdir = std::filesystem::path(out_dir) / "preview";
-        std::filesystem::create_directories(pdir, ec);
-        absl::StatusOr<std::unique_ptr<DeviceScene>> dev = (*engine)->Upload(st.params);
-        if (!dev.ok()) return dev.status();
-        RenderOptions ro;
-        ro.background = bg;
-        const size_t step = std::max<size_t>(1, test->size() / 6);
-        for (size_t i = 0; i < test->size(); i += step) {
-          const View& v = (*test)[i];
-          if (absl::Status s = (*engine)->Render(**dev, v.camera, ro, &out); !s.ok()) return s;
-          cv::Mat both;
-          cv::hconcat(ToRgb8(out.rgb, v.camera.width, v.camera.height), v.rgb8, both);
-          char name[64];
-          std::snprintf(name, sizeof(name), "heldout_frame%04d_cam%d.png", v.frame, v.camera_obs);
-          if (absl::Status s = WritePng((pdir / name).string(), both); !s.ok()) return s;
-        }
+    if (!heldout.empty()) {
+      const std::vector<View>* test = &heldout;
+      const Eigen::Vector3f bg = opt.sky ? Eigen::Vector3f(st.sky[0], st.sky[1], st.sky[2]) : Eigen::Vector3f::Zero();
+      absl::StatusOr<EvalResult> ev = Evaluate(**engine, st.params, *test, bg);
+      if (!ev.ok()) return ev.status();
+      result.heldout = *ev;
+      const std::filesystem::path pdir = std::filesystem::path(out_dir) / "preview";
+      std::filesystem::create_directories(pdir, ec);
+      absl::StatusOr<std::unique_ptr<DeviceScene>> dev = (*engine)->Upload(st.params);
+      if (!dev.ok()) return dev.status();
+      RenderOptions ro;
+      ro.background = bg;
+      const size_t step = std::max<size_t>(1, test->size() / 6);
+      for (size_t i = 0; i < test->size(); i += step) {
+        const View& v = (*test)[i];
+        if (absl::Status s = (*engine)->Render(**dev, v.camera, ro, &out); !s.ok()) return s;
+        cv::Mat both;
+        cv::hconcat(ToRgb8(out.rgb, v.camera.width, v.camera.height), v.rgb8, both);
+        char name[64];
+        std::snprintf(name, sizeof(name), "heldout_frame%04d_cam%d.png", v.frame, v.camera_obs);
+        if (absl::Status s = WritePng((pdir / name).string(), both); !s.ok()) return s;
       }
     }
   }

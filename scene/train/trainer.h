@@ -57,12 +57,22 @@ struct TrainResult {
   int64_t iterations = 0;
   size_t gaussians = 0;
   double seconds = 0;
-  double seconds_to_psnr24 = -1;  // first time a training-view PSNR (running mean of 50) >= 24
+  double seconds_to_psnr24 = -1;
+  double train_psnr_mean50 = 0;   // training-view PSNR, mean of the last 50 iterations  // first time a training-view PSNR (running mean of 50) >= 24
   EvalResult heldout;             // when there are held-out views and outputs are written
 };
 
 absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_dir, const TrainOptions& options,
                                   const std::function<void(const Progress&)>& progress = nullptr);
+
+// The same loop on given views and initial Gaussians (what Train does after loading the log and
+// building the initial scene; tests use it on rendered images of a known scene). `init` is used
+// unless a checkpoint is resumed (may then be null); `heldout` is evaluated at the end (when
+// outputs are written). options.holdout_every / resolution_scale only go to train_meta.json.
+absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& views, const GaussianStore* init,
+                                         const std::vector<View>& heldout, const std::string& out_dir,
+                                         const TrainOptions& options,
+                                         const std::function<void(const Progress&)>& progress = nullptr);
 
 // Renders every view of `views` and measures it. background: the learned sky colour.
 absl::StatusOr<EvalResult> Evaluate(Engine& engine, const GaussianStore& scene, const std::vector<View>& views,
