@@ -39,6 +39,12 @@ struct LidarRenderOptions {
   enum class PointFrame { kSensor, kEgo };
   PointFrame point_frame = PointFrame::kSensor;  // kEgo: through LidarModel::T_ego_from_lidar
   int64_t sweep_start_us = 0;                    // per-point times are this + column offset
+  // kSimd (production): projection and blend vectorised (lidar_simd.inc, AVX2 or AVX-512 picked
+  // at run time). kScalar: one Gaussian / one pixel at a time with libm, the reference kSimd is
+  // tested against (equal within float tolerance; docs/lidar.md). kSimdAvx2: the AVX2 build even
+  // where AVX-512 is available (tests).
+  enum class Kernel { kSimd, kScalar, kSimdAvx2 };
+  Kernel kernel = Kernel::kSimd;
 };
 
 struct LidarPoints {
@@ -72,11 +78,24 @@ class LidarRenderer {
   explicit LidarRenderer(int num_threads = 0);
   ~LidarRenderer();
 
-  // InvalidArgument for an invalid model, a non-finite or non-rigid pose, a store that fails
-  // Validate() or a reflectance array of the wrong size.
+  // Validates the store (InvalidArgument when it fails Validate()) and keeps a structure-of-arrays
+  // copy of it for the following sweeps: validation and the copy happen once per scene, not per
+  // sweep. On error the previously uploaded scene is dropped.
+  absl::Status Upload(const GaussianStore& store);
+  size_t uploaded_size() const;
+
+  // Renders the uploaded scene. InvalidArgument for an invalid model, a non-finite or non-rigid
+  // pose, a reflectance array of the wrong size, or nothing uploaded.
+  absl::Status Render(const LidarModel& model, const Eigen::Isometry3d& T_world_from_lidar,
+                      const LidarRenderOptions& options, LidarRenderOutput* out);
+
+  // One-shot: Upload(store) then Render (for repeated sweeps of one scene, upload once instead).
   absl::Status Render(const GaussianStore& store, const LidarModel& model,
                       const Eigen::Isometry3d& T_world_from_lidar, const LidarRenderOptions& options,
                       LidarRenderOutput* out);
+
+  // Which build of the vectorised kernels kSimd runs here: "avx512", "avx2" or "generic".
+  static const char* SimdIsa();
 
  private:
   struct Work;

@@ -1,0 +1,3 @@
+#define STREETSIM_LIDAR_NS simd_avx512
+#include "render/lidar/lidar_kernels.h"
+#include "render/lidar/lidar_simd.inc"
