@@ -8,6 +8,7 @@
 #include "absl/strings/str_cat.h"
 #include "render/common/projection_math.h"
 #include "render/common/thread_pool.h"
+#include "render/cpu/binning.h"
 #include "render/cpu/simd_dispatch.h"
 #include "render/lidar/lidar_kernels.h"
 
@@ -32,48 +33,6 @@ uint64_t SplitMix64(uint64_t x) {
   x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ull;
   x = (x ^ (x >> 27)) * 0x94d049bb133111ebull;
   return x ^ (x >> 31);
-}
-
-// Stable LSD radix sort of (key, value) pairs by 32-bit key, 11-bit digits, one read for all three
-// digits' counts, digits every key shares skipped. Single-threaded on purpose: a version split over
-// the pool (per-chunk counts and scatters, 6 pool barriers) was no faster on 2 cores, measured
-// back to back on a shared machine (sort+bin 13.7-14.5 ms against 12.7-13.1 ms).
-void RadixSortPairs(std::vector<uint32_t>* keys, std::vector<uint32_t>* values,
-                    std::vector<uint32_t>* sk, std::vector<uint32_t>* sv) {
-  constexpr int kBits = 11;
-  constexpr uint32_t kBins = 1u << kBits;
-  const size_t n = keys->size();
-  sk->resize(n);
-  sv->resize(n);
-  std::vector<uint32_t> hist(3 * kBins, 0);
-  const uint32_t* k = keys->data();
-  for (size_t i = 0; i < n; ++i) {
-    ++hist[k[i] & (kBins - 1)];
-    ++hist[kBins + ((k[i] >> kBits) & (kBins - 1))];
-    ++hist[2 * kBins + (k[i] >> (2 * kBits))];
-  }
-  for (int pass = 0; pass < 3; ++pass) {
-    uint32_t* h = &hist[pass * kBins];
-    if (std::any_of(h, h + kBins, [n](uint32_t c) { return c == n; })) continue;
-    uint32_t sum = 0;
-    for (uint32_t b = 0; b < kBins; ++b) {
-      const uint32_t c = h[b];
-      h[b] = sum;
-      sum += c;
-    }
-    const int shift = pass * kBits;
-    const uint32_t* kin = keys->data();
-    const uint32_t* vin = values->data();
-    uint32_t* kout = sk->data();
-    uint32_t* vout = sv->data();
-    for (size_t i = 0; i < n; ++i) {
-      const uint32_t pos = h[(kin[i] >> shift) & (kBins - 1)]++;
-      kout[pos] = kin[i];
-      vout[pos] = vin[i];
-    }
-    keys->swap(*sk);
-    values->swap(*sv);
-  }
 }
 
 // Beam table in radians and per-segment slopes for the vectorised projection.
@@ -450,7 +409,9 @@ absl::Status LidarRenderer::Render(const LidarModel& model, const Eigen::Isometr
 
   // ---- Sort by range (ties: entry index), bin into tiles ----
   const int64_t V = static_cast<int64_t>(w.ids.size());
-  RadixSortPairs(&w.keys, &w.ids, &w.scratch_keys, &w.scratch_ids);
+  // The camera binning's stable radix sort (single-threaded: a pooled version was no faster
+  // on 2 cores, measured back to back).
+  cpu::RadixSortPairs(&w.keys, &w.ids, &w.scratch_keys, &w.scratch_ids);
   {
     // Binning: per-chunk counts, a scan in (tile, chunk) order, per-chunk scatters; contiguous
     // chunks of the range order keep every tile's list in range order.
