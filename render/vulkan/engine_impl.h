@@ -80,6 +80,9 @@ class VulkanEngine : public Engine {
   // Copies the store's parameters into the scene's buffers (sizes already match).
   absl::Status UploadParams(const GaussianStore& store, VulkanScene* scene);
   absl::Status EnsureBackwardResources(const VulkanScene& scene, uint32_t pixels);
+  // Ends the recording of cmd_ (after a host-read barrier), submits it, waits for the fence and
+  // makes `readback` visible to the host: the one submission of a forward or backward pass.
+  absl::Status SubmitAndWait(Recorder& rec, Buffer& readback);
 
   std::shared_ptr<Context> ctx_;
   std::unique_ptr<Kernels> kernels_;

@@ -287,6 +287,26 @@ absl::Status VulkanEngine::EnsureFrameResources(uint32_t n, uint32_t width, uint
                       "readback");
 }
 
+absl::Status VulkanEngine::SubmitAndWait(Recorder& rec, Buffer& readback) {
+  const Context& c = *ctx_;
+  rec.HostReadBarrier();
+  if (!rec.status().ok()) {
+    vkEndCommandBuffer(cmd_);
+    return rec.status();
+  }
+  STREETSIM_VK_RETURN_IF_ERROR(vkEndCommandBuffer(cmd_), "vkEndCommandBuffer");
+  STREETSIM_VK_RETURN_IF_ERROR(vkResetFences(c.device(), 1, &fence_), "vkResetFences");
+  VkSubmitInfo submit{VK_STRUCTURE_TYPE_SUBMIT_INFO};
+  submit.commandBufferCount = 1;
+  submit.pCommandBuffers = &cmd_;
+  STREETSIM_VK_RETURN_IF_ERROR(vkQueueSubmit(c.queue(), 1, &submit, fence_), "vkQueueSubmit");
+  STREETSIM_VK_RETURN_IF_ERROR(vkWaitForFences(c.device(), 1, &fence_, VK_TRUE, UINT64_MAX),
+                               "vkWaitForFences");
+  if (absl::Status s = readback.InvalidateForHost(); !s.ok()) return s;
+  if (profiler_) profiler_->Report(c);
+  return absl::OkStatus();
+}
+
 absl::Status VulkanEngine::RenderOnce(const VulkanScene& scene, const PinholeCamera& camera,
                                       const RenderOptions& options, uint32_t* counts) {
   const Context& c = *ctx_;
@@ -345,23 +365,8 @@ absl::Status VulkanEngine::RenderOnce(const VulkanScene& scene, const PinholeCam
   rec.Copy(rgb_, 0, readback_, kCountsBytes, pixels * 12);
   if (options.want_depth) rec.Copy(depth_, 0, readback_, kCountsBytes + pixels * 12, pixels * 4);
   if (options.want_alpha) rec.Copy(alpha_, 0, readback_, kCountsBytes + pixels * 16, pixels * 4);
-  rec.HostReadBarrier();
-  if (!rec.status().ok()) {
-    vkEndCommandBuffer(cmd_);
-    return rec.status();
-  }
-  STREETSIM_VK_RETURN_IF_ERROR(vkEndCommandBuffer(cmd_), "vkEndCommandBuffer");
-
-  STREETSIM_VK_RETURN_IF_ERROR(vkResetFences(c.device(), 1, &fence_), "vkResetFences");
-  VkSubmitInfo submit{VK_STRUCTURE_TYPE_SUBMIT_INFO};
-  submit.commandBufferCount = 1;
-  submit.pCommandBuffers = &cmd_;
-  STREETSIM_VK_RETURN_IF_ERROR(vkQueueSubmit(c.queue(), 1, &submit, fence_), "vkQueueSubmit");
-  STREETSIM_VK_RETURN_IF_ERROR(vkWaitForFences(c.device(), 1, &fence_, VK_TRUE, UINT64_MAX),
-                               "vkWaitForFences");
-  if (absl::Status s = readback_.InvalidateForHost(); !s.ok()) return s;
+  if (absl::Status s = SubmitAndWait(rec, readback_); !s.ok()) return s;
   std::memcpy(counts, readback_.mapped(), kCountsBytes);
-  if (profiler_) profiler_->Report(c);
   return absl::OkStatus();
 }
 
@@ -571,21 +576,7 @@ absl::Status VulkanEngine::RenderBackward(const DeviceScene& scene, const Render
       rec.Copy(sh_grads_[g], 0, bwd_readback_, sh_offsets[g], bwd.sh_grad_bytes[g]);
     }
   }
-  rec.HostReadBarrier();
-  if (!rec.status().ok()) {
-    vkEndCommandBuffer(cmd_);
-    return rec.status();
-  }
-  STREETSIM_VK_RETURN_IF_ERROR(vkEndCommandBuffer(cmd_), "vkEndCommandBuffer");
-  STREETSIM_VK_RETURN_IF_ERROR(vkResetFences(c.device(), 1, &fence_), "vkResetFences");
-  VkSubmitInfo submit{VK_STRUCTURE_TYPE_SUBMIT_INFO};
-  submit.commandBufferCount = 1;
-  submit.pCommandBuffers = &cmd_;
-  STREETSIM_VK_RETURN_IF_ERROR(vkQueueSubmit(c.queue(), 1, &submit, fence_), "vkQueueSubmit");
-  STREETSIM_VK_RETURN_IF_ERROR(vkWaitForFences(c.device(), 1, &fence_, VK_TRUE, UINT64_MAX),
-                               "vkWaitForFences");
-  if (absl::Status s = bwd_readback_.InvalidateForHost(); !s.ok()) return s;
-  if (profiler_) profiler_->Report(c);
+  if (absl::Status s = SubmitAndWait(rec, bwd_readback_); !s.ok()) return s;
 
   // Unpack into the GaussianStore layouts.
   const auto* base = static_cast<const std::byte*>(bwd_readback_.mapped());
