@@ -79,6 +79,39 @@ inline void QuatToRotation(const Real* q_in, Real* R) {
   R[6] = 2 * (x * z - w * y);     R[7] = 2 * (y * z + w * x);     R[8] = 1 - 2 * (x * x + y * y);
 }
 
+// 3D covariance Sigma = R S S^T R^T (upper triangle: xx xy xz yy yz zz) from a rotation (row-major)
+// and per-axis standard deviations.
+template <typename Real>
+inline void Covariance3D(const Real* R, const Real* scale, Real* Sigma) {
+  Real M[9];  // M = R S
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) M[r * 3 + c] = R[r * 3 + c] * scale[c];
+  Sigma[0] = M[0] * M[0] + M[1] * M[1] + M[2] * M[2];
+  Sigma[1] = M[0] * M[3] + M[1] * M[4] + M[2] * M[5];
+  Sigma[2] = M[0] * M[6] + M[1] * M[7] + M[2] * M[8];
+  Sigma[3] = M[3] * M[3] + M[4] * M[4] + M[5] * M[5];
+  Sigma[4] = M[3] * M[6] + M[4] * M[7] + M[5] * M[8];
+  Sigma[5] = M[6] * M[6] + M[7] * M[7] + M[8] * M[8];
+}
+
+// EWA: the 2D covariance T Sigma T^T (+ low_pass on the diagonal) for the 2x3 map T = J W given
+// by its rows T0, T1. Shared by the camera and the LiDAR projections.
+template <typename Real>
+inline void ProjectCovariance(const Real* T0, const Real* T1, const Real* Sigma, Real low_pass,
+                              Real* cov_xx, Real* cov_xy, Real* cov_yy) {
+  auto sigma_times = [&](const Real* v, Real* o) {
+    o[0] = Sigma[0] * v[0] + Sigma[1] * v[1] + Sigma[2] * v[2];
+    o[1] = Sigma[1] * v[0] + Sigma[3] * v[1] + Sigma[4] * v[2];
+    o[2] = Sigma[2] * v[0] + Sigma[4] * v[1] + Sigma[5] * v[2];
+  };
+  Real S0[3], S1[3];
+  sigma_times(T0, S0);
+  sigma_times(T1, S1);
+  *cov_xx = T0[0] * S0[0] + T0[1] * S0[1] + T0[2] * S0[2] + low_pass;
+  *cov_xy = T0[0] * S1[0] + T0[1] * S1[1] + T0[2] * S1[2];
+  *cov_yy = T1[0] * S1[0] + T1[1] * S1[1] + T1[2] * S1[2] + low_pass;
+}
+
 // Converts a pixel extent to a tile rectangle clamped to the grid, computed in floating point
 // first so that huge or non-finite extents cannot overflow an int.
 template <typename Real>
@@ -129,20 +162,11 @@ inline bool ProjectGaussian(const CameraParams<Real>& cam, const Real* mean, con
   const Real opacity = Real(1) / (Real(1) + exp(-opacity_logit));
   if (!(opacity * Real(255) > Real(1))) return false;  // o*G <= o < 1/255 everywhere
 
-  // 3D covariance Sigma = R S S^T R^T.
   Real R[9];
   QuatToRotation(quat, R);
   const Real s[3] = {exp(log_scale[0]), exp(log_scale[1]), exp(log_scale[2])};
-  Real M[9];  // M = R S
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c) M[r * 3 + c] = R[r * 3 + c] * s[c];
-  Real Sigma[6];  // xx xy xz yy yz zz
-  Sigma[0] = M[0] * M[0] + M[1] * M[1] + M[2] * M[2];
-  Sigma[1] = M[0] * M[3] + M[1] * M[4] + M[2] * M[5];
-  Sigma[2] = M[0] * M[6] + M[1] * M[7] + M[2] * M[8];
-  Sigma[3] = M[3] * M[3] + M[4] * M[4] + M[5] * M[5];
-  Sigma[4] = M[3] * M[6] + M[4] * M[7] + M[5] * M[8];
-  Sigma[5] = M[6] * M[6] + M[7] * M[7] + M[8] * M[8];
+  Real Sigma[6];
+  Covariance3D(R, s, Sigma);
 
   // EWA: J (2x3) of the perspective projection at the (clamped) camera-space mean.
   const Real inv_z = Real(1) / pz;
@@ -159,17 +183,8 @@ inline bool ProjectGaussian(const CameraParams<Real>& cam, const Real* mean, con
   // T = J W (2x3), W = R_cam_from_world.
   const Real T0[3] = {j00 * Rcw[0] + j02 * Rcw[6], j00 * Rcw[1] + j02 * Rcw[7], j00 * Rcw[2] + j02 * Rcw[8]};
   const Real T1[3] = {j11 * Rcw[3] + j12 * Rcw[6], j11 * Rcw[4] + j12 * Rcw[7], j11 * Rcw[5] + j12 * Rcw[8]};
-  auto sigma_times = [&](const Real* v, Real* o) {
-    o[0] = Sigma[0] * v[0] + Sigma[1] * v[1] + Sigma[2] * v[2];
-    o[1] = Sigma[1] * v[0] + Sigma[3] * v[1] + Sigma[4] * v[2];
-    o[2] = Sigma[2] * v[0] + Sigma[4] * v[1] + Sigma[5] * v[2];
-  };
-  Real S0[3], S1[3];
-  sigma_times(T0, S0);
-  sigma_times(T1, S1);
-  const Real cov_xx = T0[0] * S0[0] + T0[1] * S0[1] + T0[2] * S0[2] + Real(Limits::kLowPassPx);
-  const Real cov_xy = T0[0] * S1[0] + T0[1] * S1[1] + T0[2] * S1[2];
-  const Real cov_yy = T1[0] * S1[0] + T1[1] * S1[1] + T1[2] * S1[2] + Real(Limits::kLowPassPx);
+  Real cov_xx, cov_xy, cov_yy;
+  ProjectCovariance(T0, T1, Sigma, Real(Limits::kLowPassPx), &cov_xx, &cov_xy, &cov_yy);
   const Real det = cov_xx * cov_yy - cov_xy * cov_xy;
   if (!(det > Real(0)) || !std::isfinite(det)) return false;
   const Real inv_det = Real(1) / det;

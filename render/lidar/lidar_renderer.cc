@@ -72,16 +72,8 @@ void ProjectScalar(const lidar::LidarSoa& s, const LidarModel& model, const lida
     const float ls[3] = {s.ls0[i], s.ls1[i], s.ls2[i]};
     const float sc[3] = {std::exp(std::clamp(ls[0], -30.0f, 30.0f)), std::exp(std::clamp(ls[1], -30.0f, 30.0f)),
                          std::exp(std::clamp(ls[2], -30.0f, 30.0f))};
-    float M[9];
-    for (int r = 0; r < 3; ++r)
-      for (int c = 0; c < 3; ++c) M[r * 3 + c] = R[r * 3 + c] * sc[c];
     float Sg[6];
-    Sg[0] = M[0] * M[0] + M[1] * M[1] + M[2] * M[2];
-    Sg[1] = M[0] * M[3] + M[1] * M[4] + M[2] * M[5];
-    Sg[2] = M[0] * M[6] + M[1] * M[7] + M[2] * M[8];
-    Sg[3] = M[3] * M[3] + M[4] * M[4] + M[5] * M[5];
-    Sg[4] = M[3] * M[6] + M[4] * M[7] + M[5] * M[8];
-    Sg[5] = M[6] * M[6] + M[7] * M[7] + M[8] * M[8];
+    projection::Covariance3D(R, sc, Sg);
 
     // Spherical projection and its Jacobian at the sensor-frame mean.
     //   u = (pi - atan2(y, x)) W / 2pi - 0.5:  du/dp = W/2pi (y, -x, 0) / rho^2
@@ -100,17 +92,8 @@ void ProjectScalar(const lidar::LidarSoa& s, const LidarModel& model, const lida
       T0[k] = J0[0] * Rlw[k] + J0[1] * Rlw[3 + k] + J0[2] * Rlw[6 + k];
       T1[k] = J1[0] * Rlw[k] + J1[1] * Rlw[3 + k] + J1[2] * Rlw[6 + k];
     }
-    auto sigma_times = [&](const float* a, float* o) {
-      o[0] = Sg[0] * a[0] + Sg[1] * a[1] + Sg[2] * a[2];
-      o[1] = Sg[1] * a[0] + Sg[3] * a[1] + Sg[4] * a[2];
-      o[2] = Sg[2] * a[0] + Sg[4] * a[1] + Sg[5] * a[2];
-    };
-    float S0[3], S1[3];
-    sigma_times(T0, S0);
-    sigma_times(T1, S1);
-    const float cxx = T0[0] * S0[0] + T0[1] * S0[1] + T0[2] * S0[2] + kLowPassPx;
-    const float cxy = T0[0] * S1[0] + T0[1] * S1[1] + T0[2] * S1[2];
-    const float cyy = T1[0] * S1[0] + T1[1] * S1[1] + T1[2] * S1[2] + kLowPassPx;
+    float cxx, cxy, cyy;
+    projection::ProjectCovariance(T0, T1, Sg, kLowPassPx, &cxx, &cxy, &cyy);
     const float det = cxx * cyy - cxy * cxy;
     if (!(det > 0.0f) || !std::isfinite(det)) continue;
     const float inv_det = 1.0f / det;
