@@ -6,6 +6,7 @@ streetsim_add_test(NAME vulkan_render_test
                    LIBS streetsim_render_vulkan streetsim_render_api)
 streetsim_add_test(NAME vulkan_backward_test
                    SOURCES ${CMAKE_CURRENT_LIST_DIR}/vulkan_backward_test.cc
+                           ${PROJECT_SOURCE_DIR}/tests/common/grad_check_scene.cc
                    LIBS streetsim_render_vulkan streetsim_render_cpu streetsim_render_api
                         streetsim_gaussians)
 # The backward at lavapipe subgroup sizes 4 and 16 (the default run above is 8 on AVX2 hosts).
