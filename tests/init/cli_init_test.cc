@@ -66,6 +66,7 @@ TEST(CliInit, InitialSceneRendersLikeTheLoggedImage) {
   const double blank = Psnr(cv::Mat::zeros(image.size(), image.type()), image);
   std::printf("streetsim render of the init from logged camera 20: PSNR %.2f dB (black image %.2f dB)\n", psnr, blank);
   EXPECT_GT(psnr, blank + 4);
+  std::filesystem::remove_all(dir);  // kept only when an assertion above stopped the test
 }
 
 TEST(CliInit, SceneDirectoryGetsTheLogManifest) {
@@ -82,6 +83,7 @@ TEST(CliInit, SceneDirectoryGetsTheLogManifest) {
   // Any other output name writes no manifest.
   ASSERT_EQ(Exec("init " + kRaw + " --out " + dir + "/other.ply --frames 0:10 --voxel 0.3").exit_code, 0);
   EXPECT_FALSE(std::filesystem::exists(dir + "/other.json"));
+  std::filesystem::remove_all(dir);
 }
 
 TEST(CliInit, CameraOnlyLogSaysItUsesRandomPoints) {
@@ -89,6 +91,7 @@ TEST(CliInit, CameraOnlyLogSaysItUsesRandomPoints) {
   const Result r = Exec("init " + kData + "/kitti_odometry_excerpt/seq_a --out " + ply + " --random-points 2000 --frames 0:5");
   ASSERT_EQ(r.exit_code, 0) << r.err;
   EXPECT_NE(r.err.find("random points in the camera frusta"), std::string::npos) << r.err;
+  std::filesystem::remove(ply);
 }
 
 TEST(CliInit, BadInputIsExitTwoAndOneLine) {

@@ -88,6 +88,7 @@ TEST(CliLog, PreviewDrawsLidarOnTheImage) {
   EXPECT_EQ(cv::countNonZero(diff(cv::Rect(0, 0, drawn.cols, 20)) > 30), 0);
   // Camera-only logs draw their sparse points.
   EXPECT_EQ(Exec("log preview " + kData + "/colmap_plush --frame 3 --out " + out).exit_code, 0);
+  fs::remove(out);
 }
 
 TEST(CliLog, PosesFromLidarCompareWithTheProvidedEstimate) {
@@ -99,6 +100,7 @@ TEST(CliLog, PosesFromLidarCompareWithTheProvidedEstimate) {
   absl::StatusOr<std::vector<Eigen::Isometry3d>> poses = ReadPosesFile(out);
   ASSERT_TRUE(poses.ok()) << poses.status();
   EXPECT_EQ(poses->size(), 12u);
+  fs::remove(out);
 }
 
 TEST(CliLog, CameraWritesARenderableCamera) {
@@ -106,6 +108,7 @@ TEST(CliLog, CameraWritesARenderableCamera) {
   const Result r = Exec("log camera " + kData + "/kitti_odometry_excerpt/seq_a --frame 5 --out " + out);
   ASSERT_EQ(r.exit_code, 0) << r.err;
   EXPECT_NE(Slurp(out).find("\"width\": 1226"), std::string::npos) << Slurp(out);
+  fs::remove(out);
 }
 
 TEST(CliLog, BadInputIsExitTwoAndOneLine) {

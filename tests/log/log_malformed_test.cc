@@ -64,6 +64,11 @@ class Malformed : public testing::Test {
     fs::remove_all(dir_);
     fs::create_directories(dir_);
   }
+  // Every run gets its own pid-named directory, so leaving it would fill /tmp run after run.
+  void TearDown() override {
+    std::error_code ec;
+    fs::remove_all(dir_, ec);
+  }
   // A copy of the oxts folder (small text files).
   fs::path CopyOxts() {
     const fs::path drive = dir_ / "drive";

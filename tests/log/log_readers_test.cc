@@ -292,6 +292,7 @@ TEST(Colmap, BinaryRoundTripMatchesText) {
   EXPECT_TRUE(bin->images[5].T_cam_from_world().isApprox(text->images[5].T_cam_from_world()));
   EXPECT_EQ(bin->points[100].xyz, text->points[100].xyz);
   EXPECT_EQ(bin->points[100].rgb, text->points[100].rgb);
+  std::filesystem::remove_all(dir);
 }
 
 TEST(Colmap, ModelsConvertToIntrinsics) {
