@@ -1,5 +1,7 @@
 #include "scene/log/undistort.h"
 
+#include <algorithm>
+
 #include <opencv2/imgproc.hpp>
 
 #include "absl/strings/str_cat.h"
@@ -45,6 +47,52 @@ absl::StatusOr<cv::Mat> UndistortImage(const cv::Mat& image, const CameraIntrins
   } catch (const cv::Exception& e) {
     return absl::InternalError(absl::StrCat("undistort: ", e.what()));
   }
+  return out;
+}
+
+cv::Rect ValidUndistortedRect(const CameraIntrinsics& k) {
+  cv::Rect r(0, 0, k.width, k.height);
+  if (k.IsPinhole() || k.width <= 0 || k.height <= 0) return r;
+  // valid(u, v): the source position UndistortImage samples for output pixel (u, v) lies inside.
+  std::vector<uint8_t> valid(static_cast<size_t>(k.width) * k.height);
+  for (int v = 0; v < k.height; ++v) {
+    for (int u = 0; u < k.width; ++u) {
+      const Eigen::Vector2d d = DistortNormalized(k, {(u - k.cx) / k.fx, (v - k.cy) / k.fy});
+      const double x = k.fx * d.x() + k.cx, y = k.fy * d.y() + k.cy;
+      valid[static_cast<size_t>(v) * k.width + u] = x >= 0 && x <= k.width - 1 && y >= 0 && y <= k.height - 1;
+    }
+  }
+  auto at = [&](int u, int v) { return valid[static_cast<size_t>(v) * k.width + u] != 0; };
+  while (r.width > 0 && r.height > 0) {
+    int bad[4] = {0, 0, 0, 0};  // top, bottom, left, right edge of r
+    for (int u = r.x; u < r.x + r.width; ++u) {
+      bad[0] += !at(u, r.y);
+      bad[1] += !at(u, r.y + r.height - 1);
+    }
+    for (int v = r.y; v < r.y + r.height; ++v) {
+      bad[2] += !at(r.x, v);
+      bad[3] += !at(r.x + r.width - 1, v);
+    }
+    const int worst = static_cast<int>(std::max_element(bad, bad + 4) - bad);
+    if (bad[worst] == 0) break;
+    if (worst == 0) { ++r.y; --r.height; }
+    else if (worst == 1) { --r.height; }
+    else if (worst == 2) { ++r.x; --r.width; }
+    else { --r.width; }
+  }
+  return r;
+}
+
+CameraIntrinsics CroppedPinhole(const CameraIntrinsics& k) {
+  if (k.IsPinhole()) return k;
+  const cv::Rect r = ValidUndistortedRect(k);
+  CameraIntrinsics out;
+  out.width = r.width;
+  out.height = r.height;
+  out.fx = k.fx;
+  out.fy = k.fy;
+  out.cx = k.cx - r.x;
+  out.cy = k.cy - r.y;
   return out;
 }
 

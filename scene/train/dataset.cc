@@ -26,9 +26,11 @@ bool IsHeldOut(int frame, int holdout_every) {
   return holdout_every > 0 && frame % holdout_every == holdout_every - 1;
 }
 
-PinholeCamera ScaledCamera(const DriveLog& log, int frame, int camera_obs, double scale) {
+namespace {
+
+// k: the pinhole intrinsics the view's image has after undistortion and cropping (CroppedPinhole).
+PinholeCamera ScaledPinhole(const DriveLog& log, int frame, int camera_obs, const CameraIntrinsics& k, double scale) {
   const CameraObservation& obs = log.frames[frame].cameras[camera_obs];
-  const CameraIntrinsics& k = log.cameras[obs.camera].intrinsics;
   PinholeCamera cam;
   cam.width = std::max(1, static_cast<int>(std::lround(k.width * scale)));
   cam.height = std::max(1, static_cast<int>(std::lround(k.height * scale)));
@@ -41,11 +43,29 @@ PinholeCamera ScaledCamera(const DriveLog& log, int frame, int camera_obs, doubl
   return cam;
 }
 
+}  // namespace
+
+PinholeCamera ScaledCamera(const DriveLog& log, int frame, int camera_obs, double scale) {
+  const CameraObservation& obs = log.frames[frame].cameras[camera_obs];
+  return ScaledPinhole(log, frame, camera_obs, CroppedPinhole(log.cameras[obs.camera].intrinsics), scale);
+}
+
 absl::StatusOr<std::vector<View>> LoadViews(const DriveLog& log, const DatasetOptions& options) {
   if (!(options.resolution_scale > 0 && options.resolution_scale <= 1)) {
     return absl::InvalidArgumentError("resolution scale must be in (0, 1]");
   }
   std::vector<View> views;
+  // Per camera: the crop that removes undistortion's black border, and the resulting pinhole.
+  std::vector<cv::Rect> crop(log.cameras.size());
+  std::vector<CameraIntrinsics> cropped(log.cameras.size());
+  for (size_t c = 0; c < log.cameras.size(); ++c) {
+    crop[c] = ValidUndistortedRect(log.cameras[c].intrinsics);
+    cropped[c] = CroppedPinhole(log.cameras[c].intrinsics);
+    if (crop[c].width < 1 || crop[c].height < 1) {
+      return absl::InvalidArgumentError(absl::StrCat("camera ", log.cameras[c].name,
+                                                     ": no pixel of the undistorted image comes from the source"));
+    }
+  }
   for (int f = 0; f < static_cast<int>(log.frames.size()); ++f) {
     const bool held = IsHeldOut(f, options.holdout_every);
     if (options.split == Split::kTrain && held) continue;
@@ -57,7 +77,7 @@ absl::StatusOr<std::vector<View>> LoadViews(const DriveLog& log, const DatasetOp
       v.frame = f;
       v.camera_obs = c;
       v.name = absl::StrCat(log.cameras[obs.camera].name, "/", std::filesystem::path(obs.path).filename().string());
-      v.camera = ScaledCamera(log, f, c, options.resolution_scale);
+      v.camera = ScaledPinhole(log, f, c, cropped[obs.camera], options.resolution_scale);
       absl::StatusOr<cv::Mat> img = LoadImageRgb(obs.path);
       if (!img.ok()) return img.status();
       if (img->cols != k.width || img->rows != k.height) {
@@ -67,7 +87,7 @@ absl::StatusOr<std::vector<View>> LoadViews(const DriveLog& log, const DatasetOp
       if (!k.IsPinhole()) {
         absl::StatusOr<cv::Mat> u = UndistortImage(*img, k);
         if (!u.ok()) return u.status();
-        *img = *u;
+        *img = (*u)(crop[obs.camera]).clone();
       }
       if (v.camera.width != img->cols || v.camera.height != img->rows) {
         cv::resize(*img, v.rgb8, cv::Size(v.camera.width, v.camera.height), 0, 0, cv::INTER_AREA);
@@ -79,13 +99,14 @@ absl::StatusOr<std::vector<View>> LoadViews(const DriveLog& log, const DatasetOp
         if (!d.ok()) return d.status();
         // Nearest wins within each scaled pixel.
         std::vector<float> best(static_cast<size_t>(v.camera.width) * v.camera.height, 0.0f);
-        const double sx = static_cast<double>(v.camera.width) / k.width, sy = static_cast<double>(v.camera.height) / k.height;
-        for (int y = 0; y < d->rows; ++y) {
+        const cv::Rect& r = crop[obs.camera];
+        const double sx = static_cast<double>(v.camera.width) / r.width, sy = static_cast<double>(v.camera.height) / r.height;
+        for (int y = r.y; y < std::min(d->rows, r.y + r.height); ++y) {
           const float* row = d->ptr<float>(y);
-          for (int x = 0; x < d->cols; ++x) {
+          for (int x = r.x; x < std::min(d->cols, r.x + r.width); ++x) {
             if (!(row[x] > 0)) continue;
-            const int u = std::min(v.camera.width - 1, static_cast<int>((x + 0.5) * sx));
-            const int w = std::min(v.camera.height - 1, static_cast<int>((y + 0.5) * sy));
+            const int u = std::min(v.camera.width - 1, static_cast<int>((x - r.x + 0.5) * sx));
+            const int w = std::min(v.camera.height - 1, static_cast<int>((y - r.y + 0.5) * sy));
             float& b = best[static_cast<size_t>(w) * v.camera.width + u];
             if (b == 0 || row[x] < b) b = row[x];
           }

@@ -1,5 +1,6 @@
 // Training / evaluation views of a DriveLog: every camera observation of every frame, its image
-// (undistorted for COLMAP cameras, resized to the resolution scale) and its sparse LiDAR depth
+// (undistorted for COLMAP cameras and cropped to the pixels that come from the source image,
+// resized to the resolution scale) and its sparse LiDAR depth
 // samples, split by the held-out protocol (every K-th frame: frames K-1, 2K-1, ...).
 #pragma once
 

@@ -6,6 +6,8 @@
 
 #include <filesystem>
 
+#include <opencv2/imgproc.hpp>
+
 #include "gtest/gtest.h"
 #include "scene/log/colmap_reader.h"
 #include "scene/log/kitti_odometry_reader.h"
@@ -308,6 +310,34 @@ TEST(Colmap, ModelsConvertToIntrinsics) {
   EXPECT_EQ(k->OpenCvCoefficients(), (std::vector<double>{-0.1, 0.01, 0.001, -0.002}));
   ColmapCamera fisheye{3, "OPENCV_FISHEYE", 640, 480, {1, 2, 3, 4, 5, 6, 7, 8}};
   EXPECT_FALSE(ColmapIntrinsics(fisheye).ok());
+}
+
+TEST(Undistort, ValidRectCropsTheBlackBorderAway) {
+  absl::StatusOr<DriveLog> log = OpenLog(kColmap);
+  ASSERT_TRUE(log.ok()) << log.status();
+  const CameraIntrinsics& k = log->cameras.at(0).intrinsics;
+  ASSERT_FALSE(k.IsPinhole());
+  const cv::Rect r = ValidUndistortedRect(k);
+  // A white source image: every pixel of the rectangle is white after undistortion, while the
+  // full undistorted image has a black border (the colmap_plush camera's k1 pushes its edges out).
+  const cv::Mat white(k.height, k.width, CV_8UC3, cv::Scalar::all(255));
+  absl::StatusOr<cv::Mat> out = UndistortImage(white, k);
+  ASSERT_TRUE(out.ok());
+  cv::Mat gray;
+  cv::cvtColor(*out, gray, cv::COLOR_RGB2GRAY);
+  EXPECT_GT(cv::countNonZero(gray < 250), 1000);
+  EXPECT_EQ(cv::countNonZero(gray(r) < 250), 0);
+  // It keeps most of the image (the border is a few pixels wide).
+  EXPECT_GT(r.area(), 0.9 * k.width * k.height);
+  const CameraIntrinsics c = CroppedPinhole(k);
+  EXPECT_TRUE(c.IsPinhole());
+  EXPECT_EQ(c.width, r.width);
+  EXPECT_DOUBLE_EQ(c.cx, k.cx - r.x);
+  // Pinhole cameras are not cropped.
+  CameraIntrinsics pinhole = k;
+  pinhole.model = DistortionModel::kNone;
+  pinhole.distortion.clear();
+  EXPECT_EQ(ValidUndistortedRect(pinhole), cv::Rect(0, 0, k.width, k.height));
 }
 
 TEST(Undistort, ResamplesOntoThePinholeWithTheSameK) {
