@@ -76,6 +76,7 @@ int main(int argc, char** argv) {
     GaussianGrads grads;
     train::Hyper hyper;
     double t_up = 0, t_fwd = 0, t_loss = 0, t_bwd = 0, t_adam = 0, t_tot = 0;
+    double t_proj = 0, t_sort = 0, t_blend = 0, t_bblend = 0;  // sub-stages of forward / backward
     for (int it = 0; it <= iters; ++it) {
       const auto t0 = Clock::now();
       auto t = Clock::now();
@@ -104,11 +105,15 @@ int main(int argc, char** argv) {
       const double adam = Ms(t);
       if (it == 0) continue;  // warm-up
       t_up += up, t_fwd += fwd, t_loss += loss, t_bwd += bwd, t_adam += adam, t_tot += Ms(t0);
+      t_proj += out.timings.projection_ms, t_sort += out.timings.sort_ms, t_blend += out.timings.blend_ms;
+      t_bblend += grads.blend_backward_ms;
     }
     const double k = 1.0 / iters;
     std::printf("%-18s %8.1f %8.1f %8.1f %8.1f %8.1f %8.1f %8zu %9zu   ms/iteration\n", s.c_str(), t_up * k,
                 t_fwd * k, t_loss * k, t_bwd * k, t_adam * k, t_tot * k, out.stats.num_visible,
                 out.stats.num_tile_instances);
+    std::printf("%-18s forward: projection %.1f, sort+bin %.1f, blend %.1f; backward: blend %.1f, projection %.1f\n",
+                "", t_proj * k, t_sort * k, t_blend * k, t_bblend * k, (t_bwd - t_bblend) * k);
   }
   return 0;
 }

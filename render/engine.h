@@ -89,6 +89,7 @@ struct GaussianGrads {
   std::vector<float> means2d;         // [N*2] dL/d(u, v) of the projected mean, pixels
   std::vector<float> radii;           // [N] 3DGS screen radius ceil(3 sqrt(lambda_max)); 0 = not visible
   double backward_ms = 0;             // wall time of the backward pass
+  double blend_backward_ms = 0;       // of which the per-pixel replay (0 where a backend does not say)
 };
 
 // Training: Gaussian parameters in the caller's layout (the GaussianStore one, but SH with a stride

@@ -33,6 +33,7 @@ struct BlendBackwardArgs {
 template <typename Real>
 struct BlendBackwardScratch {
   std::vector<std::vector<Real>> per_thread;
+  bool per_thread_zero = false;  // every per-thread array is all zeros (the merge leaves them so)
   std::vector<Real> per_instance;
 };
 

@@ -154,6 +154,7 @@ class CpuEngine final : public Engine {
       args.d_alpha = grads.alpha;
       if (options_.precision == CpuPrecision::kFloatSimd) {
         cpu::BlendBackwardSimd(pool_, args, options.deterministic, &bwd_scratch_f_, &splat_grads_f_);
+        out->blend_backward_ms = MsSince(t0);
         cpu::ProjectBackwardSoa(pool_, cpu_scene->soa(), kept_cam_f_, frame_f_, splat_grads_f_, out);
       } else {
         cpu::BlendBackwardScalar<float>(pool_, args, &bwd_scratch_f_, &splat_grads_f_);

@@ -3,6 +3,7 @@
 #include <cstring>
 
 #include "render/cpu/project_bwd.h"
+#include "render/cpu/simd_dispatch.h"
 
 namespace streetsim::cpu {
 namespace {
@@ -112,9 +113,21 @@ void ProjectBackwardStore(ThreadPool& pool, const GaussianStore& store,
   RunBackward<Real>(pool, StoreSource<Real>{store}, store.size(), store.sh_degree, cam, frame, splat_grads, out);
 }
 
+void ProjectBackwardSoaScalar(ThreadPool& pool, const SceneSoa& scene, const projection::CameraParams<float>& cam,
+                              const Frame<float>& frame, const std::vector<float>& splat_grads, GaussianGrads* out) {
+  RunBackward<float>(pool, SoaSource{scene}, scene.n, scene.sh_degree, cam, frame, splat_grads, out);
+}
+
 void ProjectBackwardSoa(ThreadPool& pool, const SceneSoa& scene, const projection::CameraParams<float>& cam,
                         const Frame<float>& frame, const std::vector<float>& splat_grads, GaussianGrads* out) {
-  RunBackward<float>(pool, SoaSource{scene}, scene.n, scene.sh_degree, cam, frame, splat_grads, out);
+  using RangeFn = void (*)(const SceneSoa&, const projection::CameraParams<float>&, const uint8_t*, const float*,
+                           int64_t, int64_t, GaussianGrads*);
+  static const RangeFn fn = PickSimd<RangeFn>(&pbwd_avx2::ProjectBackwardRange, &pbwd_avx512::ProjectBackwardRange);
+  const int K = (scene.sh_degree + 1) * (scene.sh_degree + 1);
+  Resize(scene.n, K, out);
+  pool.ParallelFor(static_cast<int64_t>(scene.n), 4096, [&](int64_t b, int64_t e, int) {
+    fn(scene, cam, frame.visible.data(), splat_grads.data(), b, e, out);
+  });
 }
 
 template void ProjectBackwardStore<float>(ThreadPool&, const GaussianStore&, const projection::CameraParams<float>&,

@@ -32,7 +32,7 @@ struct ParamGrads {
 // Derivatives of the real SH basis (projection::ShBasis) w.r.t. the unit direction (x, y, z),
 // contracted with dL/dbasis: returns dL/d(x, y, z) treating them as independent.
 template <typename Real>
-inline void ShBasisBackward(int degree, Real x, Real y, Real z, const Real* d_basis, Real* d_dir) {
+[[gnu::always_inline]] inline void ShBasisBackward(int degree, Real x, Real y, Real z, const Real* d_basis, Real* d_dir) {
   using projection::kShC1;
   using projection::kShC2;
   using projection::kShC3;
@@ -86,13 +86,19 @@ inline void ShBasisBackward(int degree, Real x, Real y, Real z, const Real* d_ba
   d_dir[2] = gz;
 }
 
-// Backward of ProjectGaussian for a visible Gaussian. `g` holds dL/d(splat) (SplatGradIndex).
-// The forward is recomputed here (cheaper than storing its intermediates).
+// Backward of ProjectGaussian for a visible Gaussian, in two parts: the geometry (2D mean, conic,
+// opacity, depth -> mean, log-scale, quaternion, logit, radius; writes out->mean) and the colour
+// (rgb -> SH coefficients and the mean through the view direction; adds to out->mean). `g` holds
+// dL/d(splat) (SplatGradIndex). The forward is recomputed here (cheaper than storing its
+// intermediates). The vectorised path (project_backward_simd.inc) runs the two parts as two
+// loops over a chunk of Gaussians; the colour part takes the SH degree as a template parameter
+// so that its loops unroll completely there.
+// always_inline: too big for GCC's own inlining limits, and a call inside the vectorised loop
+// stops it vectorising.
 template <typename Real>
-inline void ProjectGaussianBackward(const projection::CameraParams<Real>& cam, const Real* mean,
-                                    const Real* log_scale, const Real* quat, Real opacity_logit,
-                                    const Real* sh, int sh_degree, const Real* g,
-                                    ParamGrads<Real>* out) {
+[[gnu::always_inline]] inline void ProjectGaussianBackwardGeometry(const projection::CameraParams<Real>& cam, const Real* mean,
+                                            const Real* log_scale, const Real* quat, Real opacity_logit,
+                                            const Real* g, ParamGrads<Real>* out) {
   using std::exp;
   using std::sqrt;
   const Real* W = cam.R_cam_from_world;
@@ -222,7 +228,13 @@ inline void ProjectGaussianBackward(const projection::CameraParams<Real>& cam, c
   for (int k = 0; k < 3; ++k) out->mean[k] = W[0 * 3 + k] * dpx + W[1 * 3 + k] * dpy + W[2 * 3 + k] * dpz;
 
   out->logit = g[kGo] * opacity * (Real(1) - opacity);
+}
 
+template <typename Real, int kDegree>
+[[gnu::always_inline]] inline void ProjectGaussianBackwardColour(const projection::CameraParams<Real>& cam, const Real* mean,
+                                          const Real* sh, const Real* g, ParamGrads<Real>* out) {
+  using std::sqrt;
+  constexpr int sh_degree = kDegree;
   // Colour: rgb_c = max(sum_k basis_k sh_kc + 0.5, 0).
   const Real dir[3] = {mean[0] - cam.cam_center_world[0], mean[1] - cam.cam_center_world[1],
                        mean[2] - cam.cam_center_world[2]};
@@ -230,25 +242,43 @@ inline void ProjectGaussianBackward(const projection::CameraParams<Real>& cam, c
   const Real ux3 = dir[0] * inv_len, uy3 = dir[1] * inv_len, uz3 = dir[2] * inv_len;
   Real basis[16];
   projection::ShBasis(sh_degree, ux3, uy3, uz3, basis);
-  const int K = (sh_degree + 1) * (sh_degree + 1);
+  constexpr int K = (sh_degree + 1) * (sh_degree + 1);
   Real dv[3];
+#pragma GCC unroll 3
   for (int c = 0; c < 3; ++c) {
     Real v = 0;
+#pragma GCC unroll 16
     for (int k = 0; k < K; ++k) v += basis[k] * sh[k * 3 + c];
     dv[c] = (v + Real(0.5) > Real(0)) ? g[kGr + c] : Real(0);
   }
   Real d_basis[16];
+#pragma GCC unroll 16
   for (int k = 0; k < K; ++k) {
     d_basis[k] = sh[k * 3 + 0] * dv[0] + sh[k * 3 + 1] * dv[1] + sh[k * 3 + 2] * dv[2];
+#pragma GCC unroll 3
     for (int c = 0; c < 3; ++c) out->sh[k * 3 + c] = basis[k] * dv[c];
   }
-  if (sh_degree > 0) {
+  if constexpr (sh_degree > 0) {
     Real d_unit[3];
     ShBasisBackward(sh_degree, ux3, uy3, uz3, d_basis, d_unit);
     const Real dot = ux3 * d_unit[0] + uy3 * d_unit[1] + uz3 * d_unit[2];
     out->mean[0] += (d_unit[0] - ux3 * dot) * inv_len;
     out->mean[1] += (d_unit[1] - uy3 * dot) * inv_len;
     out->mean[2] += (d_unit[2] - uz3 * dot) * inv_len;
+  }
+}
+
+template <typename Real>
+inline void ProjectGaussianBackward(const projection::CameraParams<Real>& cam, const Real* mean,
+                                    const Real* log_scale, const Real* quat, Real opacity_logit,
+                                    const Real* sh, int sh_degree, const Real* g,
+                                    ParamGrads<Real>* out) {
+  ProjectGaussianBackwardGeometry<Real>(cam, mean, log_scale, quat, opacity_logit, g, out);
+  switch (sh_degree) {
+    case 0: ProjectGaussianBackwardColour<Real, 0>(cam, mean, sh, g, out); break;
+    case 1: ProjectGaussianBackwardColour<Real, 1>(cam, mean, sh, g, out); break;
+    case 2: ProjectGaussianBackwardColour<Real, 2>(cam, mean, sh, g, out); break;
+    default: ProjectGaussianBackwardColour<Real, 3>(cam, mean, sh, g, out); break;
   }
 }
 

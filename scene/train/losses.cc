@@ -27,19 +27,39 @@ constexpr size_t kBlock = 4096;
 
 // Horizontal 11-tap blur of one zero-padded row: dst[x] = sum_k w[k] row[x + k] (row holds
 // kHalf zeros on each side), taps summed in k order.
+// The taps are summed in a register per pixel (one store per output instead of one load, add and
+// store per tap); same order, so the same bits.
 inline void BlurRowH(const float* __restrict row, float* __restrict dst, int width) {
-  const float* w = Win().w;
-  for (int x = 0; x < width; ++x) dst[x] = 0;
-  for (int k = 0; k < kWin; ++k) {
-    const float wk = w[k];
-    const float* s = row + k;
-    for (int x = 0; x < width; ++x) dst[x] += wk * s[x];
+  const Window& win = Win();
+  float w[kWin];
+  for (int k = 0; k < kWin; ++k) w[k] = win.w[k];
+  for (int x = 0; x < width; ++x) {
+    float acc = 0;
+#pragma GCC unroll 11
+    for (int k = 0; k < kWin; ++k) acc += w[k] * row[x + k];
+    dst[x] = acc;
   }
 }
 
 // Vertical 11-tap blur at row y of a plane [H][W] (zero padding), taps in k order.
 inline void BlurRowV(const float* __restrict plane, float* __restrict dst, int y, int width, int height) {
   const float* w = Win().w;
+  if (y >= kHalf && y + kHalf < height) {  // all taps inside: sum in a register, as BlurRowH
+    const float* r[kWin];
+    float wk[kWin];
+    for (int k = 0; k < kWin; ++k) {
+      r[k] = plane + static_cast<size_t>(y + k - kHalf) * width;
+      wk[k] = w[k];
+    }
+#pragma GCC ivdep
+    for (int x = 0; x < width; ++x) {
+      float acc = 0;
+#pragma GCC unroll 11
+      for (int k = 0; k < kWin; ++k) acc += wk[k] * r[k][x];
+      dst[x] = acc;
+    }
+    return;
+  }
   for (int x = 0; x < width; ++x) dst[x] = 0;
   for (int k = 0; k < kWin; ++k) {
     const int yy = y + k - kHalf;
@@ -71,6 +91,42 @@ struct RowScratch {
 float* RowBuf(size_t n) {
   thread_local RowScratch r;
   return r.Get(n);
+}
+
+// One row of the SSIM map from the blurred moments mu = [mu_x, mu_y, E[xx], E[yy], E[xy]] (each
+// W long) and, with A non-null, its d-maps (A: d/d mu_x, B: d/d E[xx], C: d/d E[xy]). A function
+// of its own: with every pointer __restrict at function scope the loop vectorises (inlined into
+// the lambda it did not, divisions included).
+void SsimRow(const float* __restrict mu, size_t W, float* __restrict s_out, float* __restrict A,
+             float* __restrict B, float* __restrict C) {
+  const float C1 = 0.01f * 0.01f, C2 = 0.03f * 0.03f;
+  const float* __restrict mux = mu;
+  const float* __restrict muy = mu + W;
+  const float* __restrict exx = mu + 2 * W;
+  const float* __restrict eyy = mu + 3 * W;
+  const float* __restrict exy = mu + 4 * W;
+  if (A != nullptr) {
+    for (size_t x = 0; x < W; ++x) {
+      const float mx = mux[x], my = muy[x];
+      const float sxx = exx[x] - mx * mx, syy = eyy[x] - my * my, sxy = exy[x] - mx * my;
+      const float n1 = 2 * mx * my + C1, n2 = 2 * sxy + C2;
+      const float d1 = mx * mx + my * my + C1, d2 = sxx + syy + C2;
+      const float s = (n1 * n2) / (d1 * d2);
+      s_out[x] = s;
+      const float inv = 1.0f / (d1 * d2);
+      A[x] = 2 * my * (n2 - n1) * inv - 2 * mx * s * (1 / d1 - 1 / d2);
+      B[x] = -s / d2;
+      C[x] = 2 * n1 * inv;
+    }
+  } else {
+    for (size_t x = 0; x < W; ++x) {
+      const float mx = mux[x], my = muy[x];
+      const float sxx = exx[x] - mx * mx, syy = eyy[x] - my * my, sxy = exy[x] - mx * my;
+      const float n1 = 2 * mx * my + C1, n2 = 2 * sxy + C2;
+      const float d1 = mx * mx + my * my + C1, d2 = sxx + syy + C2;
+      s_out[x] = (n1 * n2) / (d1 * d2);
+    }
+  }
 }
 
 }  // namespace
@@ -133,44 +189,22 @@ double Ssim(ThreadPool& pool, const float* render, const float* target, int widt
       }
     }
   });
-  const float C1 = 0.01f * 0.01f, C2 = 0.03f * 0.03f;
   // Vertical blur, SSIM map, d-maps (A: d/d mu_x, B: d/d E[xx], C: d/d E[xy]).
   pool.ParallelFor(height, kRows, [&](int64_t b, int64_t e, int) {
-    float* mu = RowBuf(W * 5);
+    float* mu = RowBuf(W * 6);
+    float* srow = mu + 5 * W;  // the row's SSIM values, summed in order below
     for (int64_t y = b; y < e; ++y) {
       for (int c = 0; c < 3; ++c) {
         for (int q = 0; q < 5; ++q) BlurRowV(hb + (c * 5 + q) * plane, mu + q * W, static_cast<int>(y), width, height);
-        const float* __restrict mux = mu;
-        const float* __restrict muy = mu + W;
-        const float* __restrict exx = mu + 2 * W;
-        const float* __restrict eyy = mu + 3 * W;
-        const float* __restrict exy = mu + 4 * W;
         double sum = 0;
         if (grad) {
-          float* __restrict A = dm + (c * 3 + 0) * plane + y * W;
-          float* __restrict B = dm + (c * 3 + 1) * plane + y * W;
-          float* __restrict C = dm + (c * 3 + 2) * plane + y * W;
-          for (size_t x = 0; x < W; ++x) {
-            const float mx = mux[x], my = muy[x];
-            const float sxx = exx[x] - mx * mx, syy = eyy[x] - my * my, sxy = exy[x] - mx * my;
-            const float n1 = 2 * mx * my + C1, n2 = 2 * sxy + C2;
-            const float d1 = mx * mx + my * my + C1, d2 = sxx + syy + C2;
-            const float s = (n1 * n2) / (d1 * d2);
-            sum += s;
-            const float inv = 1.0f / (d1 * d2);
-            A[x] = 2 * my * (n2 - n1) * inv - 2 * mx * s * (1 / d1 - 1 / d2);
-            B[x] = -s / d2;
-            C[x] = 2 * n1 * inv;
-          }
+          SsimRow(mu, W, srow, dm + (c * 3 + 0) * plane + y * W, dm + (c * 3 + 1) * plane + y * W,
+                  dm + (c * 3 + 2) * plane + y * W);
         } else {
-          for (size_t x = 0; x < W; ++x) {
-            const float mx = mux[x], my = muy[x];
-            const float sxx = exx[x] - mx * mx, syy = eyy[x] - my * my, sxy = exy[x] - mx * my;
-            const float n1 = 2 * mx * my + C1, n2 = 2 * sxy + C2;
-            const float d1 = mx * mx + my * my + C1, d2 = sxx + syy + C2;
-            sum += (n1 * n2) / (d1 * d2);
-          }
+          SsimRow(mu, W, srow, nullptr, nullptr, nullptr);
         }
+        // A separate in-order double sum: inside the loops above it kept them scalar.
+        for (size_t x = 0; x < W; ++x) sum += srow[x];
         sc.rows[y * 3 + c] = sum;
       }
     }
