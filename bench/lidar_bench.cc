@@ -1,15 +1,20 @@
-// ms per LiDAR sweep (cpu renderer, render/lidar/) on the synthetic street.
-//   lidar_bench [gaussians=500000] [columns=2048] [repeats=10] [simd|scalar]
+// ms per LiDAR sweep (cpu renderer, render/lidar/; or the vulkan one, render/vulkan/lidar_renderer_vk.h)
+// on the synthetic street.
+//   lidar_bench [gaussians=500000] [columns=2048] [repeats=10] [simd|scalar|vulkan]
 // The scene is uploaded once (LidarRenderer::Upload: validation + SoA copy, not timed per sweep).
 // The sensor sits 1.73 m up at x = 20 m, looking down the street (+x), KITTI HDL-64E beams.
 #include <algorithm>
+#include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <memory>
 #include <string>
 #include <vector>
 
 #include "render/lidar/lidar_model.h"
 #include "render/lidar/lidar_renderer.h"
+#include "render/vulkan/lidar_renderer_vk.h"
 #include "scene/gaussians/synthetic_street.h"
 
 int main(int argc, char** argv) {
@@ -20,8 +25,8 @@ int main(int argc, char** argv) {
   const int columns = argc > 2 ? std::atoi(argv[2]) : 2048;
   const int repeats = argc > 3 ? std::atoi(argv[3]) : 10;
   const std::string kernel = argc > 4 ? argv[4] : "simd";
-  if (kernel != "simd" && kernel != "scalar") {
-    std::fprintf(stderr, "kernel is simd or scalar\n");
+  if (kernel != "simd" && kernel != "scalar" && kernel != "vulkan") {
+    std::fprintf(stderr, "kernel is simd, scalar or vulkan\n");
     return 2;
   }
   LidarRenderOptions opt;
@@ -32,13 +37,26 @@ int main(int argc, char** argv) {
   T_wl.translation() = Eigen::Vector3d(20, 0, 1.73);
   LidarRenderer renderer;
   LidarRenderOutput out;
-  if (absl::Status s = renderer.Upload(store); !s.ok()) {
+  // vulkan: lavapipe unless STREETSIM_VK_DEVICE names another device.
+  std::unique_ptr<VulkanLidarRenderer> vk;
+  std::string device = LidarRenderer::SimdIsa();
+  if (kernel == "vulkan") {
+    auto created = VulkanLidarRenderer::Create();
+    if (!created.ok()) {
+      std::fprintf(stderr, "%s\n", std::string(created.status().message()).c_str());
+      return 1;
+    }
+    vk = *std::move(created);
+    device = vk->device_name();
+  }
+  if (absl::Status s = vk ? vk->Upload(store) : renderer.Upload(store); !s.ok()) {
     std::fprintf(stderr, "%s\n", std::string(s.message()).c_str());
     return 1;
   }
   std::vector<double> total, proj, sort, blend;
   for (int i = 0; i < repeats + 1; ++i) {
-    if (absl::Status s = renderer.Render(model, T_wl, opt, &out); !s.ok()) {
+    if (absl::Status s = vk ? vk->Render(model, T_wl, opt, &out) : renderer.Render(model, T_wl, opt, &out);
+        !s.ok()) {
       std::fprintf(stderr, "%s\n", std::string(s.message()).c_str());
       return 1;
     }
@@ -56,7 +74,7 @@ int main(int argc, char** argv) {
   for (float r : out.range) returns += r > 0;
   std::printf("lidar %dx%d (%s, %s), %zu Gaussians (%zu splats, %zu tile instances, %zu returns): "
               "median %.1f ms (projection %.1f, sort+bin %.1f, blend %.1f) over %d sweeps\n",
-              model.beams(), columns, kernel.c_str(), LidarRenderer::SimdIsa(), store.size(), out.num_visible, out.num_tile_instances, returns,
+              model.beams(), columns, kernel.c_str(), device.c_str(), store.size(), out.num_visible, out.num_tile_instances, returns,
               med(total), med(proj), med(sort), med(blend), repeats);
   return 0;
 }

@@ -7,8 +7,13 @@
 // 16x16 tiles, sorted by range (ties by index) and blended front to back per ray with the camera
 // path's 3DGS rules (docs/rendering.md; docs/lidar.md states the differences).
 //
-// Static pose: the whole sweep is rendered from one sensor pose (the rolling sweep's per-column
-// poses are a later step; LidarModel::ColumnTimeOffsetUs gives each column's time for the points).
+// Rolling sweep (lidar_sweep.h): given the sensor pose at the sweep's start and end, each column
+// has its own interpolated pose and each Gaussian is projected with the pose of the column it falls
+// in (one fixed-point step, docs/lidar.md). A static pose is the special case start == end.
+//
+// Training: Render with keep_for_backward, then Backward with dL/d(range_sum, alpha,
+// intensity_sum) per ray gives dL/d(every Gaussian's parameters and reflectance) (lidar_gradients.h,
+// lidar_backward.h).
 #pragma once
 
 #include <cstdint>
@@ -18,7 +23,9 @@
 #include <Eigen/Geometry>
 
 #include "absl/status/status.h"
+#include "render/lidar/lidar_gradients.h"
 #include "render/lidar/lidar_model.h"
+#include "render/lidar/lidar_sweep.h"
 #include "scene/gaussians/gaussian_store.h"
 
 namespace streetsim {
@@ -34,10 +41,12 @@ struct LidarRenderOptions {
   // column): the same seed gives the same drops on any thread count.
   bool sample_drop = false;
   uint64_t seed = 0;
-  // Point cloud of the returns (LidarRenderOutput::points).
+  // Point cloud of the returns (LidarRenderOutput::points). Each point is in the frame of its own
+  // column's pose (the sensor, or kEgo: the ego through LidarModel::T_ego_from_lidar, at the
+  // column's time); in the world it is ColumnPose(sweep, columns, point.column) * xyz.
   bool want_points = false;
   enum class PointFrame { kSensor, kEgo };
-  PointFrame point_frame = PointFrame::kSensor;  // kEgo: through LidarModel::T_ego_from_lidar
+  PointFrame point_frame = PointFrame::kSensor;
   int64_t sweep_start_us = 0;                    // per-point times are this + column offset
   // kSimd (production): projection and blend vectorised (lidar_simd.inc, AVX2 or AVX-512 picked
   // at run time). kScalar: one Gaussian / one pixel at a time with libm, the reference kSimd is
@@ -45,6 +54,9 @@ struct LidarRenderOptions {
   // where AVX-512 is available (tests).
   enum class Kernel { kSimd, kScalar, kSimdAvx2 };
   Kernel kernel = Kernel::kSimd;
+  // Keep what LidarRenderer::Backward needs (splats, tile lists, pose columns, the model, the
+  // reflectance) until the next Render or Upload.
+  bool keep_for_backward = false;
 };
 
 struct LidarPoints {
@@ -86,13 +98,25 @@ class LidarRenderer {
 
   // Renders the uploaded scene. InvalidArgument for an invalid model, a non-finite or non-rigid
   // pose, a reflectance array of the wrong size, or nothing uploaded.
+  absl::Status Render(const LidarModel& model, const LidarSweepPose& sweep, const LidarRenderOptions& options,
+                      LidarRenderOutput* out);
+  // Static pose: Render(model, LidarSweepPose::Static(T_world_from_lidar), ...).
   absl::Status Render(const LidarModel& model, const Eigen::Isometry3d& T_world_from_lidar,
                       const LidarRenderOptions& options, LidarRenderOutput* out);
+
+  // Gradients of the last Render (which must have had keep_for_backward, and no Upload since:
+  // FailedPrecondition otherwise) for upstream gradients per ray ([beams * columns] each, null =
+  // zero). Float; after a kScalar forward the scalar reference backward, else the vectorised one
+  // (lidar_backward.h). deterministic: bit-identical across runs and thread counts (one slot per
+  // tile-list entry reduced in list order; slower), else per-thread sums (rounding varies).
+  absl::Status Backward(const LidarUpstreamGrads& upstream, LidarGaussianGrads* grads, bool deterministic = false);
 
   // One-shot: Upload(store) then Render (for repeated sweeps of one scene, upload once instead).
   absl::Status Render(const GaussianStore& store, const LidarModel& model,
                       const Eigen::Isometry3d& T_world_from_lidar, const LidarRenderOptions& options,
                       LidarRenderOutput* out);
+  absl::Status Render(const GaussianStore& store, const LidarModel& model, const LidarSweepPose& sweep,
+                      const LidarRenderOptions& options, LidarRenderOutput* out);
 
   // Which build of the vectorised kernels kSimd runs here: "avx512", "avx2" or "generic".
   static const char* SimdIsa();

@@ -210,6 +210,116 @@ TEST(LidarRender, WallAtKnownDistance) {
   EXPECT_EQ(out.range[63 * 2048 + 1800], 0.0f);
 }
 
+// Rolling sweep: the sensor moves 1 m forward and yaws 3 degrees during the sweep between a wall
+// 10 m ahead and one 10 m behind. Column c is measured from the pose at s = (c + 0.5) / columns of
+// the way, so its range is the distance from that pose along its own ray (analytic; the pose
+// computed here independently of lidar_sweep.cc). A static render would be off by up to ~0.5 m
+// (behind: the sweep's start and end columns are 1 m apart).
+TEST(LidarRender, RollingSweepRangesFollowEachColumnsPose) {
+  const LidarModel m = KittiHdl64e(2048);
+  GaussianStore s;
+  const double spacing = 0.04;
+  for (const double wall_x : {10.0, -10.0})
+    for (double y = -6; y <= 6; y += spacing)
+      for (double z = -3; z <= 0.6; z += spacing)
+        AddGaussian(&s, Eigen::Vector3d(wall_x, y, z), Eigen::Vector3d(0.005, spacing, spacing), 0.7f);
+  LidarRenderer renderer(2);
+  ASSERT_TRUE(renderer.Upload(s).ok());
+  // move_m, yaw: the sensor's motion over the sweep (0, 0: the static baseline of the same walls,
+  // whose oblique rays lean ~2 cm towards the nearer Gaussians of their footprint, as in
+  // WallAtKnownDistance). The moving sweep must be as good as that baseline.
+  double base_median = 0, base_max = 0;
+  for (const double move_m : {0.0, 1.0}) {
+    const double yaw_total = move_m * 3 * M_PI / 180;
+    LidarSweepPose sweep;
+    sweep.T_world_from_lidar_end.translate(Eigen::Vector3d(move_m, 0, 0));
+    sweep.T_world_from_lidar_end.rotate(Eigen::AngleAxisd(yaw_total, Eigen::Vector3d::UnitZ()));
+    for (const auto kernel : {LidarRenderOptions::Kernel::kScalar, LidarRenderOptions::Kernel::kSimd}) {
+      LidarRenderOptions opt;
+      opt.kernel = kernel;
+      LidarRenderOutput out;
+      ASSERT_TRUE(renderer.Render(m, sweep, opt, &out).ok());
+      std::vector<double> errs;
+      double max_err = 0, max_static_err = 0, sum_signed = 0;
+      for (int b = 0; b < m.beams(); ++b) {
+        for (int c = 0; c < m.columns; ++c) {
+          // The seam: a splat's copy one turn away keeps its own end's pose (docs/lidar.md).
+          if (c < 16 || c >= m.columns - 16) continue;
+          const double sc = (c + 0.5) / m.columns;
+          const Eigen::Vector3d origin(sc * move_m, 0, 0);
+          const Eigen::Vector3d d = Eigen::AngleAxisd(sc * yaw_total, Eigen::Vector3d::UnitZ()) * m.RayDirection(b, c);
+          const double wall_x = d.x() > 0 ? 10.0 : -10.0;
+          const double t = (wall_x - origin.x()) / d.x();
+          const Eigen::Vector3d hit = origin + t * d;
+          if (std::abs(hit.y()) > 5.5 || hit.z() < -2.5 || hit.z() > 0.2) continue;  // well inside a wall
+          const float r = out.range[static_cast<size_t>(b) * m.columns + c];
+          ASSERT_GT(r, 0) << "beam " << b << " column " << c;
+          errs.push_back(std::abs(r - t));
+          sum_signed += r - t;
+          max_err = std::max(max_err, errs.back());
+          // The range a static sensor at the sweep's start would measure along the same ray.
+          const Eigen::Vector3d d0 = m.RayDirection(b, c);
+          max_static_err = std::max(max_static_err, std::abs(r - wall_x / d0.x()));
+        }
+      }
+      ASSERT_GT(errs.size(), 3000u);
+      std::sort(errs.begin(), errs.end());
+      std::printf("walls moving %.0f m (%s): %zu rays, |range error| median %.4f m, max %.4f m, mean signed %.4f m "
+                  "(vs a static pose: max %.3f m)\n",
+                  move_m, kernel == LidarRenderOptions::Kernel::kScalar ? "scalar" : "simd", errs.size(),
+                  errs[errs.size() / 2], max_err, sum_signed / errs.size(), max_static_err);
+      const double median = errs[errs.size() / 2];
+      if (move_m == 0) {
+        EXPECT_LT(median, 0.025);
+        EXPECT_LT(max_err, 0.05);
+        base_median = median;
+        base_max = max_err;
+      } else {
+        EXPECT_LT(median, base_median + 0.003);
+        EXPECT_LT(max_err, base_max + 0.015);
+        EXPECT_GT(max_static_err, 0.5);  // the test would notice a static render
+      }
+    }
+  }
+}
+
+// start == end is the static sweep, bit for bit; a sweep whose ends differ by 1 nm takes the
+// rolling path (per-Gaussian pose columns, gathered poses) and must agree with it to float noise.
+TEST(LidarRender, RollingSweepWithEqualEndsIsTheStaticRender) {
+  SyntheticStreetOptions so;
+  so.num_gaussians = 20'000;
+  so.sh_degree = 0;
+  const GaussianStore store = MakeSyntheticStreet(so);
+  const LidarModel m = KittiHdl64e(1024);
+  Eigen::Isometry3d T_wl = Eigen::Isometry3d::Identity();
+  T_wl.translate(Eigen::Vector3d(20, 0.5, 1.73));
+  T_wl.rotate(Eigen::AngleAxisd(0.3, Eigen::Vector3d::UnitZ()));
+  LidarRenderer renderer(2);
+  ASSERT_TRUE(renderer.Upload(store).ok());
+  for (const auto kernel : {LidarRenderOptions::Kernel::kScalar, LidarRenderOptions::Kernel::kSimdAvx2,
+                            LidarRenderOptions::Kernel::kSimd}) {
+    LidarRenderOptions opt;
+    opt.kernel = kernel;
+    LidarRenderOutput fixed, equal, nearly;
+    ASSERT_TRUE(renderer.Render(m, T_wl, opt, &fixed).ok());
+    ASSERT_TRUE(renderer.Render(m, LidarSweepPose{T_wl, T_wl}, opt, &equal).ok());
+    EXPECT_EQ(fixed.range, equal.range);
+    EXPECT_EQ(fixed.alpha, equal.alpha);
+    EXPECT_EQ(fixed.range_sum, equal.range_sum);
+    Eigen::Isometry3d T_end = T_wl;
+    T_end.translation().x() += 1e-9;
+    ASSERT_TRUE(renderer.Render(m, LidarSweepPose{T_wl, T_end}, opt, &nearly).ok());
+    EXPECT_EQ(nearly.num_visible, fixed.num_visible);
+    double max_alpha = 0, max_range_sum = 0;
+    for (size_t p = 0; p < fixed.alpha.size(); ++p) {
+      max_alpha = std::max(max_alpha, static_cast<double>(std::abs(nearly.alpha[p] - fixed.alpha[p])));
+      max_range_sum = std::max(max_range_sum, static_cast<double>(std::abs(nearly.range_sum[p] - fixed.range_sum[p])));
+    }
+    EXPECT_LT(max_alpha, 1e-4);
+    EXPECT_LT(max_range_sum, 1e-3);
+  }
+}
+
 TEST(LidarRender, SampledDropIsDeterministicAcrossThreadCounts) {
   const LidarModel m = KittiHdl64e(1024);
   GaussianStore s;
@@ -258,6 +368,11 @@ TEST(LidarRender, RejectsBadInputs) {
   Eigen::Isometry3d bad = Eigen::Isometry3d::Identity();
   bad.linear() *= 2;
   EXPECT_FALSE(r.Render(s, KittiHdl64e(), bad, {}, &out).ok());
+  EXPECT_FALSE(r.Render(s, KittiHdl64e(), LidarSweepPose{Eigen::Isometry3d::Identity(), bad}, {}, &out).ok());
+  Eigen::Isometry3d nan_end = Eigen::Isometry3d::Identity();
+  nan_end.translation().x() = std::nan("");
+  EXPECT_EQ(r.Render(s, KittiHdl64e(), LidarSweepPose{Eigen::Isometry3d::Identity(), nan_end}, {}, &out).code(),
+            absl::StatusCode::kInvalidArgument);
   // Nothing uploaded; a store that fails Validate() (caught at upload, not per sweep).
   LidarRenderer fresh(1);
   EXPECT_EQ(fresh.Render(KittiHdl64e(), Eigen::Isometry3d::Identity(), {}, &out).code(),

@@ -1,0 +1,311 @@
+// The vulkan LiDAR backward pass (VulkanLidarRenderer::Backward, render/vulkan/lidar_backward_vk.h)
+// on lavapipe: gradients against the cpu double-precision reference (RenderLidarReference with
+// upstream gradients) on small random scenes around the sensor (a fifth of them on the seam behind
+// it), static and rolling sweeps; against the cpu scalar float backward on a street with saturated
+// rays; the compare-and-swap fallback; the preconditions. Relative error per parameter group
+// (||a - b|| / ||b||), the style of tests/lidar/lidar_backward_test.cc and
+// tests/render/vulkan_backward_test.cc. ctest also runs it at lavapipe subgroup sizes 4 and 16.
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <memory>
+#include <random>
+#include <vector>
+
+#include "gtest/gtest.h"
+#include "render/common/thread_pool.h"
+#include "render/lidar/lidar_backward.h"
+#include "render/lidar/lidar_renderer.h"
+#include "render/vulkan/lidar_renderer_vk.h"
+#include "scene/gaussians/synthetic_street.h"
+
+namespace streetsim {
+namespace {
+
+VulkanLidarRenderer* MakeRenderer(bool cas) {
+  if (cas) setenv("STREETSIM_VK_NO_FLOAT_ATOMICS", "1", 1);
+  auto created = VulkanLidarRenderer::Create(VulkanDevicePreference::kLavapipe);
+  if (cas) unsetenv("STREETSIM_VK_NO_FLOAT_ATOMICS");
+  if (!created.ok()) {
+    ADD_FAILURE() << "no vulkan LiDAR renderer: " << created.status();
+    std::abort();
+  }
+  return created->release();
+}
+
+// One renderer per atomics mode for the whole binary: device and pipeline creation dominate.
+VulkanLidarRenderer& Vk() {
+  static VulkanLidarRenderer* r = MakeRenderer(false);
+  return *r;
+}
+VulkanLidarRenderer& VkCas() {
+  static VulkanLidarRenderer* r = MakeRenderer(true);
+  return *r;
+}
+
+// 16 beams of the HDL-64E table (every 4th: non-uniform spacing), 256 columns.
+LidarModel SmallModel() {
+  const LidarModel full = KittiHdl64e();
+  LidarModel m = full;
+  m.beam_elevation_deg.clear();
+  for (int b = 0; b < 64; b += 4) m.beam_elevation_deg.push_back(full.beam_elevation_deg[b]);
+  m.columns = 256;
+  return m;
+}
+
+struct Scene {
+  GaussianStore store;
+  std::vector<float> reflectance;
+  LidarModel model;
+  LidarSweepPose sweep;
+  std::vector<float> w_range, w_alpha, w_intensity;  // upstream gradients per ray
+};
+
+// n Gaussians 4..9 m around the sensor within the beams' elevations, a fifth of them straight
+// behind it (on the seam), opacities below the 0.99 clamp, random reflectance and upstream
+// gradients (as lidar_backward_test.cc's gradient-check scene).
+Scene RandomScene(unsigned seed, int n, bool rolling) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> u(0, 1);
+  Scene s;
+  s.model = SmallModel();
+  Eigen::Isometry3d start = Eigen::Isometry3d::Identity();
+  start.linear() = Eigen::AngleAxisd(0.2, Eigen::Vector3d(0.1, 0.05, 1).normalized()).toRotationMatrix();
+  start.translation() = Eigen::Vector3d(1.0, -0.5, 1.7);
+  Eigen::Isometry3d end = start;
+  if (rolling) {
+    end.translation() += Eigen::Vector3d(0.8, 0.3, 0.05);
+    end.rotate(Eigen::AngleAxisd(0.12, Eigen::Vector3d::UnitZ()));
+  }
+  s.sweep = {start, end};
+  GaussianStore& g = s.store;
+  g.sh_degree = 0;
+  g.Resize(n);
+  for (int i = 0; i < n; ++i) {
+    const double r = 4 + 5 * u(rng);
+    const double az = i % 5 == 0 ? M_PI + 0.3 * (u(rng) - 0.5) : 1.4 * (u(rng) - 0.5);
+    const double el = (-20 + 20 * u(rng)) * M_PI / 180;
+    const Eigen::Vector3d p = start * Eigen::Vector3d(r * std::cos(el) * std::cos(az),
+                                                      r * std::cos(el) * std::sin(az), r * std::sin(el));
+    for (int k = 0; k < 3; ++k) {
+      g.means[i * 3 + k] = static_cast<float>(p[k]);
+      g.log_scales[i * 3 + k] = static_cast<float>(std::log(0.06 + 0.2 * u(rng)));
+    }
+    for (int k = 0; k < 4; ++k) g.rotations[i * 4 + k] = static_cast<float>(u(rng) - 0.5 + (k == 0 ? 0.6 : 0.0));
+    g.opacity_logits[i] = static_cast<float>(-1.5 + 2.5 * u(rng));
+    g.sh[i * 3] = g.sh[i * 3 + 1] = g.sh[i * 3 + 2] = 0.0f;
+    s.reflectance.push_back(static_cast<float>(0.1 + 0.8 * u(rng)));
+  }
+  const size_t P = static_cast<size_t>(s.model.beams()) * s.model.columns;
+  for (size_t p = 0; p < P; ++p) {
+    s.w_range.push_back(static_cast<float>(0.2 * (u(rng) - 0.5)));
+    s.w_alpha.push_back(static_cast<float>(u(rng) - 0.5));
+    s.w_intensity.push_back(static_cast<float>(u(rng) - 0.3));
+  }
+  return s;
+}
+
+using Grads = LidarGaussianGradsT<double>;
+
+Grads ToDouble(const LidarGaussianGrads& g) {
+  auto d = [](const std::vector<float>& v) { return std::vector<double>(v.begin(), v.end()); };
+  return {d(g.means), d(g.log_scales), d(g.rotations), d(g.opacity_logits), d(g.reflectance)};
+}
+
+// The vulkan backward after a kept vulkan forward; num_visible: the forward's splat count.
+Grads VulkanGrads(VulkanLidarRenderer& vk, const GaussianStore& store, const LidarModel& model,
+                  const LidarSweepPose& sweep, const std::vector<float>& refl, const LidarUpstreamGrads& up,
+                  size_t* num_visible = nullptr) {
+  LidarRenderOptions opt;
+  opt.reflectance = &refl;
+  opt.keep_for_backward = true;
+  LidarRenderOutput out;
+  absl::Status st = vk.Render(store, model, sweep, opt, &out);
+  EXPECT_TRUE(st.ok()) << st;
+  if (num_visible) *num_visible = out.num_visible;
+  LidarGaussianGrads g;
+  st = vk.Backward(up, &g);
+  EXPECT_TRUE(st.ok()) << st;
+  return ToDouble(g);
+}
+
+// The cpu float backward after a kScalar forward (the scalar reference backward).
+Grads CpuGrads(const GaussianStore& store, const LidarModel& model, const LidarSweepPose& sweep,
+               const std::vector<float>& refl, const LidarUpstreamGrads& up, size_t* saturated = nullptr) {
+  LidarRenderer renderer(2);
+  LidarRenderOptions opt;
+  opt.reflectance = &refl;
+  opt.kernel = LidarRenderOptions::Kernel::kScalar;
+  opt.keep_for_backward = true;
+  LidarRenderOutput out;
+  EXPECT_TRUE(renderer.Render(store, model, sweep, opt, &out).ok());
+  if (saturated) {
+    *saturated = 0;
+    for (float a : out.alpha) *saturated += a > 0.999f;
+  }
+  LidarGaussianGrads g;
+  const absl::Status st = renderer.Backward(up, &g);
+  EXPECT_TRUE(st.ok()) << st;
+  return ToDouble(g);
+}
+
+struct Group {
+  const char* name;
+  std::vector<double> Grads::*grads;
+};
+const Group kGroups[] = {{"means", &Grads::means},
+                         {"log_scales", &Grads::log_scales},
+                         {"rotations", &Grads::rotations},
+                         {"opacity_logits", &Grads::opacity_logits},
+                         {"reflectance", &Grads::reflectance}};
+
+double RelError(const std::vector<double>& a, const std::vector<double>& ref) {
+  EXPECT_EQ(a.size(), ref.size());
+  double num = 0, den = 0;
+  for (size_t i = 0; i < a.size() && i < ref.size(); ++i) {
+    num += (a[i] - ref[i]) * (a[i] - ref[i]);
+    den += ref[i] * ref[i];
+  }
+  return std::sqrt(num / std::max(den, 1e-300));
+}
+
+class VulkanLidarBackwardSweep : public ::testing::TestWithParam<bool> {};
+
+// Against the double reference's analytic gradients (themselves checked against finite
+// differences in lidar_backward_test.cc), beside the cpu float backward's error for scale.
+TEST_P(VulkanLidarBackwardSweep, MatchesTheDoubleReference) {
+  const bool rolling = GetParam();
+  ThreadPool pool(2);
+  const Scene s = RandomScene(rolling ? 21 : 17, 300, rolling);
+  LidarReferenceOutput ref_out;
+  const std::vector<double> wr(s.w_range.begin(), s.w_range.end()), wa(s.w_alpha.begin(), s.w_alpha.end()),
+      wi(s.w_intensity.begin(), s.w_intensity.end());
+  const LidarUpstreamGradsT<double> up_d{wr.data(), wa.data(), wi.data()};
+  Grads ref;
+  ASSERT_TRUE(RenderLidarReference(pool, s.store, s.model, s.sweep, &s.reflectance, &ref_out, &up_d, &ref).ok());
+  const LidarUpstreamGrads up{s.w_range.data(), s.w_alpha.data(), s.w_intensity.data()};
+  size_t visible = 0;
+  const Grads vk = VulkanGrads(Vk(), s.store, s.model, s.sweep, s.reflectance, up, &visible);
+  const Grads cpu = CpuGrads(s.store, s.model, s.sweep, s.reflectance, up);
+  // Most Gaussians drawn, and seam copies among the splats (more splats than drawn Gaussians).
+  size_t drawn = 0;
+  for (double v : ref.opacity_logits) drawn += v != 0;
+  EXPECT_GE(drawn, 250u);
+  EXPECT_GT(visible, drawn);
+  for (const Group& g : kGroups) {
+    const double e_vk = RelError(vk.*(g.grads), ref.*(g.grads));
+    const double e_cpu = RelError(cpu.*(g.grads), ref.*(g.grads));
+    std::printf("%s %-15s rel. error vs double reference: vulkan %.2e  cpu float %.2e\n",
+                rolling ? "rolling" : "static ", g.name, e_vk, e_cpu);
+    EXPECT_LT(e_vk, 1e-4) << g.name;
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(Sweeps, VulkanLidarBackwardSweep, ::testing::Values(false, true),
+                         [](const auto& info) { return info.param ? "Rolling" : "Static"; });
+
+// A street (rays that saturate: the T < 1e-4 stop), rolling sweep, reflectance, all three upstream
+// gradients, against the cpu scalar backward. The two forwards differ in rounding (a threshold
+// can flip on a few rays), so the whole vector per group is compared, as the cpu's own
+// VectorisedBackwardMatchesTheScalarReference (bound 1e-2 there; 1e-3 here).
+TEST(VulkanLidarBackward, MatchesTheCpuBackwardOnAStreet) {
+  SyntheticStreetOptions so;
+  so.num_gaussians = 60'000;
+  so.sh_degree = 0;
+  const GaussianStore store = MakeSyntheticStreet(so);
+  std::vector<float> refl(store.size());
+  for (size_t i = 0; i < refl.size(); ++i) refl[i] = static_cast<float>((i * 37) % 101) / 100.0f;
+  const LidarModel m = KittiHdl64e(1024);
+  LidarSweepPose sweep;
+  sweep.T_world_from_lidar_start.translate(Eigen::Vector3d(20, 0.5, 1.73));
+  sweep.T_world_from_lidar_end = sweep.T_world_from_lidar_start;
+  sweep.T_world_from_lidar_end.translate(Eigen::Vector3d(1.5, 0, 0));
+  sweep.T_world_from_lidar_end.rotate(Eigen::AngleAxisd(0.05, Eigen::Vector3d::UnitZ()));
+  const size_t P = static_cast<size_t>(m.beams()) * m.columns;
+  std::mt19937 rng(4);
+  std::uniform_real_distribution<float> u(-0.5f, 0.5f);
+  std::vector<float> dr(P), da(P), di(P);
+  for (size_t p = 0; p < P; ++p) {
+    dr[p] = 0.1f * u(rng);
+    da[p] = u(rng);
+    di[p] = u(rng);
+  }
+  const LidarUpstreamGrads up{dr.data(), da.data(), di.data()};
+  size_t saturated = 0;
+  const Grads cpu = CpuGrads(store, m, sweep, refl, up, &saturated);
+  EXPECT_GT(saturated, P / 20);
+  const Grads vk = VulkanGrads(Vk(), store, m, sweep, refl, up);
+  for (const Group& g : kGroups) {
+    const double e = RelError(vk.*(g.grads), cpu.*(g.grads));
+    std::printf("street %-15s rel. difference vulkan vs cpu scalar backward %.2e (%zu saturated rays)\n", g.name,
+                e, saturated);
+    EXPECT_LT(e, 1e-3) << g.name;
+  }
+}
+
+// The compare-and-swap blend backward (devices without shaderBufferFloat32AtomicAdd) gives the
+// float-atomic one's gradients up to the summation order.
+TEST(VulkanLidarBackward, CompareAndSwapFallbackAgrees) {
+  const Scene s = RandomScene(9, 300, true);
+  const LidarUpstreamGrads up{s.w_range.data(), s.w_alpha.data(), s.w_intensity.data()};
+  const Grads a = VulkanGrads(Vk(), s.store, s.model, s.sweep, s.reflectance, up);
+  const Grads b = VulkanGrads(VkCas(), s.store, s.model, s.sweep, s.reflectance, up);
+  for (const Group& g : kGroups) {
+    double norm = 0;
+    for (double v : b.*(g.grads)) norm += v * v;
+    EXPECT_GT(norm, 0) << g.name;
+    EXPECT_LT(RelError(a.*(g.grads), b.*(g.grads)), 1e-5) << g.name;
+  }
+}
+
+TEST(VulkanLidarBackward, PreconditionsAndNullUpstream) {
+  const Scene s = RandomScene(5, 40, false);
+  // A renderer of its own: no kept sweep from another test.
+  std::unique_ptr<VulkanLidarRenderer> owned(MakeRenderer(false));
+  VulkanLidarRenderer& vk = *owned;
+  LidarRenderOutput out;
+  LidarGaussianGrads g;
+  std::vector<float> d(static_cast<size_t>(s.model.beams()) * s.model.columns, 1.0f);
+  EXPECT_EQ(vk.Backward({d.data()}, &g).code(), absl::StatusCode::kFailedPrecondition);
+  ASSERT_TRUE(vk.Render(s.store, s.model, s.sweep, {}, &out).ok());
+  EXPECT_EQ(vk.Backward({d.data()}, &g).code(), absl::StatusCode::kFailedPrecondition);
+  LidarRenderOptions opt;
+  opt.keep_for_backward = true;
+  ASSERT_TRUE(vk.Render(s.store, s.model, s.sweep, opt, &out).ok());
+  EXPECT_EQ(vk.Backward({d.data()}, nullptr).code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(vk.Backward({d.data()}, &g, /*deterministic=*/true).code(), absl::StatusCode::kUnimplemented);
+  ASSERT_TRUE(vk.Backward({d.data()}, &g).ok());
+  EXPECT_EQ(g.means.size(), 3 * s.store.size());
+  EXPECT_EQ(g.log_scales.size(), 3 * s.store.size());
+  EXPECT_EQ(g.rotations.size(), 4 * s.store.size());
+  EXPECT_EQ(g.opacity_logits.size(), s.store.size());
+  EXPECT_EQ(g.reflectance.size(), s.store.size());
+  // Only range gradients flow: d(sum range_sum) / d(reflectance) is 0.
+  for (float v : g.reflectance) EXPECT_EQ(v, 0.0f);
+  double norm = 0;
+  for (float v : g.means) norm += std::abs(v);
+  EXPECT_GT(norm, 0);
+  // The same kept sweep twice: the same gradients up to the atomics' summation order.
+  LidarGaussianGrads again;
+  ASSERT_TRUE(vk.Backward({d.data()}, &again).ok());
+  EXPECT_LT(RelError(ToDouble(again).means, ToDouble(g).means), 1e-5);
+  // A failed render and a new upload both drop the kept sweep.
+  ASSERT_TRUE(vk.Render(s.store, s.model, s.sweep, opt, &out).ok());
+  LidarModel bad = s.model;
+  bad.columns = 0;
+  EXPECT_FALSE(vk.Render(bad, s.sweep, opt, &out).ok());
+  EXPECT_EQ(vk.Backward({d.data()}, &g).code(), absl::StatusCode::kFailedPrecondition);
+  ASSERT_TRUE(vk.Render(s.store, s.model, s.sweep, opt, &out).ok());
+  ASSERT_TRUE(vk.Upload(s.store).ok());
+  EXPECT_EQ(vk.Backward({d.data()}, &g).code(), absl::StatusCode::kFailedPrecondition);
+  // An empty scene: empty gradients.
+  GaussianStore empty;
+  empty.sh_degree = 0;
+  ASSERT_TRUE(vk.Render(empty, s.model, s.sweep, opt, &out).ok());
+  ASSERT_TRUE(vk.Backward({d.data()}, &g).ok());
+  EXPECT_TRUE(g.means.empty());
+  EXPECT_TRUE(g.reflectance.empty());
+}
+
+}  // namespace
+}  // namespace streetsim
