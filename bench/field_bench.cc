@@ -1,0 +1,248 @@
+// Deformation-field speed (docs/field.md), spec sizes (4 levels x 6 planes x 32 channels, 64..512,
+// time 25, MLP 128 -> 64 -> {3, 48}):
+// - serving: field evaluation per timestamp for N Gaussians uniformly random in a 200 x 200 x 20 m
+//   AABB, without and with the static skip. The field is the spec's init with the space-time
+//   planes varied in time over a band of x (--dynamic-fraction of the AABB's x extent), so the
+//   Gaussians in the band move and the others do not.
+// - training: DeformScene + DeformBackward (random dL/d(deformed means, SH)), the plane
+//   regularisers and the field's Adam step, for Gaussians of the procedural street.
+//   field_bench [--serve 500000] [--train 139000,300000] [--repeats 5] [--samples 50]
+//               [--dynamic-fraction 0.1] [--threads 0] [--row-order (no Morton order when serving)]
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <ctime>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_split.h"
+#include "render/common/thread_pool.h"
+#include "scene/field/deformed_scene.h"
+#include "scene/field/field_regularizers.h"
+#include "scene/field/static_skip.h"
+#include "scene/gaussians/synthetic_street.h"
+
+using namespace streetsim;
+using namespace streetsim::field;
+using Clock = std::chrono::steady_clock;
+static double Ms(Clock::time_point t0) { return std::chrono::duration<double, std::milli>(Clock::now() - t0).count(); }
+// Process CPU time (all threads), ms: on a machine shared with other jobs wall time varies with
+// their load, CPU time much less.
+static double CpuMs() {
+  timespec ts;
+  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
+  return ts.tv_sec * 1e3 + ts.tv_nsec * 1e-6;
+}
+
+namespace {
+
+std::vector<size_t> ParseSizes(const std::string& s) {
+  std::vector<size_t> out;
+  for (const std::string& p : std::vector<std::string>(absl::StrSplit(s, ',', absl::SkipEmpty()))) {
+    size_t n = 0;
+    if (!absl::SimpleAtoi(p, &n)) {
+      std::fprintf(stderr, "bad size %s\n", p.c_str());
+      std::exit(2);
+    }
+    out.push_back(n);
+  }
+  return out;
+}
+
+// Space-time planes vary in time over the texel columns (x) of a band: the field moves what lies
+// in that band of x only.
+void MakeBandDynamic(DeformationField* f, double fraction) {
+  const FieldLayout& L = f->layout();
+  std::vector<float>& p = f->mutable_params();
+  for (const PlaneInfo& pi : L.planes) {
+    if (pi.plane != 2) continue;  // xt
+    const int u0 = static_cast<int>(pi.width * 0.45), u1 = u0 + std::max(1, static_cast<int>(pi.width * fraction));
+    for (int v = 0; v < pi.height; ++v)
+      for (int u = u0; u < std::min(u1, pi.width); ++u)
+        for (int k = 0; k < L.channels; ++k)
+          p[pi.offset + (static_cast<size_t>(v) * pi.width + u) * L.channels + k] =
+              1.0f + 0.5f * std::sin(6.28318f * (v / float(pi.height - 1)) * (1 + k % 3));
+  }
+}
+
+GaussianStore RandomInBox(size_t n, const FieldAabb& box, uint64_t seed) {
+  GaussianStore g;
+  g.sh_degree = 3;
+  g.Resize(n);
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<float> u(0, 1), s(-0.1f, 0.1f);
+  for (size_t i = 0; i < n; ++i) {
+    for (int k = 0; k < 3; ++k) g.means[i * 3 + k] = box.min[k] + u(rng) * (box.max[k] - box.min[k]);
+    for (int k = 0; k < 3; ++k) g.log_scales[i * 3 + k] = -3;
+    g.rotations[i * 4] = 1;
+    for (int k = 0; k < 48; ++k) g.sh[i * 48 + k] = s(rng);
+  }
+  return g;
+}
+
+void BenchServe(size_t n, int repeats, int samples, double dyn_fraction, bool order, ThreadPool& pool) {
+  FieldAabb box;
+  box.min[0] = -100; box.min[1] = -100; box.min[2] = -5;
+  box.max[0] = 100;  box.max[1] = 100;  box.max[2] = 15;
+  const FieldTimeRange tr{0, 5'000'000};
+  absl::StatusOr<DeformationField> f = DeformationField::Create(FieldConfig{}, box, tr, 1);
+  if (!f.ok()) std::exit(1);
+  MakeBandDynamic(&*f, dyn_fraction);
+  const GaussianStore g = RandomInBox(n, box, 2);
+  struct Mode {
+    const char* name;
+    bool skip, cache;
+  };
+  for (const Mode& mode : {Mode{"no-skip", false, false}, Mode{"no-skip+cache", false, true},
+                           Mode{"skip+cache", true, true}}) {
+    const bool skip = mode.skip;
+    StaticSkipOptions o;
+    o.enabled = skip;
+    o.cache_spatial_features = mode.cache;
+    o.num_samples = samples;
+    o.spatial_order = order;
+    const auto t0 = Clock::now();
+    absl::StatusOr<ServingField> sf = ServingField::Create(*f, g, o, pool);
+    const double setup_ms = Ms(t0);
+    if (!sf.ok()) {
+      std::fprintf(stderr, "%s\n", std::string(sf.status().message()).c_str());
+      std::exit(1);
+    }
+    double total = 0, cpu = 0;
+    for (int r = 0; r <= repeats; ++r) {
+      const auto t1 = Clock::now();
+      const double c1 = CpuMs();
+      absl::StatusOr<const GaussianStore*> s = sf->At(100'000 * (r + 1), pool);  // distinct timestamps
+      const double ms = Ms(t1), cms = CpuMs() - c1;
+      if (!s.ok()) std::exit(1);
+      if (r > 0) total += ms, cpu += cms;  // the first call warms the workspace
+    }
+    std::printf("serve %8zu %-13s dynamic %7zu (%5.1f %%)  setup %8.0f ms  per timestamp %7.1f ms wall, %7.1f ms cpu\n",
+                n, mode.name, sf->num_dynamic(), 100.0 * sf->num_dynamic() / n, setup_ms,
+                total / repeats, cpu / repeats);
+  }
+}
+
+void BenchTrain(size_t n, int repeats, ThreadPool& pool) {
+  const GaussianStore g = MakeSyntheticStreet({.num_gaussians = n, .seed = 3, .sh_degree = 3});
+  FieldAabb box;
+  for (int k = 0; k < 3; ++k) {
+    box.min[k] = 1e30;
+    box.max[k] = -1e30;
+  }
+  for (size_t i = 0; i < n; ++i)
+    for (int k = 0; k < 3; ++k) {
+      box.min[k] = std::min<double>(box.min[k], g.means[i * 3 + k]);
+      box.max[k] = std::max<double>(box.max[k], g.means[i * 3 + k]);
+    }
+  absl::StatusOr<DeformationField> f = DeformationField::Create(FieldConfig{}, box, {0, 5'000'000}, 1);
+  if (!f.ok()) std::exit(1);
+  FieldWorkspace ws;
+  DeformedScene d;
+  CanonicalView cv{n, g.means.data(), g.sh.data()};
+  std::vector<float> d_field;  // sized (on huge pages) by DeformBackward
+  FieldAdamState adam;
+  FieldHyper hyper;
+  std::mt19937_64 rng(5);
+  std::normal_distribution<float> nd(0, 1e-3f);
+  GaussianGrads grads;
+  double t_fwd = 0, t_bwd = 0, t_zero = 0, t_reg = 0, t_adam = 0, t_rows = 0, t_scatter = 0, t_cpu = 0;
+  for (int r = 0; r <= repeats; ++r) {
+    grads.means.resize(n * 3);
+    grads.sh.resize(n * 48);
+    for (float& x : grads.means) x = nd(rng);
+    for (float& x : grads.sh) x = nd(rng);
+    auto t0 = Clock::now();
+    (void)DeformScene(*f, f->TimeCoordinate(r * 250'000), cv, pool, ws, &d);
+    const double a = Ms(t0);
+    const double cpu0 = CpuMs();
+    t0 = Clock::now();
+    pool.ParallelFor(static_cast<int64_t>(d_field.size()), 1 << 18, [&](int64_t b, int64_t e, int) {
+      std::memset(d_field.data() + b, 0, (e - b) * sizeof(float));
+    });
+    const double z = Ms(t0);
+    t0 = Clock::now();
+    (void)DeformBackward(*f, cv, d, 3, hyper, pool, ws, &grads, &d_field);
+    const double b = Ms(t0);
+    t0 = Clock::now();
+    PlaneRegularizers<float>(f->layout(), f->params().data(),
+                             {hyper.plane_tv_weight, hyper.time_smoothness_weight, hyper.l1_time_planes},
+                             d_field.data(), pool);
+    const double c = Ms(t0);
+    t0 = Clock::now();
+    FieldAdamStep(f->layout(), f->mutable_params().data(), d_field.data(), &adam,
+                  FieldLearningRates(hyper, r + 1, 20.0), pool);
+    const double e = Ms(t0);
+    const double cpu_step = CpuMs() - cpu0;
+    if (r == 0) continue;  // warm-up: first-touch page faults of the workspaces and moments
+    t_fwd += a;
+    t_zero += z;
+    t_bwd += b;
+    t_reg += c;
+    t_adam += e;
+    t_rows += ws.last_rows_ms;
+    t_cpu += cpu_step;
+    t_scatter += ws.last_scatter_ms;
+  }
+  // The alternative to the per-plane scatter: per-thread gradient arrays of every plane, zeroed
+  // and merged each step. Its fixed cost, measured here: zero one array per thread, add them.
+  double t_alt = 0;
+  {
+    const int nt = pool.num_threads();
+    std::vector<std::vector<float>> per_thread(nt, std::vector<float>(f->layout().grid_size, 0.0f));
+    for (int r = 0; r <= repeats; ++r) {
+      const auto t0 = Clock::now();
+      const int64_t G = static_cast<int64_t>(f->layout().grid_size);
+      pool.ParallelFor(G, 1 << 18, [&](int64_t b, int64_t e, int) {
+        for (int t = 0; t < nt; ++t) std::memset(per_thread[t].data() + b, 0, (e - b) * sizeof(float));
+      });
+      pool.ParallelFor(G, 1 << 18, [&](int64_t b, int64_t e, int) {
+        for (int t = 0; t < nt; ++t)
+          for (int64_t i = b; i < e; ++i) d_field[i] += per_thread[t][i];
+      });
+      if (r > 0) t_alt += Ms(t0);
+    }
+  }
+  const double k = 1.0 / repeats;
+  std::printf("train %8zu  forward %7.1f  backward %7.1f  (fwd+bwd %7.1f)  zero-grad %6.1f  regularisers %6.1f  "
+              "adam %6.1f  total %7.1f ms\n",
+              n, t_fwd * k, t_bwd * k, (t_fwd + t_bwd) * k, t_zero * k, t_reg * k, t_adam * k,
+              (t_fwd + t_bwd + t_zero + t_reg + t_adam) * k);
+  std::printf("      %8s  backward phases: rows %7.1f, per-plane scatter %6.1f ms; per-thread arrays instead "
+              "would add %6.1f ms (zero + merge) per step\n",
+              "", t_rows * k, t_scatter * k, t_alt * k);
+  std::printf("      %8s  process CPU time of a whole step (forward .. adam, all threads): %7.1f ms\n", "", t_cpu * k);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::string serve = "500000", train = "139000,300000";
+  int repeats = 5, samples = 50, threads = 0;
+  double dyn = 0.1;
+  bool order = true;
+  for (int i = 1; i < argc; ++i) {
+    if (!std::strcmp(argv[i], "--serve") && i + 1 < argc) serve = argv[++i];
+    else if (!std::strcmp(argv[i], "--train") && i + 1 < argc) train = argv[++i];
+    else if (!std::strcmp(argv[i], "--repeats") && i + 1 < argc) repeats = std::max(1, std::atoi(argv[++i]));
+    else if (!std::strcmp(argv[i], "--samples") && i + 1 < argc) samples = std::atoi(argv[++i]);
+    else if (!std::strcmp(argv[i], "--dynamic-fraction") && i + 1 < argc) dyn = std::atof(argv[++i]);
+    else if (!std::strcmp(argv[i], "--threads") && i + 1 < argc) threads = std::atoi(argv[++i]);
+    else if (!std::strcmp(argv[i], "--row-order")) order = false;
+    else {
+      std::fprintf(stderr,
+                   "usage: field_bench [--serve N,...] [--train N,...] [--repeats R] [--samples S] "
+                   "[--dynamic-fraction F] [--threads T] [--row-order]\n");
+      return 2;
+    }
+  }
+  ThreadPool pool(threads);
+  std::printf("field: spec sizes (35.7M plane parameters), %d threads, times averaged over %d repeats\n",
+              pool.num_threads(), repeats);
+  for (size_t n : ParseSizes(serve)) BenchServe(n, repeats, samples, dyn, order, pool);
+  for (size_t n : ParseSizes(train)) BenchTrain(n, repeats, pool);
+  return 0;
+}

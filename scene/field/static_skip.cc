@@ -1,0 +1,141 @@
+#include "scene/field/static_skip.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+
+#include "absl/strings/str_cat.h"
+#include "scene/field/spatial_order.h"
+
+namespace streetsim::field {
+
+namespace {
+constexpr size_t kAnalysisChunk = 32768;  // Gaussians whose statistics are kept at once
+}  // namespace
+
+absl::StatusOr<StaticAnalysis> AnalyseStatic(const DeformationField& field, const GaussianStore& g,
+                                             const StaticSkipOptions& o, ThreadPool& pool) {
+  if (absl::Status s = g.Validate(); !s.ok()) return s;
+  if (o.num_samples < 2 || o.num_samples > 100000) {
+    return absl::InvalidArgumentError(absl::StrCat("static skip: ", o.num_samples, " samples, want 2..100000"));
+  }
+  const size_t n = g.size();
+  const int K3 = g.sh_coeffs() * 3;
+  StaticAnalysis out;
+  out.mean_dx.assign(n * 3, 0.0f);
+  out.mean_dsh.assign(n * K3, 0.0f);
+  FieldWorkspace ws;
+  std::vector<float> dx, dsh, lo, hi, spatial;
+  std::vector<double> sum;
+  const int S = o.num_samples;
+  const int W = 3 + K3;  // statistics per Gaussian: Δx then ΔSH
+  for (size_t c0 = 0; c0 < n; c0 += kAnalysisChunk) {
+    const size_t cn = std::min(kAnalysisChunk, n - c0);
+    dx.resize(cn * 3);
+    dsh.resize(cn * kShOutputs);
+    lo.assign(cn * W, std::numeric_limits<float>::max());
+    hi.assign(cn * W, std::numeric_limits<float>::lowest());
+    sum.assign(cn * W, 0.0);
+    // The spatial planes do not depend on time: sampled once per chunk, not once per sample.
+    spatial.resize(cn * field.layout().feature_dim());
+    SpatialFeatures<float>(field.layout(), field.params().data(), field.QueryAtCoordinate(0),
+                           g.means.data() + c0 * 3, nullptr, cn, spatial.data(), pool);
+    for (int s = 0; s < S; ++s) {
+      const double coord = field.NormalisedTime(static_cast<double>(s) / (S - 1));
+      FieldForwardCached<float>(field.layout(), field.params().data(), field.QueryAtCoordinate(coord),
+                                g.means.data() + c0 * 3, nullptr, spatial.data(), cn, dx.data(), dsh.data(), pool,
+                                ws);
+      pool.ParallelFor(static_cast<int64_t>(cn), 4096, [&](int64_t b, int64_t e, int) {
+        for (int64_t i = b; i < e; ++i) {
+          for (int k = 0; k < W; ++k) {
+            const float v = k < 3 ? dx[i * 3 + k] : dsh[i * kShOutputs + (k - 3)];
+            const size_t j = i * W + k;
+            lo[j] = std::min(lo[j], v);
+            hi[j] = std::max(hi[j], v);
+            sum[j] += v;
+          }
+        }
+      });
+    }
+    for (size_t i = 0; i < cn; ++i) {
+      double box2 = 0, sh_range = 0;
+      for (int k = 0; k < 3; ++k) box2 += double(hi[i * W + k] - lo[i * W + k]) * (hi[i * W + k] - lo[i * W + k]);
+      for (int k = 3; k < W; ++k) sh_range = std::max(sh_range, double(hi[i * W + k] - lo[i * W + k]));
+      for (int k = 0; k < 3; ++k) out.mean_dx[(c0 + i) * 3 + k] = static_cast<float>(sum[i * W + k] / S);
+      for (int k = 0; k < K3; ++k) out.mean_dsh[(c0 + i) * K3 + k] = static_cast<float>(sum[i * W + 3 + k] / S);
+      const bool is_static = std::sqrt(box2) < o.motion_threshold_m && sh_range < o.sh_threshold;
+      if (!is_static || !o.enabled) out.dynamic_rows.push_back(static_cast<uint32_t>(c0 + i));
+    }
+  }
+  return out;
+}
+
+absl::StatusOr<ServingField> ServingField::Create(DeformationField field, GaussianStore canonical,
+                                                  const StaticSkipOptions& options, ThreadPool& pool) {
+  if (canonical.size() > std::numeric_limits<uint32_t>::max()) {
+    return absl::InvalidArgumentError("ServingField: more than 2^32 Gaussians");
+  }
+  ServingField sf;
+  const size_t n = canonical.size();
+  const int K3 = canonical.sh_coeffs() * 3;
+  sf.baked_ = canonical;
+  if (options.enabled) {
+    absl::StatusOr<StaticAnalysis> a = AnalyseStatic(field, canonical, options, pool);
+    if (!a.ok()) return a.status();
+    sf.dynamic_rows_ = std::move(a->dynamic_rows);
+    std::vector<uint8_t> dynamic(n, 0);
+    for (uint32_t r : sf.dynamic_rows_) dynamic[r] = 1;
+    for (size_t i = 0; i < n; ++i) {
+      if (dynamic[i]) continue;
+      for (int k = 0; k < 3; ++k) sf.baked_.means[i * 3 + k] += a->mean_dx[i * 3 + k];
+      for (int k = 0; k < K3; ++k) sf.baked_.sh[i * K3 + k] += a->mean_dsh[i * K3 + k];
+    }
+  } else {
+    if (absl::Status s = canonical.Validate(); !s.ok()) return s;
+    sf.dynamic_rows_.resize(n);
+    for (size_t i = 0; i < n; ++i) sf.dynamic_rows_[i] = static_cast<uint32_t>(i);
+  }
+  // Evaluation order along a Morton curve: neighbouring rows share texels (cache), see spatial_order.h.
+  if (options.spatial_order) sf.dynamic_rows_ = SpatialOrder(field.aabb(), canonical.means.data(), sf.dynamic_rows_.size(),
+                                  sf.dynamic_rows_.data(), pool);
+  if (options.cache_spatial_features) {
+    sf.spatial_.resize(sf.dynamic_rows_.size() * field.layout().feature_dim());
+    SpatialFeatures<float>(field.layout(), field.params().data(), field.QueryAtCoordinate(0), canonical.means.data(),
+                           sf.dynamic_rows_.data(), sf.dynamic_rows_.size(), sf.spatial_.data(), pool);
+  }
+  sf.field_ = std::move(field);
+  sf.canonical_ = std::move(canonical);
+  sf.current_ = sf.baked_;
+  return sf;
+}
+
+absl::StatusOr<const GaussianStore*> ServingField::At(int64_t time_us, ThreadPool& pool) {
+  const double coord = field_.TimeCoordinate(time_us);
+  if (have_current_ && coord == last_coord_) return &current_;
+  const size_t nd = dynamic_rows_.size();
+  const int K3 = canonical_.sh_coeffs() * 3;
+  dx_.resize(nd * 3);
+  dsh_.resize(nd * kShOutputs);
+  if (spatial_.empty()) {
+    FieldForward<float>(field_.layout(), field_.params().data(), field_.QueryAtCoordinate(coord),
+                        canonical_.means.data(), dynamic_rows_.data(), nd, dx_.data(), K3 > 0 ? dsh_.data() : nullptr,
+                        pool, *ws_);
+  } else {
+    FieldForwardCached<float>(field_.layout(), field_.params().data(), field_.QueryAtCoordinate(coord),
+                              canonical_.means.data(), dynamic_rows_.data(), spatial_.data(), nd, dx_.data(),
+                              K3 > 0 ? dsh_.data() : nullptr, pool, *ws_);
+  }
+  ++evaluations_;
+  pool.ParallelFor(static_cast<int64_t>(nd), 8192, [&](int64_t b, int64_t e, int) {
+    for (int64_t r = b; r < e; ++r) {
+      const size_t i = dynamic_rows_[r];
+      for (int k = 0; k < 3; ++k) current_.means[i * 3 + k] = canonical_.means[i * 3 + k] + dx_[r * 3 + k];
+      for (int k = 0; k < K3; ++k) current_.sh[i * K3 + k] = canonical_.sh[i * K3 + k] + dsh_[r * kShOutputs + k];
+    }
+  });
+  last_coord_ = coord;
+  have_current_ = true;
+  return &current_;
+}
+
+}  // namespace streetsim::field
