@@ -39,10 +39,29 @@ absl::StatusOr<std::unique_ptr<DeviceScene>> RenderCore::Upload(const GaussianSt
   return engine_->Upload(store);
 }
 
+absl::Status RenderCore::RenderLidar(const std::shared_ptr<const HostScene>& host, const LidarJob& job,
+                                     LidarRenderOutput* out) {
+  if (!lidar_) lidar_ = std::make_unique<LidarRenderer>();
+  if (lidar_scene_ != host) {
+    lidar_scene_.reset();
+    if (absl::Status s = lidar_->Upload(host->store); !s.ok()) {
+      return absl::InternalError(absl::StrCat("LiDAR upload failed: ", s.message()));
+    }
+    lidar_scene_ = host;
+  }
+  LidarRenderOptions options = job.options;
+  options.reflectance = host->reflectance ? &*host->reflectance : nullptr;
+  if (absl::Status s = lidar_->Render(job.model, job.sweep, options, out); !s.ok()) {
+    // The request was validated; what is left is the pose (e.g. a non-rigid ego pose product).
+    return absl::InvalidArgumentError(absl::StrCat("lidar: ", s.message()));
+  }
+  return absl::OkStatus();
+}
+
 absl::StatusOr<RenderResult> RenderCore::Render(const SceneField& field, int64_t time_us,
                                                 const std::vector<CameraView>& views,
                                                 const v1::OutputSpec& outputs,
-                                                const CancelCheck& cancel) {
+                                                const CancelCheck& cancel, const RenderExtras& extras) {
   const auto t0 = std::chrono::steady_clock::now();
   // Queue bound: one rendering + max_queued_renders waiting.
   if (in_flight_.fetch_add(1) >= limits_.max_queued_renders + 1) {
@@ -79,6 +98,8 @@ absl::StatusOr<RenderResult> RenderCore::Render(const SceneField& field, int64_t
   if (outputs.has_background_rgb()) {
     options.background = Eigen::Vector3f(outputs.background_rgb().x(), outputs.background_rgb().y(),
                                          outputs.background_rgb().z());
+  } else if (extras.default_background) {
+    options.background = *extras.default_background;
   }
   std::vector<RenderOutput> rendered(views.size());
   const auto t_render = std::chrono::steady_clock::now();
@@ -98,6 +119,13 @@ absl::StatusOr<RenderResult> RenderCore::Render(const SceneField& field, int64_t
     if (absl::Status s = engine_->Render(**scene, cam, options, &rendered[i]); !s.ok()) {
       return absl::InternalError(absl::StrCat("render failed: ", s.message()));
     }
+  }
+  LidarRenderOutput lidar_out;
+  if (extras.lidar) {
+    if (absl::Status s = cancel(); !s.ok()) return s;
+    absl::StatusOr<std::shared_ptr<const HostScene>> host = field.HostAt(time_us);
+    if (!host.ok()) return host.status();
+    if (absl::Status s = RenderLidar(*host, *extras.lidar, &lidar_out); !s.ok()) return s;
   }
   result.timings.set_render_ms(MsSince(t_render));
   lock.unlock();
@@ -131,6 +159,16 @@ absl::StatusOr<RenderResult> RenderCore::Render(const SceneField& field, int64_t
       digest.Update(frame.alpha().data());
     }
     result.frames.push_back(std::move(frame));
+  }
+  if (extras.lidar) {
+    const auto t_lidar = std::chrono::steady_clock::now();
+    v1::LidarResult lidar;
+    LidarResultToProto(*extras.lidar, lidar_out, &lidar);
+    lidar.mutable_timings()->set_encode_ms(MsSince(t_lidar));
+    digest.Update(lidar.range());
+    digest.Update(lidar.intensity());
+    digest.Update(lidar.alpha());
+    result.lidar = std::move(lidar);
   }
   result.timings.set_encode_ms(MsSince(t_encode));
   result.timings.set_total_ms(MsSince(t0));

@@ -7,6 +7,7 @@
 #include <functional>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -14,6 +15,7 @@
 
 #include "absl/status/statusor.h"
 #include "render/engine.h"
+#include "server/lidar_request.h"
 #include "server/limits.h"
 #include "server/proto_convert.h"
 #include "server/scene_field.h"
@@ -38,8 +40,16 @@ struct CameraView {
 
 struct RenderResult {
   std::vector<v1::SensorFrame> frames;
+  std::optional<v1::LidarResult> lidar;
   v1::Timings timings;
   std::string content_digest;
+};
+
+// What a render adds to the cameras: the scene's learned background (used unless the request
+// sets one) and a LiDAR sweep.
+struct RenderExtras {
+  std::optional<Eigen::Vector3f> default_background;
+  const LidarJob* lidar = nullptr;
 };
 
 class RenderCore {
@@ -49,17 +59,26 @@ class RenderCore {
   // Engine::Upload under the engine lock.
   absl::StatusOr<std::unique_ptr<DeviceScene>> Upload(const GaussianStore& store);
 
-  // Renders every view of `field` at time_us; all or nothing. `outputs` already validated.
+  // Renders every view of `field` at time_us (and the LiDAR sweep when extras.lidar is set); all
+  // or nothing. `outputs` already validated.
   absl::StatusOr<RenderResult> Render(const SceneField& field, int64_t time_us,
                                       const std::vector<CameraView>& views,
-                                      const v1::OutputSpec& outputs, const CancelCheck& cancel);
+                                      const v1::OutputSpec& outputs, const CancelCheck& cancel,
+                                      const RenderExtras& extras = {});
 
   int in_flight() const { return in_flight_.load(); }
   std::string backend_name() const;
   std::string device_name() const;
 
  private:
+  // Sweeps `job` of `host` (uploading it first unless it is the one uploaded last).
+  absl::Status RenderLidar(const std::shared_ptr<const HostScene>& host, const LidarJob& job,
+                           LidarRenderOutput* out);
+
   std::unique_ptr<Engine> engine_;
+  // Under engine_mu_ (one renderer at a time: both use every core). Created on first use.
+  std::unique_ptr<LidarRenderer> lidar_;
+  std::shared_ptr<const HostScene> lidar_scene_;  // held so that its address is not reused
   ServerLimits limits_;
   int debug_delay_ms_;
   std::timed_mutex engine_mu_;

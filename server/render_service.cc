@@ -55,6 +55,35 @@ absl::StatusOr<std::vector<CameraView>> Views(const SceneManifest& manifest,
   return absl::InternalError("unreachable");
 }
 
+// The sweep's poses: an explicit ego pose is held for the whole sweep; the log's pose follows the
+// log's trajectory from time_us to time_us + the sweep duration (a rolling sweep); an explicit
+// sensor pose is the LiDAR's own (only when no camera is rendered, else it would be ambiguous).
+absl::Status PlaceLidarFor(const SceneManifest& manifest, const PosePlan& plan, int64_t time_us, bool no_cameras,
+                           LidarJob* job) {
+  switch (plan.kind) {
+    case PoseKind::kEgo:
+      PlaceLidar(plan.T, plan.T, time_us, job);
+      return absl::OkStatus();
+    case PoseKind::kSensor:
+      if (!no_cameras) {
+        return absl::InvalidArgumentError(
+            "T_world_from_sensor with a lidar request needs no_cameras (it is then the LiDAR's pose)");
+      }
+      PlaceLidarAt(plan.T, time_us, job);
+      return absl::OkStatus();
+    case PoseKind::kLog: {
+      std::optional<Eigen::Isometry3d> start = manifest.EgoPoseAt(time_us);
+      if (!start) {
+        return absl::InvalidArgumentError(
+            "no pose given (T_world_from_ego or T_world_from_sensor) and the scene has no ego trajectory");
+      }
+      PlaceLidar(*start, *manifest.EgoPoseAt(time_us + job->model.sweep_duration_us), time_us, job);
+      return absl::OkStatus();
+    }
+  }
+  return absl::InternalError("unreachable");
+}
+
 absl::Status CheckSize(const google::protobuf::Message& msg, const ServerLimits& limits) {
   if (static_cast<int64_t>(msg.ByteSizeLong()) > limits.max_message_bytes) {
     return absl::ResourceExhaustedError(absl::StrCat(
@@ -68,6 +97,7 @@ void FillResponse(RenderResult&& r, const std::string& scene, int64_t time_us, v
   resp->set_scene(scene);
   resp->set_time_us(time_us);
   for (v1::SensorFrame& f : r.frames) *resp->add_frames() = std::move(f);
+  if (r.lidar) *resp->mutable_lidar() = std::move(*r.lidar);
   *resp->mutable_timings() = r.timings;
   resp->set_content_digest(r.content_digest);
 }
@@ -94,14 +124,33 @@ grpc::Status RenderServiceImpl::Render(grpc::ServerContext* ctx, const v1::Rende
     absl::StatusOr<std::shared_ptr<const SceneManifest>> manifest = deps_->scenes->Manifest(req->scene());
     if (!manifest.ok()) return manifest.status();
     if (absl::Status s = CheckTime(**manifest, req->time_us()); !s.ok()) return s;
-    absl::StatusOr<std::vector<RigCamera>> cams = ResolveSensors(**manifest, req->sensors(), deps_->limits);
-    if (!cams.ok()) return cams.status();
-    absl::StatusOr<std::vector<CameraView>> views = Views(**manifest, *cams, *plan, req->time_us());
-    if (!views.ok()) return views.status();
+    if (req->no_cameras() && !req->has_lidar()) {
+      return absl::InvalidArgumentError("no_cameras needs a lidar request (nothing to render)");
+    }
+    std::vector<CameraView> views;
+    if (!req->no_cameras()) {
+      absl::StatusOr<std::vector<RigCamera>> cams = ResolveSensors(**manifest, req->sensors(), deps_->limits);
+      if (!cams.ok()) return cams.status();
+      absl::StatusOr<std::vector<CameraView>> v = Views(**manifest, *cams, *plan, req->time_us());
+      if (!v.ok()) return v.status();
+      views = std::move(*v);
+    }
+    RenderExtras extras;
+    extras.default_background = (*manifest)->background;
+    std::optional<LidarJob> lidar;
+    if (req->has_lidar()) {
+      absl::StatusOr<LidarJob> job = ResolveLidar(req->lidar(), **manifest);
+      if (!job.ok()) return job.status();
+      lidar = std::move(*job);
+      absl::Status placed = PlaceLidarFor(**manifest, *plan, req->time_us(), req->no_cameras(), &*lidar);
+      if (!placed.ok()) return placed;
+      extras.lidar = &*lidar;
+    }
     const CancelCheck cancel = ContextCancelCheck(ctx);
     absl::StatusOr<SceneHandle> scene = deps_->scenes->Acquire(req->scene(), cancel);
     if (!scene.ok()) return scene.status();
-    absl::StatusOr<RenderResult> r = deps_->core->Render(*scene->scene->field, req->time_us(), *views, *outputs, cancel);
+    absl::StatusOr<RenderResult> r =
+        deps_->core->Render(*scene->scene->field, req->time_us(), views, *outputs, cancel, extras);
     if (!r.ok()) return r.status();
     FillResponse(std::move(*r), req->scene(), req->time_us(), resp);
     return CheckSize(*resp, deps_->limits);
@@ -144,8 +193,10 @@ grpc::Status RenderServiceImpl::RenderTrajectory(grpc::ServerContext* ctx, const
     absl::StatusOr<SceneHandle> scene = deps_->scenes->Acquire(req->scene(), cancel);
     if (!scene.ok()) return scene.status();
     for (int i = 0; i < req->points_size(); ++i) {
+      RenderExtras extras;
+      extras.default_background = (*manifest)->background;
       absl::StatusOr<RenderResult> r =
-          deps_->core->Render(*scene->scene->field, req->points(i).time_us(), all_views[i], *outputs, cancel);
+          deps_->core->Render(*scene->scene->field, req->points(i).time_us(), all_views[i], *outputs, cancel, extras);
       if (!r.ok()) return r.status();
       v1::TrajectoryFrame frame;
       frame.set_index(i);

@@ -140,6 +140,25 @@ absl::StatusOr<SceneManifest> ParseSceneManifest(const std::string& json_text) {
         m.ego_trajectory.push_back(tp);
       }
     }
+    if (j.contains("lidars")) {
+      for (const json& l : j["lidars"]) {
+        RigLidar lidar;
+        lidar.sensor_id = l.at("sensor_id").get<std::string>();
+        if (lidar.sensor_id.empty()) return absl::InvalidArgumentError("scene.json: empty lidar sensor_id");
+        if (l.contains("T_ego_from_lidar")) {
+          absl::StatusOr<Eigen::Isometry3d> T = MatrixFromJson(l["T_ego_from_lidar"], "T_ego_from_lidar");
+          if (!T.ok()) return T.status();
+          lidar.T_ego_from_lidar = *T;
+        }
+        if (l.contains("sweep_duration_us")) {
+          lidar.sweep_duration_us = l["sweep_duration_us"].get<int64_t>();
+          if (lidar.sweep_duration_us < 0 || lidar.sweep_duration_us > 10'000'000) {
+            return absl::InvalidArgumentError("scene.json: lidar sweep_duration_us must be in [0, 10 s]");
+          }
+        }
+        m.lidars.push_back(lidar);
+      }
+    }
   } catch (const json::exception& e) {
     return absl::InvalidArgumentError(absl::StrCat("scene.json: ", e.what()));
   }
@@ -178,6 +197,12 @@ std::string SceneManifestToJson(const SceneManifest& m) {
     traj.push_back({{"time_us", p.time_us}, {"T_world_from_ego", MatrixToJson(p.T_world_from_ego)}});
   }
   if (!traj.empty()) j["ego_trajectory"] = traj;
+  json lidars = json::array();
+  for (const RigLidar& l : m.lidars) {
+    lidars.push_back({{"sensor_id", l.sensor_id}, {"T_ego_from_lidar", MatrixToJson(l.T_ego_from_lidar)},
+                      {"sweep_duration_us", l.sweep_duration_us}});
+  }
+  if (!lidars.empty()) j["lidars"] = lidars;
   return j.dump(1);
 }
 

@@ -7,6 +7,8 @@
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
 #include "scene/gaussians/ply_io.h"
+#include "scene/train/lidar_eval.h"
+#include "scene/train/trainer.h"
 #include "server/path_confinement.h"
 
 namespace streetsim::server {
@@ -48,17 +50,28 @@ void SceneRegistry::RescanLocked() {
     e.name = name;
     e.ply_path = ply;
     e.source = source;
+    absl::StatusOr<SceneManifest> m = SceneManifest{};
     if (!manifest_path.empty() && fs::exists(manifest_path)) {
-      absl::StatusOr<SceneManifest> m = ReadSceneManifest(manifest_path);
-      if (m.ok()) {
-        e.manifest = std::make_shared<SceneManifest>(std::move(*m));
-      } else {
-        e.manifest_error = std::string(m.status().message());
-      }
+      m = ReadSceneManifest(manifest_path);
     } else {
-      SceneManifest m;
-      m.cameras = DefaultRig();
-      e.manifest = std::make_shared<SceneManifest>(std::move(m));
+      m->cameras = DefaultRig();
+    }
+    // A trained scene's learned sky colour (train_meta.json beside scene.ply).
+    if (m.ok() && !manifest_path.empty()) {
+      const fs::path dir = fs::path(manifest_path).parent_path();
+      if (fs::exists(dir / "train_meta.json")) {
+        absl::StatusOr<train::SceneMeta> meta = train::ReadSceneMeta(dir.string());
+        if (meta.ok()) {
+          m->background = meta->background;
+        } else {
+          m = meta.status();
+        }
+      }
+    }
+    if (m.ok()) {
+      e.manifest = std::make_shared<SceneManifest>(std::move(*m));
+    } else {
+      e.manifest_error = std::string(m.status().message());
     }
     found.emplace(name, std::move(e));
   };
@@ -132,6 +145,12 @@ void SceneRegistry::FillScene(const Entry& e, bool with_trajectory, v1::Scene* o
       spec->set_sensor_id(c.sensor_id);
       IntrinsicsToProto(c.intrinsics, spec->mutable_intrinsics());
       PoseToProto(c.T_ego_from_cam, spec->mutable_t_ego_from_sensor());
+    }
+    for (const RigLidar& l : m.lidars) {
+      v1::LidarSpec* spec = out->mutable_rig()->add_lidars();
+      spec->set_sensor_id(l.sensor_id);
+      PoseToProto(l.T_ego_from_lidar, spec->mutable_t_ego_from_sensor());
+      spec->set_sweep_duration_us(l.sweep_duration_us);
     }
     if (with_trajectory) {
       for (const TimedEgoPose& p : m.ego_trajectory) {
@@ -217,9 +236,15 @@ void SceneRegistry::StartLoadLocked(Entry* e) {
         loaded->min_m = m.rowwise().minCoeff().cast<double>();
         loaded->max_m = m.rowwise().maxCoeff().cast<double>();
       }
+      absl::StatusOr<std::optional<std::vector<float>>> reflectance = train::ReadPlyReflectance(path, store->size());
+      if (!reflectance.ok()) return reflectance.status();
       absl::StatusOr<std::unique_ptr<DeviceScene>> device = core_->Upload(*store);
       if (!device.ok()) return device.status();
-      loaded->field = std::make_unique<StaticSceneField>(std::move(*device));
+      // The host copy serves LiDAR sweeps (render/lidar takes a GaussianStore).
+      auto host = std::make_shared<HostScene>();
+      host->store = std::move(*store);
+      host->reflectance = std::move(*reflectance);
+      loaded->field = std::make_unique<StaticSceneField>(std::move(*device), std::move(host));
       return loaded;
     }();
     std::lock_guard<std::mutex> lock(mu_);

@@ -91,6 +91,9 @@ absl::StatusOr<v1::Session> SessionManager::Create(const v1::CreateSessionReques
   if (!manifest.ok()) return manifest.status();
   absl::StatusOr<std::vector<RigCamera>> cams = ResolveSensors(**manifest, req.sensors(), deps_->limits);
   if (!cams.ok()) return cams.status();
+  if (req.has_lidar()) {
+    if (absl::StatusOr<LidarJob> job = ResolveLidar(req.lidar(), **manifest); !job.ok()) return job.status();
+  }
   int64_t start = req.start_time_us();
   if (start == 0 && (*manifest)->has_time_range) start = (*manifest)->start_us;
   if (absl::Status s = CheckTime(**manifest, start); !s.ok()) return s;
@@ -121,6 +124,7 @@ absl::StatusOr<v1::Session> SessionManager::Create(const v1::CreateSessionReques
   s->manifest = *manifest;
   s->cameras = std::move(*cams);
   s->outputs = *outputs;
+  if (req.has_lidar()) s->lidar = req.lidar();
   s->start_time_us = start;
   s->step_dt_us = req.step_dt_us() == 0 ? kDefaultStepDtUs : req.step_dt_us();
   s->seed = req.seed();
@@ -182,6 +186,7 @@ absl::StatusOr<v1::Session> SessionManager::Fork(const std::string& id) {
   s->manifest = src->manifest;
   s->cameras = src->cameras;
   s->outputs = src->outputs;
+  s->lidar = src->lidar;
   s->start_time_us = src->start_time_us;
   s->step_dt_us = src->step_dt_us;
   s->seed = src->seed;
@@ -228,7 +233,14 @@ absl::StatusOr<std::shared_ptr<const v1::StepResponse>> SessionManager::Step(con
     if (!o.ok()) return o.status();
     outputs = *o;
   }
+  std::optional<LidarJob> lidar;
+  if (req.has_lidar() || s->lidar) {
+    absl::StatusOr<LidarJob> job = ResolveLidar(req.has_lidar() ? req.lidar() : *s->lidar, *s->manifest);
+    if (!job.ok()) return job.status();
+    lidar = std::move(*job);
+  }
   Eigen::Isometry3d ego = state.T_world_from_ego;
+  Eigen::Isometry3d ego_sweep_end = ego;  // held still unless a trajectory says otherwise
   if (req.has_t_world_from_ego()) {
     absl::StatusOr<Eigen::Isometry3d> T = PoseFromProto(req.t_world_from_ego(), "T_world_from_ego");
     if (!T.ok()) return T.status();
@@ -250,11 +262,19 @@ absl::StatusOr<std::shared_ptr<const v1::StepResponse>> SessionManager::Step(con
       traj.push_back({poses[i].time_us(), *T});
     }
     ego = InterpolateTrajectory(traj, time_us);
+    if (lidar) ego_sweep_end = InterpolateTrajectory(traj, time_us + lidar->model.sweep_duration_us);
+  }
+  if (!req.has_trajectory()) ego_sweep_end = ego;
+  RenderExtras extras;
+  extras.default_background = s->manifest->background;
+  if (lidar) {
+    PlaceLidar(ego, ego_sweep_end, time_us, &*lidar);
+    extras.lidar = &*lidar;
   }
   absl::StatusOr<SceneHandle> scene = deps_->scenes->Acquire(s->scene, cancel);
   if (!scene.ok()) return scene.status();
   absl::StatusOr<RenderResult> r =
-      deps_->core->Render(*scene->scene->field, time_us, ViewsAt(s->cameras, ego), outputs, cancel);
+      deps_->core->Render(*scene->scene->field, time_us, ViewsAt(s->cameras, ego), outputs, cancel, extras);
   if (!r.ok()) return r.status();
   auto resp = std::make_shared<v1::StepResponse>();
   resp->set_session_id(s->id);
@@ -262,6 +282,7 @@ absl::StatusOr<std::shared_ptr<const v1::StepResponse>> SessionManager::Step(con
   resp->set_time_us(time_us);
   PoseToProto(ego, resp->mutable_t_world_from_ego());
   for (v1::SensorFrame& f : r->frames) *resp->add_frames() = std::move(f);
+  if (r->lidar) *resp->mutable_lidar() = std::move(*r->lidar);
   *resp->mutable_timings() = r->timings;
   resp->set_content_digest(r->content_digest);
   if (static_cast<int64_t>(resp->ByteSizeLong()) > deps_->limits.max_message_bytes) {

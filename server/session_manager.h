@@ -6,6 +6,7 @@
 #include <map>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -44,6 +45,7 @@ class SessionManager {
     std::shared_ptr<const SceneManifest> manifest;
     std::vector<RigCamera> cameras;
     v1::OutputSpec outputs;
+    std::optional<v1::LidarRequest> lidar;  // every step's LiDAR (validated at creation)
     int64_t start_time_us = 0;
     int64_t step_dt_us = 0;
     uint64_t seed = 0;

@@ -243,11 +243,53 @@ int RunJobsCommand(const std::vector<std::string>& argv) {
       "get ID | cancel ID] [--server HOST:PORT]"));
 }
 
+// render --server --lidar: one sweep from the scene's log pose at --time-us (docs/server.md).
+static int RunRemoteLidarRender(const ParsedArgs& args) {
+  const std::string scene = args.Get("scene").value_or("");
+  if (scene.empty()) return Fail("render", 2, absl::InvalidArgumentError("--scene NAME is required with --server --lidar"));
+  absl::StatusOr<std::string> out_range = args.Required("out-range");
+  if (!out_range.ok()) return Fail("render", 2, out_range.status());
+  v1::RenderRequest req;
+  req.set_scene(scene);
+  req.set_no_cameras(true);
+  if (auto t = args.Get("time-us")) {
+    int64_t v;
+    if (!absl::SimpleAtoi(*t, &v)) return Fail("render", 2, absl::InvalidArgumentError("--time-us takes an integer"));
+    req.set_time_us(v);
+  }
+  int columns = 2048;
+  if (auto c = args.Get("columns"); c && !absl::SimpleAtoi(*c, &columns)) {
+    return Fail("render", 2, absl::InvalidArgumentError("--columns takes an integer"));
+  }
+  req.mutable_lidar()->set_columns(columns);  // the server validates the range
+  absl::StatusOr<std::unique_ptr<client::Client>> c = ConnectFromFlags(args);
+  if (!c.ok()) return Fail("render", 2, c.status());
+  absl::StatusOr<v1::RenderResponse> resp = (*c)->Render(req);
+  if (!resp.ok()) return Fail("render", CodeFor(resp.status()), resp.status());
+  absl::StatusOr<client::DecodedLidar> lidar = client::DecodeLidar(resp->lidar());
+  if (!lidar.ok()) return Fail("render", 1, lidar.status());
+  if (absl::Status s = WriteFloatTiff(*out_range, lidar->columns, lidar->beams, lidar->range); !s.ok()) {
+    return Fail("render", 1, s);
+  }
+  size_t returns = 0;
+  for (float r : lidar->range) returns += r > 0;
+  const v1::LidarTimings& t = resp->lidar().timings();
+  std::fprintf(stderr,
+               "streetsim render: LiDAR %dx%d of %s on the server: %zu returns, %.1f ms (sweep %.1f: projection %.1f, "
+               "sort %.1f, blend %.1f; queue %.1f), %s\n",
+               lidar->beams, lidar->columns, scene.c_str(), returns, resp->timings().total_ms(), t.total_ms(),
+               t.projection_ms(), t.sort_ms(), t.blend_ms(), resp->timings().queue_ms(),
+               resp->lidar().digest().c_str());
+  return 0;
+}
+
 int RunRemoteRenderCommand(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(
       argv, WithConnection({{"ply"}, {"scene"}, {"camera"}, {"out-rgb"}, {"out-depth"}, {"out-alpha"},
-                            {"background"}, {"backend"}, {"time-us"}}));
+                            {"background"}, {"backend"}, {"time-us"},
+                            {"lidar", false}, {"columns"}, {"out-range"}}));
   if (!args.ok()) return Fail("render", 2, args.status());
+  if (args->Has("lidar")) return RunRemoteLidarRender(*args);
   if (!args->positional().empty()) {
     return Fail("render", 2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
   }

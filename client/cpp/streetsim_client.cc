@@ -209,6 +209,44 @@ absl::StatusOr<v1::Job> Client::WatchJob(const std::string& id, const std::funct
   return last;
 }
 
+namespace {
+
+template <typename T>
+absl::Status Unpack(const std::string& bytes, size_t count, const char* what, std::vector<T>* out) {
+  if (bytes.size() != count * sizeof(T)) {
+    return absl::DataLossError(absl::StrCat("lidar ", what, ": ", bytes.size(), " bytes, expected ", count * sizeof(T)));
+  }
+  out->resize(count);
+  if (count) std::memcpy(out->data(), bytes.data(), bytes.size());
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::StatusOr<DecodedLidar> DecodeLidar(const v1::LidarResult& lidar) {
+  DecodedLidar out;
+  if (lidar.beams() < 0 || lidar.columns() < 0) return absl::DataLossError("lidar: negative size");
+  out.beams = lidar.beams();
+  out.columns = lidar.columns();
+  const size_t n = size_t(out.beams) * out.columns;
+  if (absl::Status s = Unpack(lidar.range(), n, "range", &out.range); !s.ok()) return s;
+  if (absl::Status s = Unpack(lidar.intensity(), n, "intensity", &out.intensity); !s.ok()) return s;
+  if (absl::Status s = Unpack(lidar.alpha(), n, "alpha", &out.alpha); !s.ok()) return s;
+  if (lidar.has_points()) {
+    const v1::LidarPointCloud& p = lidar.points();
+    const size_t m = p.count();
+    std::vector<float> xyz;
+    if (absl::Status s = Unpack(p.xyz(), 3 * m, "points.xyz", &xyz); !s.ok()) return s;
+    out.points.resize(m);
+    for (size_t i = 0; i < m; ++i) out.points[i] = Eigen::Vector3f(xyz[3 * i], xyz[3 * i + 1], xyz[3 * i + 2]);
+    if (absl::Status s = Unpack(p.intensity(), m, "points.intensity", &out.point_intensity); !s.ok()) return s;
+    if (absl::Status s = Unpack(p.time_us(), m, "points.time_us", &out.point_time_us); !s.ok()) return s;
+    if (absl::Status s = Unpack(p.beam(), m, "points.beam", &out.point_beam); !s.ok()) return s;
+    if (absl::Status s = Unpack(p.column(), m, "points.column", &out.point_column); !s.ok()) return s;
+  }
+  return out;
+}
+
 absl::StatusOr<DecodedImage> DecodeImage(const v1::Image& image) {
   DecodedImage out;
   out.width = image.width();

@@ -92,6 +92,19 @@ struct DecodedImage {
 };
 absl::StatusOr<DecodedImage> DecodeImage(const v1::Image& image);
 
+// A decoded LiDAR sweep (v1::LidarResult): images beams x columns row-major, range metres with 0 =
+// no return; points (when the request asked for them) in the result's points frame.
+struct DecodedLidar {
+  int beams = 0, columns = 0;
+  std::vector<float> range, intensity, alpha;
+  std::vector<Eigen::Vector3f> points;
+  std::vector<float> point_intensity;
+  std::vector<int64_t> point_time_us;
+  std::vector<uint16_t> point_beam, point_column;
+};
+// DataLoss when an array's size does not match beams x columns or the point count.
+absl::StatusOr<DecodedLidar> DecodeLidar(const v1::LidarResult& lidar);
+
 v1::Pose ToPose(const Eigen::Isometry3d& T);
 Eigen::Isometry3d FromPose(const v1::Pose& pose);
 

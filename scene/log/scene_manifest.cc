@@ -46,6 +46,11 @@ std::string SceneManifestJson(const DriveLog& log, const std::string& name) {
     last_us = f.time_us;
   }
   if (!trajectory.empty()) j["ego_trajectory"] = trajectory;
+  nlohmann::json lidars = nlohmann::json::array();
+  for (const LidarSensor& lidar : log.lidars) {
+    lidars.push_back({{"sensor_id", lidar.name}, {"T_ego_from_lidar", Matrix(lidar.T_ego_from_lidar)}});
+  }
+  if (!lidars.empty()) j["lidars"] = lidars;
   return j.dump(1) + "\n";
 }
 

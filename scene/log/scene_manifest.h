@@ -4,7 +4,8 @@
 //   {"name": .., "time_range_us": [START, END],
 //    "cameras": [{"sensor_id", "width", "height", "fx", "fy", "cx", "cy",
 //                 "T_ego_from_cam": [16 numbers, row-major]}],
-//    "ego_trajectory": [{"time_us", "T_world_from_ego": [16 numbers, row-major]}]}
+//    "ego_trajectory": [{"time_us", "T_world_from_ego": [16 numbers, row-major]}],
+//    "lidars": [{"sensor_id", "T_ego_from_lidar": [16 numbers, row-major]}]}
 #pragma once
 
 #include <string>

@@ -137,6 +137,45 @@ class PythonClientTest(unittest.TestCase):
             s.info()
         self.assertEqual(e.exception.code, grpc.StatusCode.NOT_FOUND)
 
+    def test_lidar_returns_numpy(self):
+        lidar = self.client.render_lidar("wall", ego_pose=np.eye(4),
+                                         options=streetsim.LidarOptions(columns=1024, points=True))
+        self.assertEqual(lidar.range.shape, (64, 1024))
+        self.assertEqual(lidar.range.dtype, np.float32)
+        self.assertEqual(lidar.alpha.shape, (64, 1024))
+        self.assertEqual(lidar.beam_elevation_deg.shape, (64,))
+        # Straight ahead (between columns 511 and 512) the beam nearest the horizon sees the wall
+        # 9.5-10.5 m away; straight behind there is nothing.
+        beam = int(np.argmin(np.abs(lidar.beam_elevation_deg)))
+        ahead = lidar.range[beam, 508:516]
+        self.assertTrue(np.all((ahead > 9) & (ahead < 11)), ahead)
+        self.assertEqual(lidar.range[:, :64].max(), 0.0)
+        returns = int((lidar.range > 0).sum())
+        self.assertGreater(returns, 100)
+        self.assertEqual(lidar.points.shape, (returns, 3))
+        self.assertEqual(lidar.points_time_us.shape, (returns,))
+        hit = lidar.range[lidar.points_beam, lidar.points_column]
+        np.testing.assert_allclose(np.linalg.norm(lidar.points, axis=1), hit, rtol=1e-5)
+        np.testing.assert_allclose(lidar.T_world_from_lidar, np.eye(4), atol=1e-12)
+        # Beside the cameras, and in a session.
+        frames = self.client.render("wall", ego_pose=np.eye(4), sensors=["cam_front"], width=64, height=32,
+                                    lidar=streetsim.LidarOptions(columns=256))
+        self.assertIn("cam_front", frames)
+        self.assertEqual(self.client.last_lidar.range.shape, (64, 256))
+        with self.client.session("wall", sensors=["cam_front"], width=64, height=32,
+                                 lidar=streetsim.LidarOptions(columns=128, drop_seed=3)) as s:
+            s.step(ego_pose=np.eye(4))
+            self.assertEqual(s.last_lidar.range.shape, (64, 128))
+            s.step(ego_pose=np.eye(4), lidar=streetsim.LidarOptions(columns=64))
+            self.assertEqual(s.last_lidar.range.shape, (64, 64))
+        with self.assertRaises(streetsim.StreetsimError) as e:
+            self.client.render_lidar("wall", ego_pose=np.eye(4), options=streetsim.LidarOptions(columns=70000))
+        self.assertEqual(e.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
+        with self.assertRaises(streetsim.StreetsimError) as e:
+            self.client.render_lidar("wall", ego_pose=np.eye(4),
+                                     options=streetsim.LidarOptions(min_range_m=float("nan")))
+        self.assertEqual(e.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
+
     def test_training_helper_streams_progress(self):
         job = self.client.train("logs/fake", scene_name="py_trained", request_id="py-1")
         updates = list(self.client.watch_job(job.job_id))

@@ -25,6 +25,15 @@ TEST(SceneManifestCompat, ServerReadsWhatALogWrites) {
     EXPECT_EQ(m->ego_trajectory[i].time_us, log->frames[i].time_us);
     EXPECT_TRUE(m->ego_trajectory[i].T_world_from_ego.isApprox(log->frames[i].T_world_from_ego, 1e-12)) << i;
   }
+  ASSERT_EQ(m->lidars.size(), log->lidars.size());
+  ASSERT_FALSE(m->lidars.empty());
+  EXPECT_EQ(m->lidars[0].sensor_id, log->lidars[0].name);
+  EXPECT_TRUE(m->lidars[0].T_ego_from_lidar.isApprox(log->lidars[0].T_ego_from_lidar, 1e-12));
+  // And the server writes back what it read.
+  absl::StatusOr<server::SceneManifest> again = server::ParseSceneManifest(server::SceneManifestToJson(*m));
+  ASSERT_TRUE(again.ok()) << again.status();
+  ASSERT_EQ(again->lidars.size(), m->lidars.size());
+  EXPECT_TRUE(again->lidars[0].T_ego_from_lidar.isApprox(m->lidars[0].T_ego_from_lidar, 1e-12));
   // Between two logged frames the server interpolates the log's pose.
   const int64_t mid = (log->frames[10].time_us + log->frames[11].time_us) / 2;
   const Eigen::Vector3d expected =

@@ -11,10 +11,12 @@ __path__ = __import__("pkgutil").extend_path(__path__, __name__)
 from streetsim.client import (  # noqa: E402,F401
     Client,
     Frame,
+    Lidar,
+    LidarOptions,
     Session,
     StreetsimError,
     pose_from_matrix,
     matrix_from_pose,
 )
 
-__all__ = ["Client", "Frame", "Session", "StreetsimError", "pose_from_matrix", "matrix_from_pose"]
+__all__ = ["Client", "Frame", "Lidar", "LidarOptions", "Session", "StreetsimError", "pose_from_matrix", "matrix_from_pose"]

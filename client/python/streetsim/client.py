@@ -7,6 +7,10 @@
 - ``Client.session(...)`` is a context manager; ``Session.step(...)`` advances one step and
   retries idempotently (same step_index) on UNAVAILABLE.
 - ``Client.train(...)`` creates a job and ``Client.watch_job(...)`` yields its progress.
+- LiDAR: ``Client.render_lidar(...)`` returns a ``Lidar`` (range / intensity / alpha as
+  beams x columns float32 arrays, optional points); ``render(..., lidar=LidarOptions(...))`` and
+  ``session(..., lidar=...)`` add a sweep beside the cameras (``client.last_lidar``,
+  ``session.last_lidar``).
 """
 from __future__ import annotations
 
@@ -125,6 +129,67 @@ def _frames(frames: Iterable[common_pb2.SensorFrame]) -> Dict[str, Frame]:
     return out
 
 
+@dataclasses.dataclass
+class LidarOptions:
+    """What LiDAR sweep to render (docs/server.md "LiDAR"); 0 means the server's default."""
+    columns: int = 0                  # azimuth bins, 1..65536 (0 = 2048)
+    min_range_m: float = 0.0          # 0 = 2.5
+    max_range_m: float = 0.0          # 0 = 120
+    alpha_threshold: float = 0.0      # a ray returns when alpha >= this (0 = 0.5)
+    drop_seed: Optional[int] = None   # set: returns drawn with probability alpha from this seed
+    points: bool = False              # also return the point cloud
+    points_frame: str = "sensor"      # or "ego"
+
+    def to_proto(self) -> common_pb2.LidarRequest:
+        if self.points_frame not in POINT_FRAMES:
+            raise ValueError(f"points_frame must be one of {sorted(POINT_FRAMES)}")
+        return common_pb2.LidarRequest(
+            columns=self.columns, min_range_m=self.min_range_m, max_range_m=self.max_range_m,
+            return_alpha_threshold=self.alpha_threshold, sample_drop=self.drop_seed is not None,
+            drop_seed=self.drop_seed or 0, want_points=self.points,
+            points_frame=POINT_FRAMES[self.points_frame])
+
+
+POINT_FRAMES = {"sensor": common_pb2.LIDAR_POINT_FRAME_SENSOR, "ego": common_pb2.LIDAR_POINT_FRAME_EGO}
+
+
+@dataclasses.dataclass
+class Lidar:
+    """One sweep. Images are beams x columns (row = beam, beam 0 the highest; column 0 straight
+    behind, turning clockwise seen from above); range in metres, 0 = no return."""
+    sensor_id: str
+    range: np.ndarray
+    intensity: np.ndarray
+    alpha: np.ndarray
+    beam_elevation_deg: np.ndarray
+    T_world_from_lidar: np.ndarray        # at the sweep start
+    T_world_from_lidar_end: np.ndarray    # at its end (equal when the sweep is static)
+    points: Optional[np.ndarray]          # N x 3 float32 (sensor or ego frame), when asked for
+    points_intensity: Optional[np.ndarray]
+    points_time_us: Optional[np.ndarray]  # int64
+    points_beam: Optional[np.ndarray]     # uint16
+    points_column: Optional[np.ndarray]   # uint16
+    digest: str
+    proto: common_pb2.LidarResult
+
+
+def _lidar(r: common_pb2.LidarResult) -> Lidar:
+    shape = (r.beams, r.columns)
+    img = lambda b: np.frombuffer(b, dtype="<f4").reshape(shape)  # noqa: E731
+    pts = r.points if r.HasField("points") else None
+    return Lidar(
+        sensor_id=r.sensor_id, range=img(r.range), intensity=img(r.intensity), alpha=img(r.alpha),
+        beam_elevation_deg=np.asarray(r.beam_elevation_deg, dtype=np.float64),
+        T_world_from_lidar=matrix_from_pose(r.T_world_from_lidar),
+        T_world_from_lidar_end=matrix_from_pose(r.T_world_from_lidar_end),
+        points=np.frombuffer(pts.xyz, dtype="<f4").reshape(-1, 3) if pts else None,
+        points_intensity=np.frombuffer(pts.intensity, dtype="<f4") if pts else None,
+        points_time_us=np.frombuffer(pts.time_us, dtype="<i8") if pts else None,
+        points_beam=np.frombuffer(pts.beam, dtype="<u2") if pts else None,
+        points_column=np.frombuffer(pts.column, dtype="<u2") if pts else None,
+        digest=r.digest, proto=r)
+
+
 def _outputs(rgb=True, depth=False, alpha=False, encoding="raw", depth_encoding="f32", jpeg_quality=0):
     return common_pb2.OutputSpec(
         rgb=rgb,
@@ -162,6 +227,7 @@ class Client:
             self._channel = grpc.insecure_channel(target, options=options)
         self._metadata = [("authorization", f"Bearer {token}")] if token else []
         self.timeout_s = timeout_s
+        self.last_lidar: Optional[Lidar] = None
         self.info_stub = server_info_pb2_grpc.ServerInfoServiceStub(self._channel)
         self.scene_stub = scene_pb2_grpc.SceneServiceStub(self._channel)
         self.render_stub = render_pb2_grpc.RenderServiceStub(self._channel)
@@ -212,28 +278,47 @@ class Client:
     def render(self, scene: str, time_us: int = 0, ego_pose=None, sensor_pose=None,
                sensors: Optional[Sequence] = None, width: int = 0, height: int = 0, rgb: bool = True,
                depth: bool = False, alpha: bool = False, encoding: str = "raw",
-               depth_encoding: str = "f32", timeout_s: Optional[float] = None) -> Dict[str, Frame]:
+               depth_encoding: str = "f32", timeout_s: Optional[float] = None,
+               lidar: Optional[LidarOptions] = None, no_cameras: bool = False) -> Dict[str, Frame]:
         """Renders one instant. Poses are 4x4 matrices (T_world_from_ego / T_world_from_sensor);
-        neither: the scene log's ego pose at time_us."""
+        neither: the scene log's ego pose at time_us. With ``lidar`` the sweep is in
+        ``self.last_lidar``."""
         req = render_pb2.RenderRequest(scene=scene, time_us=time_us,
                                        sensors=_sensors(sensors, width, height),
-                                       outputs=_outputs(rgb, depth, alpha, encoding, depth_encoding))
+                                       outputs=_outputs(rgb, depth, alpha, encoding, depth_encoding),
+                                       no_cameras=no_cameras)
+        if lidar is not None:
+            req.lidar.CopyFrom(lidar.to_proto())
         if ego_pose is not None:
             req.T_world_from_ego.CopyFrom(pose_from_matrix(ego_pose))
         if sensor_pose is not None:
             req.T_world_from_sensor.CopyFrom(pose_from_matrix(sensor_pose))
         self.last_render = self._call(self.render_stub.Render, req, timeout_s)
+        self.last_lidar = _lidar(self.last_render.lidar) if self.last_render.HasField("lidar") else None
         return _frames(self.last_render.frames)
+
+    def render_lidar(self, scene: str, time_us: int = 0, ego_pose=None, lidar_pose=None,
+                     options: Optional[LidarOptions] = None, timeout_s: Optional[float] = None) -> Lidar:
+        """One LiDAR sweep and no camera. ego_pose: 4x4 T_world_from_ego (the scene's mounting
+        applies); lidar_pose: the LiDAR's own T_world_from_lidar; neither: the log's ego
+        trajectory (a rolling sweep from time_us over the sweep duration)."""
+        self.render(scene, time_us, ego_pose=ego_pose, sensor_pose=lidar_pose, rgb=False,
+                    timeout_s=timeout_s, lidar=options or LidarOptions(), no_cameras=True)
+        return self.last_lidar
 
     # -- sessions -------------------------------------------------------------------------------
     def session(self, scene: str, step_dt_us: int = 100000, start_time_us: int = 0, seed: int = 0,
                 sensors: Optional[Sequence] = None, width: int = 0, height: int = 0, rgb: bool = True,
                 depth: bool = False, alpha: bool = False, encoding: str = "raw",
-                initial_ego_pose=None, request_id: str = "") -> "Session":
+                initial_ego_pose=None, request_id: str = "",
+                lidar: Optional[LidarOptions] = None) -> "Session":
+        """With ``lidar`` every step also returns a sweep (``Session.last_lidar``)."""
         req = session_pb2.CreateSessionRequest(
             scene=scene, step_dt_us=step_dt_us, start_time_us=start_time_us, seed=seed,
             sensors=_sensors(sensors, width, height), outputs=_outputs(rgb, depth, alpha, encoding),
             request_id=request_id)
+        if lidar is not None:
+            req.lidar.CopyFrom(lidar.to_proto())
         if initial_ego_pose is not None:
             req.initial_T_world_from_ego.CopyFrom(pose_from_matrix(initial_ego_pose))
         return Session(self, self._call(self.session_stub.CreateSession, req))
@@ -274,6 +359,7 @@ class Session:
         self.id = proto.session_id
         self.next_step = proto.last_step_index + 1
         self.last_response: Optional[session_pb2.StepResponse] = None
+        self.last_lidar: Optional[Lidar] = None
 
     def __enter__(self):
         return self
@@ -290,11 +376,14 @@ class Session:
                 raise
 
     def step(self, ego_pose=None, trajectory: Optional[Sequence] = None, timeout_s: Optional[float] = None,
-             retries: int = 2) -> Dict[str, Frame]:
+             retries: int = 2, lidar: Optional[LidarOptions] = None) -> Dict[str, Frame]:
         """Advances one step. ego_pose: 4x4 T_world_from_ego; trajectory: [(time_us, 4x4), ...]
         for the server to follow; neither: the ego stays. Retries (same step_index) are
-        idempotent, so UNAVAILABLE / DEADLINE_EXCEEDED are retried ``retries`` times."""
+        idempotent, so UNAVAILABLE / DEADLINE_EXCEEDED are retried ``retries`` times. lidar:
+        this step's sweep (replaces the session's); the sweep lands in ``self.last_lidar``."""
         req = session_pb2.StepRequest(session_id=self.id, step_index=self.next_step)
+        if lidar is not None:
+            req.lidar.CopyFrom(lidar.to_proto())
         if ego_pose is not None:
             req.T_world_from_ego.CopyFrom(pose_from_matrix(ego_pose))
         elif trajectory is not None:
@@ -309,6 +398,7 @@ class Session:
                                                         grpc.StatusCode.DEADLINE_EXCEEDED):
                     raise
         self.last_response = resp
+        self.last_lidar = _lidar(resp.lidar) if resp.HasField("lidar") else None
         self.next_step += 1
         return _frames(resp.frames)
 
