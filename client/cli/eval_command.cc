@@ -1,7 +1,11 @@
 // streetsim eval: PSNR, SSIM and LiDAR depth error of a trained scene on a log's held-out (or
-// training) frames. JSON on stdout (a contract other tools read), a table on stderr.
+// training) frames, and LiDAR metrics of the scene's rendered sweeps against the real scans
+// (scene/train/lidar_eval.h; --no-lidar skips them). JSON on stdout (a contract other tools read),
+// a table on stderr.
 #include <cstdio>
 #include <filesystem>
+#include <map>
+#include <set>
 
 #include <nlohmann/json.hpp>
 
@@ -12,6 +16,8 @@
 #include "render/engine.h"
 #include "scene/gaussians/ply_io.h"
 #include "scene/log/open_log.h"
+#include "scene/train/dynamic_pixels.h"
+#include "scene/train/lidar_eval.h"
 #include "scene/train/trainer.h"
 
 namespace streetsim {
@@ -25,14 +31,29 @@ nlohmann::json Metrics(const train::FrameMetrics& m) {
   j["ssim"] = m.ssim;
   j["depth_median_abs_m"] = m.depth_median_abs_m >= 0 ? nlohmann::json(m.depth_median_abs_m) : nlohmann::json(nullptr);
   j["depth_within_5pct"] = m.depth_within_5pct >= 0 ? nlohmann::json(m.depth_within_5pct) : nlohmann::json(nullptr);
+  // PSNR* (scene/train/dynamic_pixels.h); null: no dynamic (static) pixel in the view(s).
+  j["psnr_dynamic"] = m.psnr_dynamic >= 0 ? nlohmann::json(m.psnr_dynamic) : nlohmann::json(nullptr);
+  j["psnr_static"] = m.psnr_static >= 0 ? nlohmann::json(m.psnr_static) : nlohmann::json(nullptr);
   return j;
+}
+
+nlohmann::json Defined(double v) { return v >= 0 ? nlohmann::json(v) : nlohmann::json(nullptr); }
+
+void AddLidar(const train::LidarFrameMetrics& m, nlohmann::json* j) {
+  (*j)["lidar_range_median_abs_m"] = Defined(m.range_median_abs_m);
+  (*j)["lidar_chamfer_m"] = Defined(m.chamfer_m);
+  (*j)["lidar_drop_accuracy"] = Defined(m.drop_accuracy);
+  (*j)["lidar_intensity_rmse"] = Defined(m.intensity_rmse);
+  (*j)["lidar_rays"] = m.rays;
 }
 
 }  // namespace
 
 int RunEvalCommand(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args =
-      ParsedArgs::Parse(argv, {{"scene"}, {"log"}, {"split"}, {"holdout-every"}, {"resolution-scale"}, {"backend"}});
+      ParsedArgs::Parse(argv, {{"scene"}, {"log"}, {"split"}, {"holdout-every"}, {"resolution-scale"}, {"backend"},
+                                {"no-lidar", false}, {"lidar-columns"},
+                                {"lidar-static-sweep", false}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
@@ -62,6 +83,13 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
     if (!b.ok()) return Fail(2, b.status());
     backend = *b;
   }
+  const bool lidar = !args->Has("no-lidar");
+  train::LidarEvalOptions lopt;
+  if (auto v = args->Get("lidar-columns");
+      v && (!absl::SimpleAtoi(*v, &lopt.columns) || lopt.columns < 16 || lopt.columns > 65536)) {
+    return Fail(2, absl::InvalidArgumentError("--lidar-columns must be in 16..65536"));
+  }
+  lopt.rolling_sweep = !args->Has("lidar-static-sweep");
   dopt.split = split == "test" ? train::Split::kTest : train::Split::kTrain;
   if (split == "test" && dopt.holdout_every == 0) {
     return Fail(2, absl::InvalidArgumentError("--split test needs --holdout-every > 0"));
@@ -76,24 +104,63 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
   if (views->empty()) return Fail(2, absl::InvalidArgumentError(absl::StrCat("the log has no ", split, " views")));
   absl::StatusOr<std::unique_ptr<Engine>> engine = CreateEngine(backend);
   if (!engine.ok()) return Fail(1, engine.status());
-  absl::StatusOr<train::EvalResult> r = train::Evaluate(**engine, *store, *views, meta->background);
+  if (absl::Status s = train::AttachDynamicPixels(*log, &*views); !s.ok()) return Fail(1, s);
+  // A field scene (DIR/field.bin) is deformed at each view's time.
+  absl::StatusOr<train::EvalResult> r = train::EvaluateSceneDir(**engine, *scene_dir, *store, *views, meta->background);
   if (!r.ok()) return Fail(1, r.status());
+
+  // LiDAR: every evaluated frame with a scan, once per frame (a frame may have several views).
+  std::map<int, train::LidarFrameMetrics> lidar_by_frame;
+  train::LidarEvalResult lidar_result;
+  std::string reflectance_source = "constant 0.5 (scene.ply has no reflectance property)";
+  if (lidar) {
+    absl::StatusOr<std::optional<std::vector<float>>> refl = train::ReadPlyReflectance(ply, store->size());
+    if (!refl.ok()) return Fail(2, refl.status());
+    if (refl->has_value()) reflectance_source = "scene.ply reflectance";
+    std::set<int> frames;
+    for (const train::View& v : *views) frames.insert(v.frame);
+    absl::StatusOr<train::LidarEvalResult> lr = train::EvaluateLidar(
+        *log, std::vector<int>(frames.begin(), frames.end()), *store, refl->has_value() ? &**refl : nullptr, lopt);
+    if (!lr.ok()) return Fail(1, lr.status());
+    lidar_result = std::move(*lr);
+    for (const train::LidarFrameMetrics& m : lidar_result.frames) lidar_by_frame[m.frame] = m;
+  }
+  const bool have_lidar = !lidar_by_frame.empty();
 
   nlohmann::json j;
   j["mean"] = Metrics(r->mean);
+  if (have_lidar) {
+    AddLidar(lidar_result.mean, &j["mean"]);
+    j["lidar_reflectance"] = reflectance_source;
+  }
   j["split"] = split;
   j["frames"] = nlohmann::json::array();
-  std::fprintf(stderr, "%-34s %6s %8s %7s %12s %10s\n", "view", "frame", "PSNR", "SSIM", "depth med m", "within 5%");
+  std::fprintf(stderr, "%-34s %6s %8s %7s %12s %10s", "view", "frame", "PSNR", "SSIM", "depth med m", "within 5%");
+  if (have_lidar) {
+    std::fprintf(stderr, " %10s %10s %8s %8s %7s", "lidar med", "chamfer m", "drop acc", "int rmse", "rays");
+  }
+  std::fprintf(stderr, "\n");
+  auto lidar_columns = [](const train::LidarFrameMetrics& l) {
+    std::fprintf(stderr, " %10.3f %10.3f %8.4f %8.4f %7zu", l.range_median_abs_m, l.chamfer_m, l.drop_accuracy,
+                 l.intensity_rmse, l.rays);
+  };
   for (const train::FrameMetrics& m : r->frames) {
     nlohmann::json f = Metrics(m);
     f["name"] = m.name;
     f["frame"] = m.frame;
+    auto l = lidar_by_frame.find(m.frame);
+    if (l != lidar_by_frame.end()) AddLidar(l->second, &f);
     j["frames"].push_back(f);
-    std::fprintf(stderr, "%-34s %6d %8.2f %7.4f %12.3f %10.3f\n", m.name.c_str(), m.frame, m.psnr, m.ssim,
+    std::fprintf(stderr, "%-34s %6d %8.2f %7.4f %12.3f %10.3f", m.name.c_str(), m.frame, m.psnr, m.ssim,
                  m.depth_median_abs_m, m.depth_within_5pct);
+    if (l != lidar_by_frame.end()) lidar_columns(l->second);
+    std::fprintf(stderr, "\n");
   }
-  std::fprintf(stderr, "%-34s %6s %8.2f %7.4f %12.3f %10.3f\n", "mean", "", r->mean.psnr, r->mean.ssim,
+  std::fprintf(stderr, "%-34s %6s %8.2f %7.4f %12.3f %10.3f", "mean", "", r->mean.psnr, r->mean.ssim,
                r->mean.depth_median_abs_m, r->mean.depth_within_5pct);
+  if (have_lidar) lidar_columns(lidar_result.mean);
+  std::fprintf(stderr, "\n");
+  if (have_lidar) std::fprintf(stderr, "lidar intensity: %s\n", reflectance_source.c_str());
   std::printf("%s\n", j.dump(2).c_str());
   return 0;
 }

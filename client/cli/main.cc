@@ -36,7 +36,8 @@ void PrintUsage(FILE* out) {
                "  train     static 3DGS training (docs/training.md): streetsim train --log PATH --out DIR\n"
                "              [--iterations N] [--resolution-scale S] [--holdout-every K] [--seed K] [--resume]\n"
                "              [--checkpoint-every N] [--no-sky] [--exposure] [--no-depth] [--deterministic]\n"
-               "  eval      metrics of a trained scene: streetsim eval --scene DIR --log PATH [--split test|train]\n"
+               "              [--lidar-weight W] [--lidar-every K] [--no-lidar-loss]\n"
+               "  eval      metrics of a trained scene: streetsim eval --scene DIR --log PATH [--split test|train] [--no-lidar]\n"
                "              [--holdout-every K]   (JSON on stdout, a table on stderr)\n");
 }
 

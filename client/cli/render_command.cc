@@ -2,6 +2,7 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <optional>
 
 #include "absl/strings/ascii.h"
 #include "absl/strings/numbers.h"
@@ -11,7 +12,9 @@
 #include "client/cli/commands.h"
 #include "client/cli/image_io.h"
 #include "render/engine.h"
+#include "render/common/thread_pool.h"
 #include "scene/gaussians/ply_io.h"
+#include "scene/train/dynamic_stage.h"
 
 namespace streetsim {
 namespace {
@@ -56,13 +59,26 @@ int RunRenderCommand(const std::vector<std::string>& argv) {
   }
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(
       argv, {{"ply"}, {"camera"}, {"out-rgb"}, {"out-depth"}, {"out-alpha"}, {"background"},
-             {"backend"}});
+             {"backend"}, {"scene"}, {"time-us"}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
   }
-  absl::StatusOr<std::string> ply = args->Required("ply");
+  // --scene DIR: a trained scene directory (scene.ply, and field.bin when it is dynamic).
+  if (args->Has("scene") && args->Has("ply")) {
+    return Fail(2, absl::InvalidArgumentError("give one of --ply SCENE.ply and --scene DIR, not both"));
+  }
+  const std::string scene_dir = args->Get("scene").value_or("");
+  absl::StatusOr<std::string> ply =
+      args->Has("scene") ? (std::filesystem::path(scene_dir) / "scene.ply").string() : args->Required("ply");
   if (!ply.ok()) return Fail(2, ply.status());
+  std::optional<int64_t> time_us;
+  if (auto v = args->Get("time-us")) {
+    int64_t t = 0;
+    if (!args->Has("scene")) return Fail(2, absl::InvalidArgumentError("--time-us needs --scene DIR"));
+    if (!absl::SimpleAtoi(*v, &t)) return Fail(2, absl::InvalidArgumentError("--time-us must be an integer (microseconds)"));
+    time_us = t;
+  }
   absl::StatusOr<std::string> camera_path = args->Required("camera");
   if (!camera_path.ok()) return Fail(2, camera_path.status());
   absl::StatusOr<std::string> out_rgb = args->Required("out-rgb");
@@ -89,6 +105,18 @@ int RunRenderCommand(const std::vector<std::string>& argv) {
   if (!camera.ok()) return Fail(2, camera.status());
   absl::StatusOr<GaussianStore> store = ReadGaussianPly(*ply);
   if (!store.ok()) return Fail(2, store.status());
+  if (!scene_dir.empty()) {
+    // The field at T, clamped to the log's time range; without --time-us, the log's first time.
+    absl::StatusOr<std::shared_ptr<const field::DeformationField>> f = train::LoadSceneField(scene_dir);
+    if (!f.ok()) return Fail(2, f.status());
+    if (*f) {
+      ThreadPool pool(0);
+      absl::StatusOr<GaussianStore> d =
+          train::DeformedStore(**f, *store, time_us.value_or((*f)->time_range().start_us), pool);
+      if (!d.ok()) return Fail(2, d.status());
+      store = std::move(*d);
+    }
+  }
 
   absl::StatusOr<std::unique_ptr<Engine>> engine = CreateEngine(*backend);
   if (!engine.ok()) return Fail(1, engine.status());

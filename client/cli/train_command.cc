@@ -31,7 +31,8 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(
       argv, {{"log"}, {"out"}, {"iterations"}, {"resolution-scale"}, {"holdout-every"}, {"seed"}, {"resume", false},
              {"checkpoint-every"}, {"no-sky", false}, {"exposure", false}, {"no-depth", false},
-             {"deterministic", false}, {"backend"}, {"voxel"}});
+             {"deterministic", false}, {"backend"}, {"voxel"}, {"field"}, {"static-iterations"}, {"field-size"},
+             {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
@@ -68,11 +69,57 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     if (!b.ok()) return Fail(2, b.status());
     opt.backend = *b == Backend::kAuto ? Backend::kCpu : *b;
   }
+  if (auto v = args->Get("field")) {
+    absl::StatusOr<train::FieldMode> m = train::ParseFieldMode(*v);
+    if (!m.ok()) return Fail(2, m.status());
+    opt.field.mode = *m;
+  }
+  if (auto v = args->Get("static-iterations")) {
+    if (opt.field.mode != train::FieldMode::kS3Gaussian) {
+      return Fail(2, absl::InvalidArgumentError("--static-iterations needs --field s3gaussian"));
+    }
+    if (!absl::SimpleAtoi(*v, &opt.field.static_iterations) || opt.field.static_iterations < 0 ||
+        opt.field.static_iterations >= opt.iterations) {
+      return Fail(2, absl::InvalidArgumentError(absl::StrCat("--static-iterations must be in 0..", opt.iterations - 1,
+                                                             " (below --iterations, the total)")));
+    }
+  } else if (opt.field.mode == train::FieldMode::kS3Gaussian && opt.field.static_iterations >= opt.iterations) {
+    return Fail(2, absl::InvalidArgumentError(absl::StrCat("--field s3gaussian: the static stage (",
+                                                           opt.field.static_iterations,
+                                                           " iterations by default) must be shorter than --iterations; "
+                                                           "set --static-iterations")));
+  }
+  // Testing only (docs/training.md): a tiny field so that CLI tests run in seconds.
+  if (auto v = args->Get("field-size")) {
+    if (*v == "small") {
+      opt.field.config.channels = 4;
+      opt.field.config.base_resolution = 8;
+      opt.field.config.multires = {1, 2};
+      opt.field.config.time_resolution = 6;
+      opt.field.config.width = 16;
+    } else if (*v != "spec") {
+      return Fail(2, absl::InvalidArgumentError("--field-size must be spec or small"));
+    }
+  }
   opt.resume = args->Has("resume");
   opt.sky = !args->Has("no-sky");
   opt.exposure = args->Has("exposure");
   opt.depth_loss = !args->Has("no-depth");
   opt.deterministic = args->Has("deterministic");
+  // LiDAR losses (docs/training.md "LiDAR losses").
+  if (auto v = args->Get("lidar-weight"); v && (!absl::SimpleAtod(*v, &opt.lidar_weight) ||
+                                                !(opt.lidar_weight >= 0 && opt.lidar_weight <= 1e6))) {
+    return Fail(2, absl::InvalidArgumentError("--lidar-weight must be a number in 0..1e6"));
+  }
+  if (auto v = args->Get("lidar-every"); v && (!absl::SimpleAtoi(*v, &opt.lidar_every) || opt.lidar_every < 1)) {
+    return Fail(2, absl::InvalidArgumentError("--lidar-every must be an integer >= 1"));
+  }
+  if (args->Has("no-lidar-loss")) {
+    if (args->Get("lidar-weight")) {
+      return Fail(2, absl::InvalidArgumentError("--no-lidar-loss and --lidar-weight contradict each other"));
+    }
+    opt.lidar_weight = 0;
+  }
 
   absl::StatusOr<DriveLog> log = OpenLog(*log_path);
   if (!log.ok()) return Fail(absl::IsInternal(log.status()) ? 1 : 2, log.status());

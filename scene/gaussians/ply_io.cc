@@ -50,8 +50,13 @@ enum Slot : int {
   kSlotRot = kSlotScale + 3,            // 58
   kNumSlots = kSlotRot + 4,             // 62
 };
+// Not a 3DGS property: the per-Gaussian LiDAR reflectance a trained scene carries (docs/lidar.md).
+// Accepted and skipped by the reader (the store has no such array; lidar_eval.h reads it).
+constexpr int kSlotReflectance = -2;
+constexpr char kReflectanceName[] = "reflectance";
 
 std::string SlotName(int slot) {
+  if (slot == kSlotReflectance) return kReflectanceName;
   static constexpr const char* kXyz[] = {"x", "y", "z"};
   static constexpr const char* kNormal[] = {"nx", "ny", "nz"};
   if (slot < kSlotNx) return kXyz[slot - kSlotX];
@@ -254,6 +259,13 @@ absl::StatusOr<Header> ParseHeader(absl::string_view bytes) {
         return HeaderError(line_no, absl::StrCat("property ", Quote(tok[2]), " has type ",
                                                  Quote(tok[1]), "; only float is supported"));
       }
+      if (tok[2] == kReflectanceName) {
+        if (std::count(header.slots.begin(), header.slots.end(), kSlotReflectance) > 0) {
+          return HeaderError(line_no, absl::StrCat("duplicate property ", Quote(tok[2])));
+        }
+        header.slots.push_back(kSlotReflectance);
+        continue;
+      }
       const int slot = SlotForName(tok[2]);
       if (slot < 0) {
         return HeaderError(line_no, absl::StrCat("unexpected property ", Quote(tok[2])));
@@ -350,7 +362,13 @@ absl::StatusOr<GaussianStore> ParseGaussianPly(std::string_view file,
   };
   std::vector<Column> cols;
   cols.reserve(h.slots.size());
+  // A skipped column (reflectance) lands in a scratch slot.
+  float skipped = 0;
   for (int slot : h.slots) {
+    if (slot == kSlotReflectance) {
+      cols.push_back({&skipped, 0, 0});
+      continue;
+    }
     const SlotLayout l = LayoutOf(slot, store.sh_coeffs());
     cols.push_back({(store.*kArrays[l.array]).data(), l.per, l.offset});
   }
@@ -422,8 +440,11 @@ absl::StatusOr<GaussianStore> ReadGaussianPly(const std::string& path,
   return store;
 }
 
-std::string SerializeGaussianPly(const GaussianStore& store) {
-  const std::vector<int> slots = CanonicalSlots(store.sh_degree, !store.normals.empty());
+std::string SerializeGaussianPly(const GaussianStore& store) { return SerializeGaussianPly(store, nullptr); }
+
+std::string SerializeGaussianPly(const GaussianStore& store, const std::vector<float>* reflectance) {
+  std::vector<int> slots = CanonicalSlots(store.sh_degree, !store.normals.empty());
+  if (reflectance != nullptr) slots.push_back(kSlotReflectance);
   const size_t n = store.size();
   std::string header =
       absl::StrCat("ply\nformat binary_little_endian 1.0\nelement vertex ", n, "\n");
@@ -438,6 +459,10 @@ std::string SerializeGaussianPly(const GaussianStore& store) {
   std::vector<Column> cols;
   cols.reserve(slots.size());
   for (int slot : slots) {
+    if (slot == kSlotReflectance) {
+      cols.push_back({reflectance->data(), 1, 0});
+      continue;
+    }
     const SlotLayout l = LayoutOf(slot, store.sh_coeffs());
     cols.push_back({(store.*kArrays[l.array]).data(), l.per, l.offset});
   }
@@ -454,10 +479,27 @@ std::string SerializeGaussianPly(const GaussianStore& store) {
 }
 
 absl::Status WriteGaussianPly(const GaussianStore& store, const std::string& path) {
+  return WriteGaussianPly(store, path, nullptr);
+}
+
+absl::Status WriteGaussianPly(const GaussianStore& store, const std::string& path,
+                              const std::vector<float>* reflectance) {
   if (absl::Status s = store.Validate(); !s.ok()) {
     return absl::InvalidArgumentError(absl::StrCat(path, ": refusing to write: ", s.message()));
   }
-  const std::string bytes = SerializeGaussianPly(store);
+  if (reflectance != nullptr) {
+    if (reflectance->size() != store.size()) {
+      return absl::InvalidArgumentError(absl::StrCat(path, ": refusing to write: ", reflectance->size(),
+                                                     " reflectance values for ", store.size(), " Gaussians"));
+    }
+    for (float r : *reflectance) {
+      if (!(r >= 0.0f && r <= 1.0f)) {
+        return absl::InvalidArgumentError(absl::StrCat(path, ": refusing to write: reflectance ", r,
+                                                       " outside [0, 1]"));
+      }
+    }
+  }
+  const std::string bytes = SerializeGaussianPly(store, reflectance);
   const std::string tmp = absl::StrCat(path, ".tmp.", ::getpid());
   Fd fd(::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644));
   if (fd.get() < 0) return WithPath(path, absl::ErrnoToStatus(errno, "cannot create temp file"));

@@ -7,6 +7,7 @@
 
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include "absl/status/statusor.h"
 #include "scene/gaussians/gaussian_store.h"
@@ -28,5 +29,13 @@ absl::StatusOr<GaussianStore> ParseGaussianPly(std::string_view bytes,
 absl::Status WriteGaussianPly(const GaussianStore& store, const std::string& path);
 // Requires store.Validate().ok() (array sizes are trusted, not checked).
 std::string SerializeGaussianPly(const GaussianStore& store);
+
+// The same with one extra float vertex property, `reflectance` (per Gaussian, [0, 1]; a trained
+// scene's LiDAR reflectance, docs/lidar.md), after the 3DGS properties; null: none. INRIA viewers
+// ignore it; ReadGaussianPly accepts and skips it (train::ReadPlyReflectance reads it).
+// InvalidArgument when the size differs from the store's or a value is outside [0, 1].
+absl::Status WriteGaussianPly(const GaussianStore& store, const std::string& path,
+                              const std::vector<float>* reflectance);
+std::string SerializeGaussianPly(const GaussianStore& store, const std::vector<float>* reflectance);
 
 }  // namespace streetsim

@@ -76,6 +76,7 @@ absl::StatusOr<std::vector<View>> LoadViews(const DriveLog& log, const DatasetOp
       View v;
       v.frame = f;
       v.camera_obs = c;
+      v.time_us = log.frames[f].time_us;
       v.name = absl::StrCat(log.cameras[obs.camera].name, "/", std::filesystem::path(obs.path).filename().string());
       v.camera = ScaledPinhole(log, f, c, cropped[obs.camera], options.resolution_scale);
       absl::StatusOr<cv::Mat> img = LoadImageRgb(obs.path);

@@ -19,10 +19,13 @@ namespace streetsim::train {
 struct View {
   int frame = 0;  // index into DriveLog::frames
   int camera_obs = 0;
+  int64_t time_us = 0;  // the frame's time (the dynamic field's time axis)
   std::string name;
   PinholeCamera camera;  // at the resolution scale
   cv::Mat rgb8;          // CV_8UC3, R G B, camera.width x camera.height
   std::vector<DepthSample> lidar;  // sparse depth (nearest wins per scaled pixel)
+  // PSNR* (scene/train/dynamic_pixels.h): 1 = pixel of a moving LiDAR point [W*H]; empty = unknown.
+  std::vector<uint8_t> dynamic_pixels;
   // Linear RGB floats [H*W*3] in [0,1].
   std::vector<float> RgbFloat() const;
 };

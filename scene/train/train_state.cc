@@ -49,6 +49,9 @@ void Compact(TrainState* s, const std::vector<uint8_t>& keep) {
   compact(s->grad_accum, 1);
   compact(s->denom, 1);
   compact(s->max_radii, 1);
+  if (s->reflectance_logit.size() == keep.size()) {
+    for (std::vector<float>* v : {&s->reflectance_logit, &s->reflectance_m, &s->reflectance_v}) compact(*v, 1);
+  }
 }
 
 // Appends Gaussian i of params (with the given mean and log-scale) and zero moments.
@@ -59,6 +62,11 @@ void AppendCopy(TrainState* s, size_t i, const float* mean, const float* log_sca
   for (int k = 0; k < 4; ++k) p.rotations.push_back(p.rotations[i * 4 + k]);
   p.opacity_logits.push_back(p.opacity_logits[i]);
   for (int k = 0; k < kK * 3; ++k) p.sh.push_back(p.sh[i * kK * 3 + k]);
+  if (!s->reflectance_logit.empty()) {
+    s->reflectance_logit.push_back(s->reflectance_logit[i]);
+    s->reflectance_m.push_back(0.0f);
+    s->reflectance_v.push_back(0.0f);
+  }
   for (GaussianStore* g : {&s->adam_m, &s->adam_v}) {
     g->means.insert(g->means.end(), 3, 0.0f);
     g->log_scales.insert(g->log_scales.end(), 3, 0.0f);
@@ -292,6 +300,8 @@ void ResetOpacity(TrainState* s) {
 // ---- checkpoints ----
 namespace {
 constexpr char kMagic[8] = {'S', 'S', 'T', 'R', 'N', '0', '0', '1'};
+// Optional trailing section (older checkpoints end before it): the LiDAR reflectance logits.
+constexpr char kReflectanceTag[8] = {'R', 'E', 'F', 'L', 'O', 'G', '0', '1'};
 
 class Writer {
  public:
@@ -383,6 +393,13 @@ absl::Status SaveCheckpoint(const TrainState& s, const std::string& path) {
   rng << s.rng;
   w.Str(rng.str());
   w.Vec(s.curve);
+  if (!s.reflectance_logit.empty()) {
+    w.Raw(kReflectanceTag, 8);
+    w.Vec(s.reflectance_logit);
+    w.Vec(s.reflectance_m);
+    w.Vec(s.reflectance_v);
+    w.Pod<int64_t>(s.reflectance_step);
+  }
   const std::string tmp = path + ".tmp";
   {
     std::ofstream f(tmp, std::ios::binary | std::ios::trunc);
@@ -416,15 +433,23 @@ absl::StatusOr<TrainState> LoadCheckpoint(const std::string& path) {
                   r.Vec(&s.max_radii) && r.Raw(s.sky, sizeof(s.sky)) && r.Raw(s.sky_m, sizeof(s.sky_m)) &&
                   r.Raw(s.sky_v, sizeof(s.sky_v)) && r.Pod(&s.aux_step) && r.Vec(&s.exposure) &&
                   r.Vec(&s.exposure_m) && r.Vec(&s.exposure_v) && r.Vec(&s.view_queue) && r.Str(&rng) &&
-                  r.Vec(&s.curve) && r.at_end();
-  if (!ok) return absl::DataLossError(absl::StrCat(path, ": truncated or corrupt checkpoint"));
+                  r.Vec(&s.curve);
+  bool refl_ok = true;
+  if (ok && !r.at_end()) {
+    char tag[8];
+    refl_ok = r.Raw(tag, 8) && std::memcmp(tag, kReflectanceTag, 8) == 0 && r.Vec(&s.reflectance_logit) &&
+              r.Vec(&s.reflectance_m) && r.Vec(&s.reflectance_v) && r.Pod(&s.reflectance_step) && r.at_end();
+  }
+  if (!ok || !refl_ok) return absl::DataLossError(absl::StrCat(path, ": truncated or corrupt checkpoint"));
   std::istringstream in(rng);
   in >> s.rng;
   if (!in) return absl::DataLossError(absl::StrCat(path, ": corrupt RNG state"));
   const size_t n = s.params.size();
   if (s.params.Validate().ok() == false || s.params.sh_degree != 3 || s.adam_m.sh.size() != s.params.sh.size() ||
       s.adam_v.sh.size() != s.params.sh.size() || s.grad_accum.size() != n || s.denom.size() != n ||
-      s.max_radii.size() != n || s.exposure.size() != s.exposure_m.size()) {
+      s.max_radii.size() != n || s.exposure.size() != s.exposure_m.size() ||
+      !(s.reflectance_logit.empty() || s.reflectance_logit.size() == n) ||
+      s.reflectance_m.size() != s.reflectance_logit.size() || s.reflectance_v.size() != s.reflectance_logit.size()) {
     return absl::DataLossError(absl::StrCat(path, ": inconsistent checkpoint"));
   }
   return s;

@@ -46,6 +46,11 @@ struct TrainState {
   std::mt19937_64 rng;
   // Curve: (iteration, loss, psnr) every few iterations, for the plot.
   std::vector<double> curve;
+  // LiDAR reflectance (lidar_stage.h): per-Gaussian logit (reflectance = sigmoid(logit)) and its
+  // Adam moments and step; empty when the run has no LiDAR loss. Clone / split / prune and
+  // checkpoints (a trailing optional section) carry them.
+  std::vector<float> reflectance_logit, reflectance_m, reflectance_v;
+  int64_t reflectance_step = 0;
 
   // Identity-initialised state for the given Gaussians (raised to SH degree 3).
   static TrainState Init(const GaussianStore& init, double extent, int num_views, uint64_t seed);

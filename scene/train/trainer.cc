@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <optional>
 
 #include <nlohmann/json.hpp>
@@ -17,6 +18,8 @@
 #include "render/common/thread_pool.h"
 #include "scene/gaussians/ply_io.h"
 #include "scene/init/initial_scene.h"
+#include "scene/field/field_io.h"
+#include "scene/train/dynamic_pixels.h"
 #include "scene/train/losses.h"
 
 namespace streetsim::train {
@@ -117,59 +120,26 @@ cv::Mat PlotCurve(const std::vector<double>& curve) {
   return img;
 }
 
-}  // namespace
-
-absl::StatusOr<EvalResult> Evaluate(Engine& engine, const GaussianStore& scene, const std::vector<View>& views,
-                                    const Eigen::Vector3f& background) {
-  absl::StatusOr<std::unique_ptr<DeviceScene>> dev = engine.Upload(scene);
-  if (!dev.ok()) return dev.status();
-  ThreadPool pool(0);
-  EvalResult result;
-  RenderOptions ro;
-  ro.background = background;
-  RenderOutput out;
-  double sum_psnr = 0, sum_ssim = 0, sum_med = 0, sum_within = 0;
-  int depth_frames = 0;
-  for (const View& v : views) {
-    if (absl::Status s = engine.Render(**dev, v.camera, ro, &out); !s.ok()) return s;
-    const std::vector<float> gt = v.RgbFloat();
-    std::vector<float> clamped(out.rgb.size());
-    for (size_t i = 0; i < clamped.size(); ++i) clamped[i] = std::min(std::max(out.rgb[i], 0.0f), 1.0f);
-    FrameMetrics m;
-    m.name = v.name;
-    m.frame = v.frame;
-    m.psnr = Psnr(clamped.data(), gt.data(), gt.size());
-    m.ssim = Ssim(pool, clamped.data(), gt.data(), v.camera.width, v.camera.height, 0, nullptr);
-    std::vector<double> err;
-    size_t within = 0;
-    for (const DepthSample& d : v.lidar) {
-      const float a = out.alpha[d.pixel];
-      if (!(a > 0.5f) || !(d.depth > 0.01f && d.depth < 80.0f)) continue;
-      const double e = std::abs(out.depth[d.pixel] / a - d.depth);
-      err.push_back(e);
-      within += e <= 0.05 * d.depth;
-    }
-    m.depth_points = err.size();
-    if (!err.empty()) {
-      std::nth_element(err.begin(), err.begin() + err.size() / 2, err.end());
-      m.depth_median_abs_m = err[err.size() / 2];
-      m.depth_within_5pct = static_cast<double>(within) / err.size();
-      sum_med += m.depth_median_abs_m;
-      sum_within += m.depth_within_5pct;
-      ++depth_frames;
-    }
-    sum_psnr += m.psnr;
-    sum_ssim += m.ssim;
-    result.frames.push_back(m);
+absl::Status CheckFieldOptions(const TrainOptions& opt) {
+  if (opt.field.mode != FieldMode::kS3Gaussian) return absl::OkStatus();
+  if (opt.field.static_iterations < 0 || opt.field.static_iterations >= opt.iterations) {
+    return absl::InvalidArgumentError(absl::StrCat("--static-iterations must be in 0..", opt.iterations - 1,
+                                                   " (below --iterations, the total), not ",
+                                                   opt.field.static_iterations));
   }
-  const double n = std::max<size_t>(1, result.frames.size());
-  result.mean.name = "mean";
-  result.mean.psnr = sum_psnr / n;
-  result.mean.ssim = sum_ssim / n;
-  result.mean.depth_median_abs_m = depth_frames ? sum_med / depth_frames : -1;
-  result.mean.depth_within_5pct = depth_frames ? sum_within / depth_frames : -1;
-  return result;
+  return opt.field.config.Validate();
 }
+
+// The field's time axis when the options give none: the views' time range.
+field::FieldTimeRange ViewsTimeRange(const std::vector<View>& a, const std::vector<View>& b) {
+  field::FieldTimeRange r{std::numeric_limits<int64_t>::max(), std::numeric_limits<int64_t>::min()};
+  for (const std::vector<View>* vs : {&a, &b})
+    for (const View& v : *vs) r.start_us = std::min(r.start_us, v.time_us), r.end_us = std::max(r.end_us, v.time_us);
+  if (r.start_us > r.end_us) r = {0, 0};
+  return r;
+}
+
+}  // namespace
 
 absl::StatusOr<SceneMeta> ReadSceneMeta(const std::string& dir) {
   SceneMeta meta;
@@ -181,6 +151,7 @@ absl::StatusOr<SceneMeta> ReadSceneMeta(const std::string& dir) {
     for (int c = 0; c < 3; ++c) meta.background[c] = j.at("background").at(c).get<float>();
     meta.resolution_scale = j.at("resolution_scale").get<double>();
     meta.holdout_every = j.at("holdout_every").get<int>();
+    meta.field = j.value("field", std::string("static"));
   } catch (const std::exception& e) {
     return absl::DataLossError(absl::StrCat(path, ": ", e.what()));
   }
@@ -190,6 +161,7 @@ absl::StatusOr<SceneMeta> ReadSceneMeta(const std::string& dir) {
 absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_dir, const TrainOptions& opt,
                                   const std::function<void(const Progress&)>& progress) {
   if (opt.iterations < 1) return absl::InvalidArgumentError("iterations must be >= 1");
+  if (absl::Status s = CheckFieldOptions(opt); !s.ok()) return s;
   DatasetOptions dopt;
   dopt.resolution_scale = opt.resolution_scale;
   dopt.holdout_every = opt.holdout_every;
@@ -205,6 +177,14 @@ absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_di
     absl::StatusOr<std::vector<View>> t = LoadViews(log, dopt);
     if (!t.ok()) return t.status();
     test = std::move(*t);
+    // PSNR* of the held-out views (the masks read scans only, never trained on).
+    if (absl::Status s = AttachDynamicPixels(log, &test); !s.ok()) return s;
+  }
+  TrainOptions topt = opt;
+  if (topt.field.mode == FieldMode::kS3Gaussian && topt.field.time_range.start_us == 0 &&
+      topt.field.time_range.end_us == 0 && !log.frames.empty()) {
+    // The field's time axis spans the whole log, held-out frames included.
+    topt.field.time_range = {log.frames.front().time_us, log.frames.back().time_us};
   }
   const std::string ckpt_path = (std::filesystem::path(out_dir) / "checkpoint.bin").string();
   std::optional<GaussianStore> init;
@@ -223,7 +203,8 @@ absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_di
     init = std::move(*built);
     LOG(INFO) << "initial scene: " << init->size() << " Gaussians (" << istats.source << ")";
   }
-  return TrainOnViews(*views, init ? &*init : nullptr, test, out_dir, opt, progress);
+  if (topt.lidar_log == nullptr) topt.lidar_log = &log;
+  return TrainOnViews(*views, init ? &*init : nullptr, test, out_dir, topt, progress);
 }
 
 absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, const GaussianStore* init,
@@ -233,6 +214,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
   const auto t_start = Clock::now();
   if (opt.iterations < 1) return absl::InvalidArgumentError("iterations must be >= 1");
   if (train_views.empty()) return absl::InvalidArgumentError("no training views");
+  if (absl::Status s = CheckFieldOptions(opt); !s.ok()) return s;
   std::error_code ec;
   std::filesystem::create_directories(out_dir, ec);
   if (ec) return absl::InternalError(absl::StrCat("cannot create ", out_dir, ": ", ec.message()));
@@ -283,14 +265,81 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
   const int64_t first = st.iteration + 1;
   const auto t_loop = Clock::now();
 
+  // S3Gaussian's stages: static for static_its iterations, then the field (dynamic_stage.h).
+  const bool dynamic = opt.field.mode == FieldMode::kS3Gaussian;
+  const int64_t static_its = dynamic ? opt.field.static_iterations : opt.iterations;
+  FieldOptions fopt = opt.field;
+  fopt.seed += opt.seed;
+  if (dynamic && fopt.time_range.start_us == 0 && fopt.time_range.end_us == 0) {
+    fopt.time_range = ViewsTimeRange(train_views, heldout);
+  }
+  std::unique_ptr<DynamicStage> stage;
+  // The field's backward sums MLP gradients per thread in scheduling order: one thread when the
+  // run should be reproducible (it still is not to the last bit across processes, see
+  // docs/training.md "Dynamic field").
+  std::unique_ptr<ThreadPool> serial_pool;
+  ThreadPool* field_pool = &pool;
+  if (dynamic && opt.deterministic) {
+    serial_pool = std::make_unique<ThreadPool>(1);
+    field_pool = serial_pool.get();
+  }
+  if (!dynamic && st.iteration > 0 && std::filesystem::exists(FieldCheckpointPath(out_dir, st.iteration))) {
+    return absl::FailedPreconditionError("the checkpoint is from a --field s3gaussian run; resume it with that");
+  }
+  if (dynamic && st.iteration > static_its) {
+    absl::StatusOr<std::unique_ptr<DynamicStage>> r =
+        DynamicStage::Resume(FieldCheckpointPath(out_dir, st.iteration), fopt, st.iteration - static_its);
+    if (!r.ok()) return r.status();
+    stage = std::move(*r);
+  }
+  // The field's checkpoint first (one file per iteration), then the Gaussians', then older fields.
+  auto save_checkpoint = [&]() -> absl::Status {
+    if (stage) {
+      if (absl::Status s = stage->SaveCheckpoint(FieldCheckpointPath(out_dir, st.iteration)); !s.ok()) return s;
+    }
+    if (absl::Status s = SaveCheckpoint(st, ckpt_path); !s.ok()) return s;
+    RemoveFieldCheckpoints(out_dir, stage ? st.iteration : -1);
+    return absl::OkStatus();
+  };
+
+  // LiDAR losses (lidar_stage.h) on the static iterations.
+  std::unique_ptr<LidarStage> lidar_stage;
+  if (opt.lidar_weight > 0 && opt.lidar_log != nullptr) {
+    LidarStageOptions lo;
+    lo.weights.range *= static_cast<float>(opt.lidar_weight);
+    lo.weights.ret *= static_cast<float>(opt.lidar_weight);
+    lo.weights.intensity *= static_cast<float>(opt.lidar_weight);
+    lo.every = opt.lidar_every;
+    lo.columns = opt.lidar_columns;
+    lo.deterministic = opt.deterministic;
+    absl::StatusOr<std::unique_ptr<LidarStage>> ls = LidarStage::Create(*opt.lidar_log, lo);
+    if (!ls.ok()) return ls.status();
+    lidar_stage = std::move(*ls);
+  }
+
   for (int64_t it = first; it <= opt.iterations; ++it) {
     const int active = std::min<int>(3, static_cast<int>(it / h.sh_degree_interval));
     const int vi = NextView(&st, num_views);
     const View& view = (*views)[vi];
     if (gt_cache[vi].empty()) gt_cache[vi] = view.RgbFloat();
     const std::vector<float>& gt = gt_cache[vi];
-
-    if (absl::Status s = (*engine)->UpdateSceneParams(ParamsView(st, active), &scene); !s.ok()) return s;
+    // Densification, opacity reset and the Gaussians' lr schedule count from the stage's start.
+    const bool fine = dynamic && it > static_its;
+    const int64_t stage_it = fine ? it - static_its : it;
+    if (fine && !stage) {
+      absl::StatusOr<std::unique_ptr<DynamicStage>> b = DynamicStage::Begin(&st, fopt, fopt.time_range);
+      if (!b.ok()) return b.status();
+      stage = std::move(*b);
+      LOG(INFO) << "iteration " << it << ": fine stage, field of " << stage->field().layout().total
+                << " parameters";
+    }
+    GaussianParamsView params = ParamsView(st, active);
+    if (fine) {
+      absl::StatusOr<GaussianParamsView> d = stage->Deform(st, active, view.time_us, pool);
+      if (!d.ok()) return d.status();
+      params = *d;
+    }
+    if (absl::Status s = (*engine)->UpdateSceneParams(params, &scene); !s.ok()) return s;
     RenderOptions ro;
     ro.background = opt.sky ? Eigen::Vector3f(st.sky[0], st.sky[1], st.sky[2]) : Eigen::Vector3f::Zero();
     ro.keep_for_backward = true;
@@ -315,7 +364,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     const double ssim = Ssim(pool, image->data(), gt.data(), W, H, static_cast<float>(-h.lambda_dssim), d_rgb.data());
     double ld = 0;
     if (opt.depth_loss) ld = DepthLoss(out.depth.data(), view.lidar, static_cast<float>(h.lambda_depth), d_depth.data());
-    const double loss = l1 + h.lambda_dssim * (1 - ssim) + h.lambda_depth * ld;
+    double loss = l1 + h.lambda_dssim * (1 - ssim) + h.lambda_depth * ld;
     const double psnr = Psnr(image->data(), gt.data(), pixels * 3);
 
     // Back through the exposure to the render.
@@ -353,25 +402,35 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     og.rgb = d_render->data();
     og.depth = opt.depth_loss ? d_depth.data() : nullptr;
     if (absl::Status s = (*engine)->RenderBackward(*scene, og, bo, &grads); !s.ok()) return s;
+    if (fine) {
+      absl::StatusOr<double> field_loss = stage->Backward(st, active, stage_it, &grads, *field_pool);
+      if (!field_loss.ok()) return field_loss.status();
+      loss += *field_loss;
+    }
+    if (lidar_stage && !fine) {
+      absl::StatusOr<double> lidar_loss = lidar_stage->Step(&st, view.frame, it, &grads);
+      if (!lidar_loss.ok()) return lidar_loss.status();
+      loss += *lidar_loss;
+    }
 
     bool replaced = false;
     // Not on the last iteration: nothing would repair the fresh clones / split children / reset
     // opacities before the scene is written and evaluated (3DGS's runs end long after densify_until).
-    if (it < h.densify_until && it < opt.iterations) {
+    if (stage_it < h.densify_until && it < opt.iterations) {
       AccumulateStats(&st, grads, W, H);
-      if (it > h.densify_from && it % h.densify_interval == 0) {
+      if (stage_it > h.densify_from && stage_it % h.densify_interval == 0) {
         size_t added = 0, removed = 0;
-        DensifyAndPrune(&st, h, it, &added, &removed);
+        DensifyAndPrune(&st, h, stage_it, &added, &removed);
         LOG(INFO) << "iteration " << it << ": densified +" << added << " -" << removed << " -> " << st.size();
         replaced = true;
       }
-      if (it % h.opacity_reset_interval == 0) {
+      if (stage_it % h.opacity_reset_interval == 0) {
         ResetOpacity(&st);
         replaced = true;
       }
     }
     // On iterations that replace the Gaussian tensors, 3DGS's Adam sees no gradient for them.
-    if (!replaced) AdamStepGaussians(&st, grads, active, it, h, pool);
+    if (!replaced) AdamStepGaussians(&st, grads, active, stage_it, h, pool);
     st.iteration = it;
 
     recent_psnr.push_back(psnr);
@@ -404,7 +463,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       progress(p);
     }
     if (opt.checkpoint_every > 0 && it % opt.checkpoint_every == 0) {
-      if (absl::Status s = SaveCheckpoint(st, ckpt_path); !s.ok()) return s;
+      if (absl::Status s = save_checkpoint(); !s.ok()) return s;
     }
     if (opt.stop_after > 0 && it >= opt.stop_after) {
       result.iterations = it;
@@ -415,11 +474,19 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
   }
 
   // Final outputs.
-  if (absl::Status s = SaveCheckpoint(st, ckpt_path); !s.ok()) return s;
+  if (absl::Status s = save_checkpoint(); !s.ok()) return s;
   result.iterations = st.iteration;
   result.gaussians = st.size();
+  if (lidar_stage && lidar_stage->steps() > 0) {
+    LOG(INFO) << "LiDAR step: " << lidar_stage->steps() << " steps, "
+              << lidar_stage->total_ms() / lidar_stage->steps() << " ms each";
+  }
   if (opt.write_outputs) {
-    if (absl::Status s = WriteGaussianPly(st.params, (std::filesystem::path(out_dir) / "scene.ply").string()); !s.ok()) {
+    // The learned LiDAR reflectance as an extra vertex property (lidar_eval.h reads it).
+    const std::vector<float> reflectance = ReflectanceFromLogits(st.reflectance_logit);
+    if (absl::Status s = WriteGaussianPly(st.params, (std::filesystem::path(out_dir) / "scene.ply").string(),
+                                          st.reflectance_logit.empty() ? nullptr : &reflectance);
+        !s.ok()) {
       return s;
     }
     nlohmann::json meta;
@@ -432,6 +499,15 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     meta["seed"] = opt.seed;
     meta["sky"] = opt.sky;
     meta["exposure"] = opt.exposure;
+    meta["field"] = stage ? "s3gaussian" : "static";
+    const std::string field_path = (std::filesystem::path(out_dir) / field::kFieldFileName).string();
+    if (stage) {
+      meta["static_iterations"] = static_its;
+      meta["time_range_us"] = {stage->field().time_range().start_us, stage->field().time_range().end_us};
+      if (absl::Status s = field::SaveField(stage->field(), field_path); !s.ok()) return s;
+    } else {
+      std::filesystem::remove(field_path, ec);  // a static run replaces an earlier field scene
+    }
     if (absl::Status s = WriteText((std::filesystem::path(out_dir) / "train_meta.json").string(), meta.dump(2) + "\n");
         !s.ok()) {
       return s;
@@ -442,18 +518,23 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     if (!heldout.empty()) {
       const std::vector<View>* test = &heldout;
       const Eigen::Vector3f bg = opt.sky ? Eigen::Vector3f(st.sky[0], st.sky[1], st.sky[2]) : Eigen::Vector3f::Zero();
-      absl::StatusOr<EvalResult> ev = Evaluate(**engine, st.params, *test, bg);
+      // Each held-out view at its own time when there is a field.
+      std::shared_ptr<const field::DeformationField> f;
+      if (stage) f = std::make_shared<const field::DeformationField>(stage->field());
+      absl::StatusOr<SceneForView> scene_for_view = MakeSceneForView(**engine, st.params, f);
+      if (!scene_for_view.ok()) return scene_for_view.status();
+      absl::StatusOr<EvalResult> ev = EvaluateViews(**engine, *scene_for_view, *test, bg);
       if (!ev.ok()) return ev.status();
       result.heldout = *ev;
       const std::filesystem::path pdir = std::filesystem::path(out_dir) / "preview";
       std::filesystem::create_directories(pdir, ec);
-      absl::StatusOr<std::unique_ptr<DeviceScene>> dev = (*engine)->Upload(st.params);
-      if (!dev.ok()) return dev.status();
       RenderOptions ro;
       ro.background = bg;
       const size_t step = std::max<size_t>(1, test->size() / 6);
       for (size_t i = 0; i < test->size(); i += step) {
         const View& v = (*test)[i];
+        absl::StatusOr<const DeviceScene*> dev = (*scene_for_view)(v);
+        if (!dev.ok()) return dev.status();
         if (absl::Status s = (*engine)->Render(**dev, v.camera, ro, &out); !s.ok()) return s;
         cv::Mat both;
         cv::hconcat(ToRgb8(out.rgb, v.camera.width, v.camera.height), v.rgb8, both);

@@ -12,6 +12,8 @@
 #include "render/engine.h"
 #include "scene/log/drive_log.h"
 #include "scene/train/dataset.h"
+#include "scene/train/dynamic_stage.h"
+#include "scene/train/lidar_stage.h"
 #include "scene/train/train_state.h"
 
 namespace streetsim::train {
@@ -32,6 +34,16 @@ struct TrainOptions {
   Backend backend = Backend::kCpu;
   Hyper hyper;
   double init_voxel_m = 0.15;  // LiDAR init voxel
+  // Static only, or S3Gaussian's static + fine stages with the deformation field (iterations is
+  // the total; field.static_iterations < iterations). docs/training.md "Dynamic field".
+  FieldOptions field;
+  // LiDAR losses (lidar_stage.h, docs/training.md "LiDAR losses"): scales the three terms'
+  // weights (LidarLossWeights); 0 disables them. Static iterations only; needs lidar_log.
+  double lidar_weight = 1.0;
+  int lidar_every = 2;       // LiDAR step on every k-th iteration (cost, docs/training.md)
+  int lidar_columns = 1024;  // training range image width
+  // The log whose scans the LiDAR step reads (Train sets it; TrainOnViews callers may).
+  const DriveLog* lidar_log = nullptr;
 };
 
 struct Progress {
@@ -47,6 +59,8 @@ struct FrameMetrics {
   double psnr = 0, ssim = 0;
   double depth_median_abs_m = -1, depth_within_5pct = -1;  // -1: no LiDAR
   size_t depth_points = 0;
+  // PSNR* (dynamic_pixels.h): on the view's dynamic pixels / the others; -1: no mask or no pixel.
+  double psnr_dynamic = -1, psnr_static = -1;
 };
 struct EvalResult {
   std::vector<FrameMetrics> frames;
@@ -74,15 +88,23 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& views, const G
                                          const TrainOptions& options,
                                          const std::function<void(const Progress&)>& progress = nullptr);
 
-// Renders every view of `views` and measures it. background: the learned sky colour.
+// Renders every view of `views` and measures it. background: the learned sky colour. The means
+// of psnr_dynamic / psnr_static are over the views that have such pixels.
 absl::StatusOr<EvalResult> Evaluate(Engine& engine, const GaussianStore& scene, const std::vector<View>& views,
                                     const Eigen::Vector3f& background);
+// The same with a scene per view (a field scene deformed at each view's time).
+absl::StatusOr<EvalResult> EvaluateViews(Engine& engine, const SceneForView& scene, const std::vector<View>& views,
+                                         const Eigen::Vector3f& background);
+// A trained scene directory's Gaussians (`canonical`, its scene.ply) with DIR/field.bin if any.
+absl::StatusOr<EvalResult> EvaluateSceneDir(Engine& engine, const std::string& dir, const GaussianStore& canonical,
+                                            const std::vector<View>& views, const Eigen::Vector3f& background);
 
 // DIR/train_meta.json written by Train: the background colour and the resolution scale.
 struct SceneMeta {
   Eigen::Vector3f background = Eigen::Vector3f::Zero();
   double resolution_scale = 1.0;
   int holdout_every = 4;
+  std::string field = "static";  // FieldModeName
 };
 absl::StatusOr<SceneMeta> ReadSceneMeta(const std::string& dir);
 

@@ -1,0 +1,104 @@
+// S3Gaussian's fine stage (../shared/docs/s3gaussian-spec.md 3.3, 5, 6, 7, 8; docs/training.md
+// "Dynamic field"): the deformation field (scene/field) trained jointly with the Gaussians after
+// the static stage. The trainer calls, per fine iteration:
+//   Deform (view time -> field -> deformed parameters to upload) -> render, loss, RenderBackward
+//   -> Backward (field gradient + regularisers + field Adam; grads become canonical) -> the
+//   Gaussians' densification and Adam as in the static stage, with the stage's iteration counter.
+// Also: the field's part of checkpoints, and rendering a trained scene at a view's time.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "render/common/thread_pool.h"
+#include "render/engine.h"
+#include "scene/field/deformation_field.h"
+#include "scene/field/deformed_scene.h"
+#include "scene/field/field_adam.h"
+#include "scene/gaussians/gaussian_store.h"
+#include "scene/train/dataset.h"
+#include "scene/train/train_state.h"
+
+namespace streetsim::train {
+
+enum class FieldMode { kStatic, kS3Gaussian };
+const char* FieldModeName(FieldMode mode);
+absl::StatusOr<FieldMode> ParseFieldMode(const std::string& text);
+
+struct FieldOptions {
+  FieldMode mode = FieldMode::kStatic;
+  // Length of the static (coarse) stage; the fine stage runs iterations - static_iterations.
+  int static_iterations = 5000;
+  field::FieldConfig config;  // streetsim's default: the spec's sizes, time over the full [-1, 1]
+  field::FieldHyper hyper;    // the spec's learning rates and loss weights
+  // The log's time range (the field's time axis; Train sets it from the log's first and last
+  // frame). Both 0: TrainOnViews takes the range of its training and held-out views' times.
+  field::FieldTimeRange time_range;
+  uint64_t seed = 0;  // field initialisation (added to TrainOptions::seed)
+};
+
+// The field's AABB from the canonical Gaussians at the start of the fine stage: their bounding
+// box (S3Gaussian takes the LiDAR cloud's), padded 1 % (at least 1 cm) on every axis.
+field::FieldAabb AabbOfMeans(const std::vector<float>& means);
+
+class DynamicStage {
+ public:
+  // Starts the fine stage on `st`: a new field over the Gaussians' AABB and a fresh field Adam;
+  // the Gaussians' Adam moments and densification statistics are re-created (spec 6: the
+  // optimiser and every schedule restart per stage).
+  static absl::StatusOr<std::unique_ptr<DynamicStage>> Begin(TrainState* st, const FieldOptions& options,
+                                                             const field::FieldTimeRange& time_range);
+  // The fine stage of a checkpoint (SaveCheckpoint's file); `fine_iterations` is what the
+  // Gaussian checkpoint says has been done (checked against the field Adam's step).
+  static absl::StatusOr<std::unique_ptr<DynamicStage>> Resume(const std::string& path, const FieldOptions& options,
+                                                              int64_t fine_iterations);
+  absl::Status SaveCheckpoint(const std::string& path) const;
+
+  // The parameters to upload for a view at `time_us`: canonical, with deformed means and SH.
+  absl::StatusOr<GaussianParamsView> Deform(const TrainState& st, int active_degree, int64_t time_us,
+                                            ThreadPool& pool);
+  // After RenderBackward of the scene Deform returned (same Gaussians): adds the field's gradient
+  // (+ Δ sparsity), the plane regularisers, steps the field's Adam at fine iteration
+  // `fine_iteration` (1-based), and turns grads->means into canonical-mean gradients. Returns the
+  // loss terms it added (weighted).
+  absl::StatusOr<double> Backward(const TrainState& st, int active_degree, int64_t fine_iteration,
+                                  GaussianGrads* grads, ThreadPool& pool);
+
+  const field::DeformationField& field() const { return field_; }
+
+ private:
+  DynamicStage(field::DeformationField f, field::FieldAdamState adam, const FieldOptions& options);
+  field::DeformationField field_;
+  field::FieldAdamState adam_;
+  field::FieldHyper hyper_;
+  std::unique_ptr<field::FieldWorkspace> ws_;
+  field::DeformedScene deformed_;
+  std::vector<float> d_field_;
+};
+
+// Fine-stage checkpoint of the field beside the Gaussian checkpoint: one file per iteration (so
+// that a crash between the two writes never pairs a field with the wrong Gaussians).
+std::string FieldCheckpointPath(const std::string& out_dir, int64_t iteration);
+// Removes the directory's field checkpoints other than `keep_iteration`'s (-1: all).
+void RemoveFieldCheckpoints(const std::string& out_dir, int64_t keep_iteration);
+
+// The scene to render for a view: canonical (static scene) or deformed at the view's time.
+using SceneForView = std::function<absl::StatusOr<const DeviceScene*>(const View&)>;
+// A SceneForView of `canonical` (SH degree 3 for a field) and an optional field. Keeps its own
+// upload; valid while the engine is.
+absl::StatusOr<SceneForView> MakeSceneForView(Engine& engine, const GaussianStore& canonical,
+                                              std::shared_ptr<const field::DeformationField> field);
+
+// The store of `canonical` deformed by `field` at `time_us` (clamped to the field's time range).
+absl::StatusOr<GaussianStore> DeformedStore(const field::DeformationField& field, const GaussianStore& canonical,
+                                            int64_t time_us, ThreadPool& pool);
+
+// DIR/field.bin when present (nullptr when the scene is static).
+absl::StatusOr<std::shared_ptr<const field::DeformationField>> LoadSceneField(const std::string& dir);
+
+}  // namespace streetsim::train

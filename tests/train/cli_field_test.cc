@@ -1,0 +1,112 @@
+// streetsim train --field s3gaussian, and what reads its outputs: field.bin beside scene.ply,
+// train_meta.json, `streetsim render --scene DIR --time-us T` (clamped to the log's time range),
+// `streetsim eval` (PSNR*), and the new flags' bad values.
+#include <algorithm>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+
+#include <nlohmann/json.hpp>
+
+#include "gtest/gtest.h"
+
+namespace {
+
+const std::string kBinary = std::string(STREETSIM_BINARY_DIR) + "/bin/streetsim";
+const std::string kKitti = std::string(STREETSIM_DATA_DIR) + "/kitti_raw/2011_09_26/2011_09_26_drive_sfnd_sync";
+const std::string kCamera = std::string(STREETSIM_SOURCE_DIR) + "/examples/cameras/kitti_front.json";
+
+struct Result {
+  int code;
+  std::string out, err;
+};
+
+std::string Slurp(const std::string& p) {
+  std::ifstream f(p, std::ios::binary);
+  std::stringstream s;
+  s << f.rdbuf();
+  return s.str();
+}
+
+Result RunCli(const std::string& args) {
+  const auto dir = std::filesystem::temp_directory_path();
+  const std::string out = (dir / "streetsim_cli_field_out.txt").string();
+  const std::string err = (dir / "streetsim_cli_field_err.txt").string();
+  const int status = std::system((kBinary + " " + args + " >" + out + " 2>" + err).c_str());
+  return {WEXITSTATUS(status), Slurp(out), Slurp(err)};
+}
+
+TEST(CliField, TrainWritesAFieldThatRenderAndEvalUse) {
+  const std::string dir = (std::filesystem::temp_directory_path() / "streetsim_cli_field_scene").string();
+  std::filesystem::remove_all(dir);
+  Result r = RunCli("train --log " + kKitti + " --out " + dir +
+                    " --iterations 16 --field s3gaussian --static-iterations 8 --field-size small"
+                    " --resolution-scale 0.12 --holdout-every 10 --voxel 0.5 --seed 3 --checkpoint-every 10");
+  ASSERT_EQ(r.code, 0) << r.err;
+  for (const char* f : {"scene.ply", "field.bin", "train_meta.json", "checkpoint.bin", "checkpoint_field_16.bin"}) {
+    EXPECT_TRUE(std::filesystem::exists(dir + "/" + f)) << f;
+  }
+  EXPECT_FALSE(std::filesystem::exists(dir + "/checkpoint_field_10.bin"));  // replaced by the last one
+  const nlohmann::json meta = nlohmann::json::parse(Slurp(dir + "/train_meta.json"));
+  EXPECT_EQ(meta["field"], "s3gaussian");
+  EXPECT_EQ(meta["static_iterations"], 8);
+  ASSERT_EQ(meta["time_range_us"].size(), 2u);
+  const int64_t t0 = meta["time_range_us"][0], t1 = meta["time_range_us"][1];
+  EXPECT_LT(t0, t1);
+
+  // Render: no --time-us = the log's first time; times outside the log clamp to its ends.
+  const std::string png = dir + "/r.png";
+  auto render = [&](const std::string& extra) {
+    const Result rr = RunCli("render --scene " + dir + " --camera " + kCamera + " --out-rgb " + png + extra);
+    EXPECT_EQ(rr.code, 0) << extra << ": " << rr.err;
+    return Slurp(png);
+  };
+  const std::string at_default = render("");
+  EXPECT_FALSE(at_default.empty());
+  EXPECT_EQ(render(" --time-us " + std::to_string(t0)), at_default);
+  EXPECT_EQ(render(" --time-us " + std::to_string(t0 - 5'000'000)), at_default);
+  EXPECT_EQ(render(" --time-us " + std::to_string(t1 + 5'000'000)), render(" --time-us " + std::to_string(t1)));
+
+  // Eval deforms at each held-out frame's time and reports PSNR* (the clip has moving trucks).
+  r = RunCli("eval --scene " + dir + " --log " + kKitti + " --no-lidar");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const nlohmann::json j = nlohmann::json::parse(r.out);
+  EXPECT_TRUE(j["mean"]["psnr"].is_number());
+  EXPECT_TRUE(j["mean"]["psnr_dynamic"].is_number()) << j["mean"].dump();
+  EXPECT_TRUE(j["mean"]["psnr_static"].is_number());
+  ASSERT_FALSE(j["frames"].empty());
+  EXPECT_TRUE(j["frames"][0].contains("psnr_dynamic"));
+
+  // A static run into the same directory removes the field (so nothing renders a stale one).
+  r = RunCli("train --log " + kKitti + " --out " + dir + " --iterations 2 --resolution-scale 0.12 --holdout-every 0 --voxel 0.5 --field static");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_FALSE(std::filesystem::exists(dir + "/field.bin"));
+  EXPECT_EQ(nlohmann::json::parse(Slurp(dir + "/train_meta.json"))["field"], "static");
+  // --time-us on a static scene: accepted, nothing to deform.
+  render(" --time-us 0");
+}
+
+TEST(CliField, BadValuesExitTwoWithOneLine) {
+  const std::string train = "train --log " + kKitti + " --out /tmp/streetsim_cli_field_bad";
+  const std::string render = "render --camera " + kCamera + " --out-rgb /tmp/streetsim_cli_field_bad.png";
+  for (const std::string& args : {
+           train + " --field bogus",
+           train + " --iterations 20 --field s3gaussian --static-iterations 20",
+           train + " --iterations 20 --field s3gaussian --static-iterations -1",
+           train + " --iterations 20 --field s3gaussian --static-iterations x",
+           train + " --iterations 20 --static-iterations 5",  // needs --field s3gaussian
+           train + " --iterations 100 --field s3gaussian",     // the default 5000 static iterations
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-size huge",
+           render + " --scene /tmp --ply /tmp/x.ply",
+           render + " --ply /tmp/x.ply --time-us 5",
+           render + " --scene /tmp --time-us soon",
+           render,
+       }) {
+    const Result r = RunCli(args);
+    EXPECT_EQ(r.code, 2) << args << ": " << r.err;
+    EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << args << ": " << r.err;
+  }
+}
+
+}  // namespace
