@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cmath>
 
+#include "scene/optim/adam_kernel.h"
+
 namespace streetsim::field {
 
 double FieldExpLr(double lr_init, double lr_final, int64_t step, int max_steps) {
@@ -18,21 +20,8 @@ FieldLrs FieldLearningRates(const FieldHyper& h, int64_t iteration, double exten
   return lrs;
 }
 
-namespace {
-constexpr float kBeta1 = 0.9f, kBeta2 = 0.999f, kEps = 1e-15f;
-
-void AdamRange(float* __restrict p, const float* __restrict g, float* __restrict m, float* __restrict v, size_t n,
-               float step_size, float inv_sqrt_bc2) {
-  for (size_t i = 0; i < n; ++i) {
-    const float gi = g[i];
-    const float mi = kBeta1 * m[i] + (1 - kBeta1) * gi;
-    const float vi = kBeta2 * v[i] + (1 - kBeta2) * gi * gi;
-    m[i] = mi;
-    v[i] = vi;
-    p[i] -= step_size * mi / (std::sqrt(vi) * inv_sqrt_bc2 + kEps);
-  }
-}
-}  // namespace
+using optim::AdamRange;
+constexpr float kBeta1 = optim::kAdamBeta1, kBeta2 = optim::kAdamBeta2;
 
 void FieldAdamStep(const FieldLayout& L, float* params, const float* grads, FieldAdamState* s, const FieldLrs& lrs,
                    ThreadPool& pool) {

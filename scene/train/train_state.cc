@@ -9,6 +9,7 @@
 #include <sstream>
 
 #include "absl/strings/str_cat.h"
+#include "scene/optim/adam_kernel.h"
 
 namespace streetsim::train {
 
@@ -137,22 +138,8 @@ double ExpLr(double init, double final_lr, int64_t step, int max_steps) {
   return std::exp((1 - t) * std::log(init) + t * std::log(final_lr));
 }
 
-namespace {
-constexpr float kBeta1 = 0.9f, kBeta2 = 0.999f, kEps = 1e-15f;
-
-// PyTorch's Adam: m, v; p -= lr / bc1 * m / (sqrt(v) / sqrt(bc2) + eps).
-inline void AdamRange(float* __restrict p, const float* __restrict g, float* __restrict m, float* __restrict v,
-                      size_t n, float step_size, float inv_sqrt_bc2) {
-  for (size_t i = 0; i < n; ++i) {
-    const float gi = g[i];
-    const float mi = kBeta1 * m[i] + (1 - kBeta1) * gi;
-    const float vi = kBeta2 * v[i] + (1 - kBeta2) * gi * gi;
-    m[i] = mi;
-    v[i] = vi;
-    p[i] -= step_size * mi / (std::sqrt(vi) * inv_sqrt_bc2 + kEps);
-  }
-}
-}  // namespace
+using optim::AdamRange;
+constexpr float kBeta1 = optim::kAdamBeta1, kBeta2 = optim::kAdamBeta2, kEps = optim::kAdamEps;
 
 void AdamStepSmall(float* p, const float* g, float* m, float* v, size_t n, double lr, int64_t step) {
   const double bc1 = 1 - std::pow(double(kBeta1), double(step)), bc2 = 1 - std::pow(double(kBeta2), double(step));
