@@ -1,6 +1,8 @@
 // streetsim train --field s3gaussian, and what reads its outputs: field.bin beside scene.ply,
 // train_meta.json, `streetsim render --scene DIR --time-us T` (clamped to the log's time range),
 // `streetsim eval` (PSNR*), and the new flags' bad values.
+#include <unistd.h>
+
 #include <algorithm>
 #include <cstdlib>
 #include <filesystem>
@@ -31,10 +33,13 @@ std::string Slurp(const std::string& p) {
 
 Result RunCli(const std::string& args) {
   const auto dir = std::filesystem::temp_directory_path();
-  const std::string out = (dir / "streetsim_cli_field_out.txt").string();
-  const std::string err = (dir / "streetsim_cli_field_err.txt").string();
+  const std::string out = (dir / ("streetsim_cli_field_out." + std::to_string(getpid()) + ".txt")).string();
+  const std::string err = (dir / ("streetsim_cli_field_err." + std::to_string(getpid()) + ".txt")).string();
   const int status = std::system((kBinary + " " + args + " >" + out + " 2>" + err).c_str());
-  return {WEXITSTATUS(status), Slurp(out), Slurp(err)};
+  Result r{WEXITSTATUS(status), Slurp(out), Slurp(err)};
+  std::filesystem::remove(out);
+  std::filesystem::remove(err);
+  return r;
 }
 
 TEST(CliField, TrainWritesAFieldThatRenderAndEvalUse) {

@@ -1,5 +1,7 @@
 // streetsim train / eval from the command line: exit codes, outputs, and eval's JSON contract
 // ({"mean": {"psnr", "ssim", ...}, "frames": [...]}).
+#include <unistd.h>
+
 #include <algorithm>
 #include <cstdlib>
 #include <filesystem>
@@ -22,8 +24,8 @@ struct Result {
 
 Result RunCli(const std::string& args) {
   const auto dir = std::filesystem::temp_directory_path();
-  const std::string out = (dir / "streetsim_cli_train_out.txt").string();
-  const std::string err = (dir / "streetsim_cli_train_err.txt").string();
+  const std::string out = (dir / ("streetsim_cli_train_out." + std::to_string(getpid()) + ".txt")).string();
+  const std::string err = (dir / ("streetsim_cli_train_err." + std::to_string(getpid()) + ".txt")).string();
   const int status = std::system((kBinary + " " + args + " >" + out + " 2>" + err).c_str());
   auto slurp = [](const std::string& p) {
     std::ifstream f(p);
@@ -31,7 +33,10 @@ Result RunCli(const std::string& args) {
     s << f.rdbuf();
     return s.str();
   };
-  return {WEXITSTATUS(status), slurp(out), slurp(err)};
+  Result r{WEXITSTATUS(status), slurp(out), slurp(err)};
+  std::filesystem::remove(out);
+  std::filesystem::remove(err);
+  return r;
 }
 
 TEST(CliTrain, TrainThenEvalGivesTheJsonContract) {

@@ -2,6 +2,8 @@
 // KITTI clip with an initial scene from LiDAR.
 #include "scene/train/lidar_eval.h"
 
+#include <unistd.h>
+
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
@@ -170,8 +172,8 @@ struct Cli {
 };
 Cli RunCli(const std::string& args) {
   const auto dir = fs::temp_directory_path();
-  const std::string out = (dir / "streetsim_lidar_eval_out.txt").string();
-  const std::string err = (dir / "streetsim_lidar_eval_err.txt").string();
+  const std::string out = (dir / ("streetsim_lidar_eval_out." + std::to_string(getpid()) + ".txt")).string();
+  const std::string err = (dir / ("streetsim_lidar_eval_err." + std::to_string(getpid()) + ".txt")).string();
   const int status =
       std::system((std::string(STREETSIM_BINARY_DIR) + "/bin/streetsim " + args + " >" + out + " 2>" + err).c_str());
   auto slurp = [](const std::string& p) {
@@ -180,7 +182,10 @@ Cli RunCli(const std::string& args) {
     s << f.rdbuf();
     return s.str();
   };
-  return {WEXITSTATUS(status), slurp(out), slurp(err)};
+  Cli r{WEXITSTATUS(status), slurp(out), slurp(err)};
+  fs::remove(out);
+  fs::remove(err);
+  return r;
 }
 
 TEST(LidarEval, EvalCommandReportsLidarKeys) {
