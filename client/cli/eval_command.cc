@@ -17,6 +17,7 @@
 #include "scene/gaussians/ply_io.h"
 #include "scene/log/open_log.h"
 #include "scene/train/dynamic_pixels.h"
+#include "scene/train/dynamic_stage.h"
 #include "scene/train/lidar_eval.h"
 #include "scene/train/trainer.h"
 
@@ -119,8 +120,12 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
     if (refl->has_value()) reflectance_source = "scene.ply reflectance";
     std::set<int> frames;
     for (const train::View& v : *views) frames.insert(v.frame);
-    absl::StatusOr<train::LidarEvalResult> lr = train::EvaluateLidar(
-        *log, std::vector<int>(frames.begin(), frames.end()), *store, refl->has_value() ? &**refl : nullptr, lopt);
+    // A field scene's sweeps, like its views, are rendered deformed at the frame's time.
+    absl::StatusOr<std::shared_ptr<const field::DeformationField>> f = train::LoadSceneField(*scene_dir);
+    if (!f.ok()) return Fail(2, f.status());
+    absl::StatusOr<train::LidarEvalResult> lr =
+        train::EvaluateLidar(*log, std::vector<int>(frames.begin(), frames.end()), *store,
+                             refl->has_value() ? &**refl : nullptr, lopt, train::MakeStoreAtTime(*f, *store));
     if (!lr.ok()) return Fail(1, lr.status());
     lidar_result = std::move(*lr);
     for (const train::LidarFrameMetrics& m : lidar_result.frames) lidar_by_frame[m.frame] = m;

@@ -176,6 +176,14 @@ absl::StatusOr<SceneForView> MakeSceneForView(Engine& engine, const GaussianStor
   });
 }
 
+std::function<absl::StatusOr<GaussianStore>(int64_t time_us)> MakeStoreAtTime(
+    std::shared_ptr<const field::DeformationField> f, const GaussianStore& canonical) {
+  if (!f) return {};
+  auto pool = std::make_shared<ThreadPool>(0);
+  const GaussianStore* canon = &canonical;
+  return [f, pool, canon](int64_t time_us) { return DeformedStore(*f, *canon, time_us, *pool); };
+}
+
 absl::StatusOr<std::shared_ptr<const field::DeformationField>> LoadSceneField(const std::string& dir) {
   const std::string path = (std::filesystem::path(dir) / field::kFieldFileName).string();
   if (!std::filesystem::exists(path)) return std::shared_ptr<const field::DeformationField>();

@@ -70,6 +70,8 @@ class DynamicStage {
                                   GaussianGrads* grads, ThreadPool& pool);
 
   const field::DeformationField& field() const { return field_; }
+  // The means of the last Deform (what the camera rendered; the LiDAR step renders them too).
+  const std::vector<float>& deformed_means() const { return deformed_.means; }
 
  private:
   DynamicStage(field::DeformationField f, field::FieldAdamState adam, const FieldOptions& options);
@@ -97,6 +99,11 @@ absl::StatusOr<SceneForView> MakeSceneForView(Engine& engine, const GaussianStor
 // The store of `canonical` deformed by `field` at `time_us` (clamped to the field's time range).
 absl::StatusOr<GaussianStore> DeformedStore(const field::DeformationField& field, const GaussianStore& canonical,
                                             int64_t time_us, ThreadPool& pool);
+
+// The store to render at a time (lidar_eval.h StoreAtTime): `canonical` deformed by `field` as
+// DeformedStore does (valid while `canonical` is); an empty function when `field` is null.
+std::function<absl::StatusOr<GaussianStore>(int64_t time_us)> MakeStoreAtTime(
+    std::shared_ptr<const field::DeformationField> field, const GaussianStore& canonical);
 
 // DIR/field.bin when present (nullptr when the scene is static).
 absl::StatusOr<std::shared_ptr<const field::DeformationField>> LoadSceneField(const std::string& dir);

@@ -126,8 +126,20 @@ Eigen::Isometry3d LogEgoPoseAt(const DriveLog& log, int64_t time_us) {
 absl::StatusOr<LidarEvalResult> EvaluateLidar(const DriveLog& log, const std::vector<int>& frames,
                                               const GaussianStore& scene, const std::vector<float>* reflectance,
                                               const LidarEvalOptions& options) {
+  return EvaluateLidar(log, frames, scene, reflectance, options, StoreAtTime());
+}
+
+absl::StatusOr<LidarEvalResult> EvaluateLidar(const DriveLog& log, const std::vector<int>& frames,
+                                              const GaussianStore& scene, const std::vector<float>* reflectance,
+                                              const LidarEvalOptions& options, const StoreAtTime& store_at) {
+  if (reflectance != nullptr && reflectance->size() != scene.size()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(reflectance->size(), " reflectance values for ", scene.size(), " Gaussians"));
+  }
   LidarRenderer renderer;
-  if (absl::Status s = renderer.Upload(scene); !s.ok()) return s;
+  if (!store_at) {
+    if (absl::Status s = renderer.Upload(scene); !s.ok()) return s;
+  }
   ThreadPool pool;
   LidarRenderOptions ropt;
   ropt.reflectance = reflectance;
@@ -140,6 +152,12 @@ absl::StatusOr<LidarEvalResult> EvaluateLidar(const DriveLog& log, const std::ve
     const Frame& frame = log.frames[f];
     if (frame.lidars.empty()) continue;
     const LidarObservation& obs = frame.lidars[0];
+    if (store_at) {
+      absl::StatusOr<GaussianStore> at = store_at(frame.time_us);
+      if (!at.ok()) return at.status();
+      if (at->size() != scene.size()) return absl::InternalError("the deformed scene changed the Gaussian count");
+      if (absl::Status s = renderer.Upload(*at); !s.ok()) return s;
+    }
     LidarModel model = KittiHdl64e(options.columns);
     model.T_ego_from_lidar = log.lidars[obs.lidar].T_ego_from_lidar;
     absl::StatusOr<LidarScan> scan = LoadLidarScan(obs.path);

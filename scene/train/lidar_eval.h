@@ -13,6 +13,8 @@
 //   intensity_rmse      RMSE of rendered intensity vs the real reflectance where both return
 #pragma once
 
+#include <cstdint>
+#include <functional>
 #include <optional>
 #include <string>
 #include <vector>
@@ -76,6 +78,15 @@ LidarFrameMetrics CompareRangeImages(const LidarModel& model, const std::vector<
 absl::StatusOr<LidarEvalResult> EvaluateLidar(const DriveLog& log, const std::vector<int>& frames,
                                               const GaussianStore& scene, const std::vector<float>* reflectance,
                                               const LidarEvalOptions& options = {});
+
+// A dynamic (field) scene: the Gaussians to render at a time (dynamic_stage.h MakeStoreAtTime).
+using StoreAtTime = std::function<absl::StatusOr<GaussianStore>(int64_t time_us)>;
+// As above, with each frame's sweep rendered from store_at(frame time) (the camera metrics'
+// time; one deformation for the whole ~100 ms sweep). An empty store_at renders `scene`.
+// `reflectance` is per canonical Gaussian (the field moves Gaussians, it neither adds nor drops).
+absl::StatusOr<LidarEvalResult> EvaluateLidar(const DriveLog& log, const std::vector<int>& frames,
+                                              const GaussianStore& scene, const std::vector<float>* reflectance,
+                                              const LidarEvalOptions& options, const StoreAtTime& store_at);
 
 // The log's ego pose at time_us: translation interpolated linearly and rotation by slerp between
 // the two frames around it, clamped to the first / last frame. The log must have frames.

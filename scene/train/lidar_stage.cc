@@ -127,7 +127,8 @@ absl::StatusOr<const LidarFrameTarget*> LidarStage::Target(int frame) {
   return raw;
 }
 
-absl::StatusOr<double> LidarStage::Step(TrainState* st, int frame, int64_t iteration, GaussianGrads* grads) {
+absl::StatusOr<double> LidarStage::Step(TrainState* st, int frame, int64_t iteration, GaussianGrads* grads,
+                                        const std::vector<float>* render_means) {
   if (iteration % options_.every != 0) return 0.0;
   absl::StatusOr<const LidarFrameTarget*> target = Target(frame);
   if (!target.ok()) return target.status();
@@ -137,6 +138,9 @@ absl::StatusOr<double> LidarStage::Step(TrainState* st, int frame, int64_t itera
   const size_t n = st->size();
   if (grads->means.size() != n * 3 || grads->opacity_logits.size() != n) {
     return absl::InvalidArgumentError("LiDAR step: the camera gradients do not match the state's Gaussians");
+  }
+  if (render_means != nullptr && render_means->size() != n * 3) {
+    return absl::InvalidArgumentError("LiDAR step: the deformed means do not match the state's Gaussians");
   }
   if (st->reflectance_logit.size() != n) {
     if (!st->reflectance_logit.empty()) {
@@ -150,7 +154,7 @@ absl::StatusOr<double> LidarStage::Step(TrainState* st, int frame, int64_t itera
   // The renderer needs no colour: uploading a degree-0 copy spares Validate() the 48 SH
   // coefficients per Gaussian (it checks every float for finiteness).
   geometry_.sh_degree = 0;
-  geometry_.means = st->params.means;
+  geometry_.means = render_means != nullptr ? *render_means : st->params.means;
   geometry_.log_scales = st->params.log_scales;
   geometry_.rotations = st->params.rotations;
   geometry_.opacity_logits = st->params.opacity_logits;

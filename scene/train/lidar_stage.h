@@ -87,7 +87,13 @@ class LidarStage {
   // into grads (means, log-scales, rotations, opacity logits) and takes an Adam step of the
   // reflectance logits (created at logit 0, i.e. 0.5, when the state has none). Returns the
   // weighted loss (0 when skipped).
-  absl::StatusOr<double> Step(TrainState* st, int frame, int64_t iteration, GaussianGrads* grads);
+  // Fine stage (docs/training.md "Dynamic field"): `render_means` [n*3] are the means the camera
+  // rendered, i.e. deformed by the field at the frame's time (used for the whole ~100 ms sweep);
+  // the means gradient added is then w.r.t. them, and the caller runs the field's backward
+  // (DynamicStage::Backward) on the sum. Null: the state's canonical means. Scales, rotations,
+  // opacity and the reflectance logits are canonical either way (the field does not change them).
+  absl::StatusOr<double> Step(TrainState* st, int frame, int64_t iteration, GaussianGrads* grads,
+                              const std::vector<float>* render_means = nullptr);
 
   // The frame's target (scan loaded and binned on first use, then cached); nullptr when the frame
   // has no LiDAR observation.

@@ -302,7 +302,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     return absl::OkStatus();
   };
 
-  // LiDAR losses (lidar_stage.h) on the static iterations.
+  // LiDAR losses (lidar_stage.h) on every stage.
   std::unique_ptr<LidarStage> lidar_stage;
   if (opt.lidar_weight > 0 && opt.lidar_log != nullptr) {
     LidarStageOptions lo;
@@ -402,15 +402,19 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     og.rgb = d_render->data();
     og.depth = opt.depth_loss ? d_depth.data() : nullptr;
     if (absl::Status s = (*engine)->RenderBackward(*scene, og, bo, &grads); !s.ok()) return s;
+    // The LiDAR step before the field's backward: in the fine stage it renders the camera's
+    // deformed means (the frame's time) and its means gradient joins the camera's, so that
+    // DeformBackward chains the sum through the field.
+    if (lidar_stage) {
+      absl::StatusOr<double> lidar_loss =
+          lidar_stage->Step(&st, view.frame, it, &grads, fine ? &stage->deformed_means() : nullptr);
+      if (!lidar_loss.ok()) return lidar_loss.status();
+      loss += *lidar_loss;
+    }
     if (fine) {
       absl::StatusOr<double> field_loss = stage->Backward(st, active, stage_it, &grads, *field_pool);
       if (!field_loss.ok()) return field_loss.status();
       loss += *field_loss;
-    }
-    if (lidar_stage && !fine) {
-      absl::StatusOr<double> lidar_loss = lidar_stage->Step(&st, view.frame, it, &grads);
-      if (!lidar_loss.ok()) return lidar_loss.status();
-      loss += *lidar_loss;
     }
 
     bool replaced = false;
