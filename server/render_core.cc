@@ -90,7 +90,10 @@ absl::StatusOr<RenderResult> RenderCore::Render(const SceneField& field, int64_t
     }
   }
 
-  absl::StatusOr<const DeviceScene*> scene = field.At(time_us);
+  // A dynamic scene evaluates its field here (once per new timestamp, counted in render_ms),
+  // under the engine lock.
+  const auto t_render = std::chrono::steady_clock::now();
+  absl::StatusOr<const DeviceScene*> scene = field.At(time_us, *engine_);
   if (!scene.ok()) return scene.status();
   RenderOptions options;
   options.want_depth = outputs.depth();
@@ -102,7 +105,6 @@ absl::StatusOr<RenderResult> RenderCore::Render(const SceneField& field, int64_t
     options.background = *extras.default_background;
   }
   std::vector<RenderOutput> rendered(views.size());
-  const auto t_render = std::chrono::steady_clock::now();
   for (size_t i = 0; i < views.size(); ++i) {
     if (absl::Status s = cancel(); !s.ok()) return s;
     PinholeCamera cam;

@@ -1,9 +1,9 @@
-// The seam where a scene is evaluated at a time. Today every scene is a static Gaussian set
-// (StaticSceneField); the dynamic field (HexPlane deformation, scene/field) will implement
-// SceneField by evaluating the Gaussians at time_us before rendering.
+// The seam where a scene is evaluated at a time: a static Gaussian set (StaticSceneField, below)
+// or a dynamic scene deformed by its field.bin (DynamicSceneField, dynamic_scene_field.h).
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <vector>
@@ -21,22 +21,34 @@ struct HostScene {
   std::optional<std::vector<float>> reflectance;  // [N] in [0, 1]; none: 0.5
 };
 
+// Engine::Upload for a scene's first upload (RenderCore::Upload: under the engine lock).
+using SceneUploader = std::function<absl::StatusOr<std::unique_ptr<DeviceScene>>(const GaussianStore&)>;
+
+// What a scene's field has done (GetScene; tests count evaluations).
+struct FieldStats {
+  bool has_field = false;
+  size_t num_dynamic = 0;         // Gaussians evaluated per timestamp
+  int64_t field_evaluations = 0;  // how often the field ran
+};
+
 class SceneField {
  public:
   virtual ~SceneField() = default;
-  // The device scene to render at `time_us` (valid while this field lives).
-  virtual absl::StatusOr<const DeviceScene*> At(int64_t time_us) const = 0;
+  // The device scene to render at `time_us` (valid until the next At of this field). Called by
+  // RenderCore with the engine lock held: `engine` updates the device copy when the time changes.
+  virtual absl::StatusOr<const DeviceScene*> At(int64_t time_us, Engine& engine) const = 0;
   // The host Gaussians at `time_us` (LiDAR). The pointer identifies the Gaussian set: the same
   // pointer means the same Gaussians (renderers may keep an upload of it).
   virtual absl::StatusOr<std::shared_ptr<const HostScene>> HostAt(int64_t time_us) const = 0;
   virtual size_t num_gaussians() const = 0;
+  virtual FieldStats stats() const { return {}; }
 };
 
 class StaticSceneField : public SceneField {
  public:
   StaticSceneField(std::unique_ptr<DeviceScene> scene, std::shared_ptr<const HostScene> host)
       : scene_(std::move(scene)), host_(std::move(host)) {}
-  absl::StatusOr<const DeviceScene*> At(int64_t) const override { return scene_.get(); }
+  absl::StatusOr<const DeviceScene*> At(int64_t, Engine&) const override { return scene_.get(); }
   absl::StatusOr<std::shared_ptr<const HostScene>> HostAt(int64_t) const override {
     if (!host_) return absl::FailedPreconditionError("this scene keeps no host copy (LiDAR unavailable)");
     return host_;

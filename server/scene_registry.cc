@@ -6,9 +6,11 @@
 
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
+#include "scene/field/field_io.h"
 #include "scene/gaussians/ply_io.h"
 #include "scene/train/lidar_eval.h"
 #include "scene/train/trainer.h"
+#include "server/dynamic_scene_field.h"
 #include "server/path_confinement.h"
 
 namespace streetsim::server {
@@ -169,6 +171,11 @@ void SceneRegistry::FillScene(const Entry& e, bool with_trajectory, v1::Scene* o
     b->mutable_max_m()->set_x(e.loaded->max_m.x());
     b->mutable_max_m()->set_y(e.loaded->max_m.y());
     b->mutable_max_m()->set_z(e.loaded->max_m.z());
+    out->set_load_time_s(e.loaded->load_time_s);
+    const FieldStats field_stats = e.loaded->field->stats();
+    out->set_has_field(field_stats.has_field);
+    out->set_num_dynamic_gaussians(field_stats.num_dynamic);
+    out->set_field_evaluations(field_stats.field_evaluations);
   }
 }
 
@@ -238,6 +245,22 @@ void SceneRegistry::StartLoadLocked(Entry* e) {
       }
       absl::StatusOr<std::optional<std::vector<float>>> reflectance = train::ReadPlyReflectance(path, store->size());
       if (!reflectance.ok()) return reflectance.status();
+      // A trained dynamic scene: DIR/field.bin beside DIR/scene.ply (bare .ply files are static).
+      const fs::path field_path = fs::path(path).parent_path() / field::kFieldFileName;
+      std::error_code ec;
+      if (fs::path(path).filename() == "scene.ply" && fs::exists(field_path, ec)) {
+        absl::StatusOr<field::DeformationField> f = field::LoadField(field_path.string());
+        if (!f.ok()) return f.status();  // DATA_LOSS naming the file
+        absl::StatusOr<std::unique_ptr<DynamicSceneField>> dynamic = DynamicSceneField::Create(
+            std::move(*f), std::move(*store), std::move(*reflectance), field::StaticSkipOptions{},
+            [this](const GaussianStore& g) { return core_->Upload(g); });
+        if (!dynamic.ok()) {
+          return absl::Status(dynamic.status().code(),
+                              absl::StrCat(field_path.string(), ": ", dynamic.status().message()));
+        }
+        loaded->field = std::move(*dynamic);
+        return loaded;
+      }
       absl::StatusOr<std::unique_ptr<DeviceScene>> device = core_->Upload(*store);
       if (!device.ok()) return device.status();
       // The host copy serves LiDAR sweeps (render/lidar takes a GaussianStore).
@@ -250,11 +273,16 @@ void SceneRegistry::StartLoadLocked(Entry* e) {
     std::lock_guard<std::mutex> lock(mu_);
     auto it = entries_.find(name);
     if (it == entries_.end() || it->second.generation != generation) return;  // unloaded meanwhile
+    const double load_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     if (result.ok()) {
+      (*result)->load_time_s = load_s;
       it->second.loaded = std::move(*result);
       it->second.state = v1::SCENE_STATE_READY;
-      LOG(INFO) << "scene " << name << " loaded (" << it->second.loaded->num_gaussians << " Gaussians, "
-                << std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() << " s)";
+      const FieldStats field_stats = it->second.loaded->field->stats();
+      const std::string dynamic =
+          field_stats.has_field ? absl::StrCat(", field: ", field_stats.num_dynamic, " dynamic") : std::string();
+      LOG(INFO) << "scene " << name << " loaded (" << it->second.loaded->num_gaussians << " Gaussians" << dynamic
+                << ", " << load_s << " s)";
     } else {
       it->second.state = v1::SCENE_STATE_FAILED;
       it->second.error = std::string(result.status().message());

@@ -7,7 +7,8 @@
 //    scene (any time accepted) with the default rig;
 //  - a finished training job's output, <state_dir>/scenes/<name>/.
 // Names are looked up in the catalogue only; request strings never become paths.
-// Loading (PLY read + Engine::Upload) runs on its own thread; other calls never wait for it.
+// Loading (PLY read, field.bin and its static analysis when present, Engine::Upload) runs on its
+// own thread; other calls never wait for it.
 #pragma once
 
 #include <condition_variable>
@@ -32,6 +33,7 @@ struct LoadedScene {
   std::unique_ptr<SceneField> field;
   size_t num_gaussians = 0;
   Eigen::Vector3d min_m = Eigen::Vector3d::Zero(), max_m = Eigen::Vector3d::Zero();
+  double load_time_s = 0;  // PLY, field.bin, static analysis and upload
 };
 
 struct SceneHandle {

@@ -1,0 +1,74 @@
+#include "server/dynamic_scene_field.h"
+
+#include "absl/strings/str_cat.h"
+
+namespace streetsim::server {
+
+absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
+    field::DeformationField field, GaussianStore canonical, std::optional<std::vector<float>> reflectance,
+    const field::StaticSkipOptions& options, const SceneUploader& upload) {
+  if (canonical.sh_degree != 3) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "a field needs SH degree 3 Gaussians, scene.ply has degree ", canonical.sh_degree));
+  }
+  std::unique_ptr<DynamicSceneField> f(new DynamicSceneField());
+  f->num_gaussians_ = canonical.size();
+  f->reflectance_ = std::move(reflectance);
+  // One pool per scene: ThreadPool is not reentrant, and At runs under the engine lock, so the
+  // field and the renderer never compete for the cores.
+  f->pool_ = std::make_unique<ThreadPool>(0);
+  absl::StatusOr<field::ServingField> serving =
+      field::ServingField::Create(std::move(field), std::move(canonical), options, *f->pool_);
+  if (!serving.ok()) return serving.status();
+  f->serving_.emplace(std::move(*serving));
+  f->num_dynamic_ = f->serving_->num_dynamic();
+  // The first upload allocates the device copy (and checks the Gaussians); later timestamps update it.
+  absl::StatusOr<const GaussianStore*> first = f->serving_->At(f->serving_->field().time_range().start_us, *f->pool_);
+  if (!first.ok()) return first.status();
+  absl::StatusOr<std::unique_ptr<DeviceScene>> device = upload(**first);
+  if (!device.ok()) return device.status();
+  f->device_ = std::move(*device);
+  f->device_evaluation_ = f->serving_->field_evaluations();
+  f->evaluations_.store(f->serving_->field_evaluations());
+  return f;
+}
+
+absl::StatusOr<const GaussianStore*> DynamicSceneField::EvaluateLocked(int64_t time_us) const {
+  // Clamps to the log's range; a repeated time coordinate is free.
+  absl::StatusOr<const GaussianStore*> store = serving_->At(time_us, *pool_);
+  evaluations_.store(serving_->field_evaluations());
+  return store;
+}
+
+absl::StatusOr<const DeviceScene*> DynamicSceneField::At(int64_t time_us, Engine& engine) const {
+  std::lock_guard<std::mutex> lock(mu_);
+  absl::StatusOr<const GaussianStore*> store = EvaluateLocked(time_us);
+  if (!store.ok()) return store.status();
+  if (serving_->field_evaluations() != device_evaluation_) {
+    if (absl::Status s = engine.UpdateScene(**store, &device_); !s.ok()) {
+      device_evaluation_ = -1;  // the device copy is in an unknown state: update on the next call
+      return absl::InternalError(absl::StrCat("uploading the deformed scene failed: ", s.message()));
+    }
+    device_evaluation_ = serving_->field_evaluations();
+  }
+  return device_.get();
+}
+
+absl::StatusOr<std::shared_ptr<const HostScene>> DynamicSceneField::HostAt(int64_t time_us) const {
+  std::lock_guard<std::mutex> lock(mu_);
+  absl::StatusOr<const GaussianStore*> store = EvaluateLocked(time_us);
+  if (!store.ok()) return store.status();
+  if (serving_->field_evaluations() != host_evaluation_) {
+    // A new object per timestamp: the LiDAR renderer re-uploads when the pointer changes.
+    auto host = std::make_shared<HostScene>();
+    host->store = **store;
+    host->reflectance = reflectance_;
+    host_ = std::move(host);
+    host_evaluation_ = serving_->field_evaluations();
+  }
+  return host_;
+}
+
+FieldStats DynamicSceneField::stats() const { return {true, num_dynamic_, evaluations_.load()}; }
+
+}  // namespace streetsim::server

@@ -1,0 +1,55 @@
+// A dynamic scene served at the request's time (docs/server.md "Dynamic scenes"): the canonical
+// Gaussians of scene.ply deformed by DIR/field.bin through field::ServingField (static Gaussians
+// baked once at load, the dynamic ones evaluated once per new timestamp). The deformed Gaussians
+// of the last timestamp are kept on the device and on the host, so every camera and the LiDAR of
+// one step share one field evaluation.
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "render/common/thread_pool.h"
+#include "scene/field/static_skip.h"
+#include "server/scene_field.h"
+
+namespace streetsim::server {
+
+class DynamicSceneField : public SceneField {
+ public:
+  // Runs the static analysis (seconds for large scenes: the registry's loading thread) and
+  // uploads the baked Gaussians through `upload`. `canonical` must have SH degree 3.
+  static absl::StatusOr<std::unique_ptr<DynamicSceneField>> Create(
+      field::DeformationField field, GaussianStore canonical, std::optional<std::vector<float>> reflectance,
+      const field::StaticSkipOptions& options, const SceneUploader& upload);
+
+  absl::StatusOr<const DeviceScene*> At(int64_t time_us, Engine& engine) const override;
+  absl::StatusOr<std::shared_ptr<const HostScene>> HostAt(int64_t time_us) const override;
+  size_t num_gaussians() const override { return num_gaussians_; }
+  FieldStats stats() const override;
+
+ private:
+  DynamicSceneField() = default;
+  // The deformed store at time_us (mu_ held).
+  absl::StatusOr<const GaussianStore*> EvaluateLocked(int64_t time_us) const;
+
+  mutable std::mutex mu_;
+  mutable std::unique_ptr<ThreadPool> pool_;
+  mutable std::optional<field::ServingField> serving_;
+  mutable std::unique_ptr<DeviceScene> device_;
+  mutable int64_t device_evaluation_ = 0;  // serving_'s evaluation count the device copy holds (0: baked)
+  mutable std::shared_ptr<const HostScene> host_;
+  mutable int64_t host_evaluation_ = -1;
+  std::optional<std::vector<float>> reflectance_;
+  size_t num_gaussians_ = 0;
+  size_t num_dynamic_ = 0;
+  // A copy of serving_'s count that GetScene reads without waiting for an evaluation in progress.
+  mutable std::atomic<int64_t> evaluations_{0};
+};
+
+}  // namespace streetsim::server
