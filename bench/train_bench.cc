@@ -11,6 +11,7 @@
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_split.h"
+#include "bench/train_bench_scene.h"
 #include "render/common/thread_pool.h"
 #include "render/engine.h"
 #include "scene/gaussians/synthetic_street.h"
@@ -42,35 +43,18 @@ int main(int argc, char** argv) {
               "total", "visible", "instances");
   ThreadPool pool(0);
   for (const std::string& s : std::vector<std::string>(absl::StrSplit(settings, ','))) {
-    std::vector<std::string> p = absl::StrSplit(s, 'x');
-    int w = 0, h = 0;
-    size_t n = 0;
-    if (p.size() != 3 || !absl::SimpleAtoi(p[0], &w) || !absl::SimpleAtoi(p[1], &h) || !absl::SimpleAtoi(p[2], &n)) {
+    bench::BenchSetting setting;
+    if (!bench::ParseBenchSetting(s, &setting)) {
       std::fprintf(stderr, "bad setting %s\n", s.c_str());
       return 2;
     }
+    const int w = setting.width, h = setting.height;
+    const size_t n = setting.num_gaussians;
     const GaussianStore street = MakeSyntheticStreet({.num_gaussians = n, .seed = 3, .sh_degree = sh});
     train::TrainState st = train::TrainState::Init(street, 20.0, 1, 1);
-    PinholeCamera cam;
-    cam.width = w;
-    cam.height = h;
-    cam.fx = cam.fy = 721.5377 * w / 1242.0;
-    cam.cx = (w - 1) / 2.0;
-    cam.cy = (h - 1) / 2.0;
-    cam.T_world_from_cam = StreetCameraPose(10.0);
-    // Target: a render of the scene from 0.3 m aside (so that gradients are non-trivial).
-    std::vector<float> target, d_rgb, d_depth;
-    std::vector<train::DepthSample> lidar;
-    {
-      auto sc = (*engine)->Upload(street);
-      RenderOutput o;
-      PinholeCamera c2 = cam;
-      c2.T_world_from_cam = StreetCameraPose(10.0, 0.3);
-      (void)(*engine)->Render(**sc, c2, {}, &o);
-      target = o.rgb;
-      for (size_t i = 0; i < o.depth.size(); i += 97)
-        if (o.alpha[i] > 0.5f) lidar.push_back({static_cast<uint32_t>(i), o.depth[i] / o.alpha[i]});
-    }
+    const PinholeCamera cam = bench::BenchCamera(w, h);
+    std::vector<float> d_rgb, d_depth;
+    const bench::BenchTarget bt = bench::RenderBenchTarget(**engine, street, cam);
     std::unique_ptr<DeviceScene> scene;
     RenderOutput out;
     GaussianGrads grads;
@@ -88,12 +72,7 @@ int main(int argc, char** argv) {
       (void)(*engine)->Render(*scene, cam, ro, &out);
       const double fwd = Ms(t);
       t = Clock::now();
-      const size_t pixels = static_cast<size_t>(w) * h;
-      d_rgb.assign(pixels * 3, 0.0f);
-      d_depth.assign(pixels, 0.0f);
-      train::L1Loss(pool, out.rgb.data(), target.data(), pixels * 3, 1.0f, d_rgb.data());
-      train::Ssim(pool, out.rgb.data(), target.data(), w, h, -0.2f, d_rgb.data());
-      train::DepthLoss(out.depth.data(), lidar, 0.5f, d_depth.data());
+      bench::BenchLoss(pool, out, bt, w, h, &d_rgb, &d_depth);
       const double loss = Ms(t);
       t = Clock::now();
       BackwardOptions bo;

@@ -12,6 +12,7 @@
 #include <algorithm>
 #include <cmath>
 
+#include "render/common/projection_backward_math.h"
 #include "render/common/projection_math.h"
 
 namespace streetsim::cpu {
@@ -150,61 +151,15 @@ template <typename Real>
   const Real cyy = T1[0] * S1[0] + T1[1] * S1[1] + T1[2] * S1[2] + Real(projection::Limits::kLowPassPx);
   const Real det = cxx * cyy - cxy * cxy;
   const Real inv_det = Real(1) / det;
-  const Real inv_det2 = inv_det * inv_det;
 
   const Real mid = Real(0.5) * (cxx + cyy);
   const Real lambda_max = mid + sqrt(std::max(Real(0.1), mid * mid - det));
   out->radius = std::ceil(Real(3) * sqrt(lambda_max));
 
-  // conic (a, b, c) = (cyy, -cxy, cxx) / det.
-  const Real ga = g[kGa], gb = g[kGb], gc = g[kGc];
-  const Real d_cxx = -ga * cyy * cyy * inv_det2 + gb * cxy * cyy * inv_det2 + gc * (inv_det - cxx * cyy * inv_det2);
-  const Real d_cyy = ga * (inv_det - cxx * cyy * inv_det2) + gb * cxy * cxx * inv_det2 - gc * cxx * cxx * inv_det2;
-  const Real d_cxy = ga * 2 * cxy * cyy * inv_det2 + gb * (-inv_det - 2 * cxy * cxy * inv_det2) +
-                     gc * 2 * cxy * cxx * inv_det2;
-
-  // cov = T Sigma T^T: dT0 = 2 d_cxx S0 + d_cxy S1, dT1 = 2 d_cyy S1 + d_cxy S0;
-  // dSigma (full, then symmetrised through M) = d_cxx T0T0^T + d_cxy T0T1^T + d_cyy T1T1^T.
+  // conic -> 2D covariance -> T, Sigma -> M -> R, s -> quaternion.
   Real dT0[3], dT1[3];
-  for (int k = 0; k < 3; ++k) {
-    dT0[k] = 2 * d_cxx * S0[k] + d_cxy * S1[k];
-    dT1[k] = 2 * d_cyy * S1[k] + d_cxy * S0[k];
-  }
-  Real dSig[9];
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c)
-      dSig[r * 3 + c] = d_cxx * T0[r] * T0[c] + d_cxy * T0[r] * T1[c] + d_cyy * T1[r] * T1[c];
-  // Sigma = M M^T: dM = (dSig + dSig^T) M.
-  Real dM[9];
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c) {
-      Real v = 0;
-      for (int k = 0; k < 3; ++k) v += (dSig[r * 3 + k] + dSig[k * 3 + r]) * M[k * 3 + c];
-      dM[r * 3 + c] = v;
-    }
-  // M = R diag(s).
-  Real dR[9];
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c) dR[r * 3 + c] = dM[r * 3 + c] * s[c];
-  for (int c = 0; c < 3; ++c) {
-    const Real ds = dM[0 * 3 + c] * R[0 * 3 + c] + dM[1 * 3 + c] * R[1 * 3 + c] + dM[2 * 3 + c] * R[2 * 3 + c];
-    out->log_scale[c] = ds * s[c];
-  }
-  // R(q normalised) -> dq_n.
-  Real dqn[4];
-  dqn[0] = 2 * (-qz * dR[1] + qy * dR[2] + qz * dR[3] - qx * dR[5] - qy * dR[6] + qx * dR[7]);
-  dqn[1] = 2 * (qy * dR[1] + qz * dR[2] + qy * dR[3] - 2 * qx * dR[4] - qw * dR[5] + qz * dR[6] + qw * dR[7] -
-                2 * qx * dR[8]);
-  dqn[2] = 2 * (-2 * qy * dR[0] + qx * dR[1] + qw * dR[2] + qx * dR[3] + qz * dR[5] - qw * dR[6] + qz * dR[7] -
-                2 * qy * dR[8]);
-  dqn[3] = 2 * (-2 * qz * dR[0] - qw * dR[1] + qx * dR[2] + qw * dR[3] - 2 * qz * dR[4] + qy * dR[5] +
-                qx * dR[6] + qy * dR[7]);
-  // Normalisation: dq = (dqn - qn (qn . dqn)) / |q|.
-  const Real qdot = qw * dqn[0] + qx * dqn[1] + qy * dqn[2] + qz * dqn[3];
-  out->quat[0] = (dqn[0] - qw * qdot) * qinv;
-  out->quat[1] = (dqn[1] - qx * qdot) * qinv;
-  out->quat[2] = (dqn[2] - qy * qdot) * qinv;
-  out->quat[3] = (dqn[3] - qz * qdot) * qinv;
+  const projection::CovarianceChain<Real> chain{T0, T1, S0, S1, M, R, s, cxx, cxy, cyy, inv_det, qw, qx, qy, qz, qinv};
+  projection::CovarianceChainBackward(chain, g[kGa], g[kGb], g[kGc], dT0, dT1, out->quat, out->log_scale);
 
   // T = J W -> J entries.
   const Real dj00 = dT0[0] * W[0] + dT0[1] * W[1] + dT0[2] * W[2];

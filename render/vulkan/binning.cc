@@ -20,6 +20,52 @@ uint32_t RankBits(uint32_t num_gaussians, uint32_t num_tiles) {
   return rank_bits + TileBits(num_tiles) <= 32 ? rank_bits : 0;
 }
 
+BinningResult RecordEmitAndBin(Recorder& rec, const Kernels& k, const ScanScratch& scratch,
+                               const EmitSources& src, const BinningBuffers& bins, const Buffer& counts,
+                               const Buffer& args, uint32_t num_entries, uint64_t instance_capacity,
+                               uint32_t tiles_x, uint32_t tiles_y, uint32_t rank_bits) {
+  RecordScan(rec, k, scratch, *src.touched_sorted, counts, kCountV, num_entries, kCountI,
+             /*saturate=*/true, Launch{&args, kArgsVScan});
+  struct SetupPush {
+    uint32_t mode;
+    uint32_t instance_capacity;
+  };
+  rec.Dispatch(*k.setup_args, {&counts, &args},
+               SetupPush{1, static_cast<uint32_t>(instance_capacity)}, Grid{1, 1});
+  rec.Barrier();
+
+  // e. Emit.
+  const bool packed = rank_bits != 0;
+  struct EmitPush {
+    uint32_t tiles_x;
+    uint32_t capacity;
+    uint32_t rank_bits;
+  };
+  rec.DispatchIndirect(*k.emit,
+                       {src.sorted_ids, src.touched_sorted, src.rects, bins.inst_keys[0],
+                        packed ? bins.inst_keys[0] : bins.inst_vals[0], &counts},
+                       EmitPush{tiles_x, static_cast<uint32_t>(instance_capacity), rank_bits}, args,
+                       kArgsVThreads * kArgsSlotBytes);
+  rec.Barrier();
+
+  // f. Stable tile sort over min(I, capacity) instances, by the tile bits only.
+  const SortBuffers inst_bufs{
+      {bins.inst_keys[0], bins.inst_keys[1]},
+      {packed ? nullptr : bins.inst_vals[0], packed ? nullptr : bins.inst_vals[1]},
+      bins.hist};
+  const int t =
+      RecordRadixSort(rec, k, scratch, inst_bufs, counts, kCountIc, kCountTileHist,
+                      instance_capacity, static_cast<int>(rank_bits), TileBits(tiles_x * tiles_y),
+                      Launch{&args, kArgsTileSort}, Launch{&args, kArgsTileHistScan});
+
+  // g. Tile ranges (the caller cleared them: at the start of the frame / sweep).
+  rec.DispatchIndirect(*k.tile_ranges, {bins.inst_keys[t], bins.ranges, &counts}, rank_bits, args,
+                       kArgsIcThreads * kArgsSlotBytes);
+  rec.Barrier();
+  return BinningResult{packed ? bins.inst_keys[t] : bins.inst_vals[t],
+                       packed ? (1u << rank_bits) - 1 : ~0u, src.sorted_ids};
+}
+
 BinningResult RecordSortAndBin(Recorder& rec, const Kernels& k, const ScanScratch& scratch,
                                const SceneBuffers& scene, const BinningBuffers& bins,
                                const Buffer& counts, const Buffer& args, uint32_t num_gaussians,
@@ -39,46 +85,8 @@ BinningResult RecordSortAndBin(Recorder& rec, const Kernels& k, const ScanScratc
                         scene.sorted_splats},
                        args, kArgsVThreads * kArgsSlotBytes);
   rec.Barrier();
-  RecordScan(rec, k, scratch, *scene.touched_sorted, counts, kCountV, num_gaussians, kCountI,
-             /*saturate=*/true, Launch{&args, kArgsVScan});
-  struct SetupPush {
-    uint32_t mode;
-    uint32_t instance_capacity;
-  };
-  rec.Dispatch(*k.setup_args, {&counts, &args},
-               SetupPush{1, static_cast<uint32_t>(instance_capacity)}, Grid{1, 1});
-  rec.Barrier();
-
-  // e. Emit.
-  const bool packed = rank_bits != 0;
-  struct EmitPush {
-    uint32_t tiles_x;
-    uint32_t capacity;
-    uint32_t rank_bits;
-  };
-  rec.DispatchIndirect(*k.emit,
-                       {scene.ids[d], scene.touched_sorted, scene.rects, bins.inst_keys[0],
-                        packed ? bins.inst_keys[0] : bins.inst_vals[0], &counts},
-                       EmitPush{tiles_x, static_cast<uint32_t>(instance_capacity), rank_bits}, args,
-                       kArgsVThreads * kArgsSlotBytes);
-  rec.Barrier();
-
-  // f. Stable tile sort over min(I, capacity) instances, by the tile bits only.
-  const SortBuffers inst_bufs{
-      {bins.inst_keys[0], bins.inst_keys[1]},
-      {packed ? nullptr : bins.inst_vals[0], packed ? nullptr : bins.inst_vals[1]},
-      bins.hist};
-  const int t =
-      RecordRadixSort(rec, k, scratch, inst_bufs, counts, kCountIc, kCountTileHist,
-                      instance_capacity, static_cast<int>(rank_bits), TileBits(tiles_x * tiles_y),
-                      Launch{&args, kArgsTileSort}, Launch{&args, kArgsTileHistScan});
-
-  // g. Tile ranges (the engine cleared them at the start of the frame).
-  rec.DispatchIndirect(*k.tile_ranges, {bins.inst_keys[t], bins.ranges, &counts}, rank_bits, args,
-                       kArgsIcThreads * kArgsSlotBytes);
-  rec.Barrier();
-  return BinningResult{packed ? bins.inst_keys[t] : bins.inst_vals[t],
-                       packed ? (1u << rank_bits) - 1 : ~0u, scene.ids[d]};
+  return RecordEmitAndBin(rec, k, scratch, {scene.ids[d], scene.touched_sorted, scene.rects}, bins, counts,
+                          args, num_gaussians, instance_capacity, tiles_x, tiles_y, rank_bits);
 }
 
 }  // namespace streetsim::vulkan

@@ -144,8 +144,6 @@ struct VulkanLidarRenderer::Impl {
   absl::Status RecordAndSubmit(const LidarModel& model, const vk::LidarProjectPush& project,
                                const vk::LidarBlendPush& blend, uint32_t* counts_out,
                                vk::BinningResult* bins_out);
-  // Ends the recording, submits it and waits; `readback` is then visible to the host.
-  absl::Status SubmitAndWait(vk::Recorder& rec, vk::Buffer& readback);
   absl::Status Backward(const LidarUpstreamGrads& upstream, LidarGaussianGrads* grads);
   absl::Status Render(const LidarModel& model, const LidarSweepPose& sweep,
                       const LidarRenderOptions& options, LidarRenderOutput* out);
@@ -162,25 +160,10 @@ absl::StatusOr<std::unique_ptr<VulkanLidarRenderer>> VulkanLidarRenderer::Create
   if (!kernels.ok()) return kernels.status();
   impl->kernels = *std::move(kernels);
   impl->arena = std::make_unique<vk::DescriptorArena>(c.device());
-  VkCommandBufferAllocateInfo alloc{VK_STRUCTURE_TYPE_COMMAND_BUFFER_ALLOCATE_INFO};
-  alloc.commandPool = c.command_pool();
-  alloc.level = VK_COMMAND_BUFFER_LEVEL_PRIMARY;
-  alloc.commandBufferCount = 1;
-  STREETSIM_VK_RETURN_IF_ERROR(vkAllocateCommandBuffers(c.device(), &alloc, &impl->cmd),
-                               "vkAllocateCommandBuffers");
-  VkFenceCreateInfo fence_info{VK_STRUCTURE_TYPE_FENCE_CREATE_INFO};
-  STREETSIM_VK_RETURN_IF_ERROR(vkCreateFence(c.device(), &fence_info, nullptr, &impl->fence),
-                               "vkCreateFence");
-  if (c.has_timestamps()) {
-    VkQueryPoolCreateInfo query_info{VK_STRUCTURE_TYPE_QUERY_POOL_CREATE_INFO};
-    query_info.queryType = VK_QUERY_TYPE_TIMESTAMP;
-    query_info.queryCount = kNumTimestamps;
-    STREETSIM_VK_RETURN_IF_ERROR(
-        vkCreateQueryPool(c.device(), &query_info, nullptr, &impl->query_pool), "vkCreateQueryPool");
-  }
-  if (const char* env = std::getenv("STREETSIM_VK_PROFILE"); env && std::string_view(env) == "1") {
-    auto profiler = vk::Profiler::Create(c);
-    if (profiler.ok()) impl->profiler = *std::move(profiler);
+  if (absl::Status s = vk::CreateFrameObjects(c, kNumTimestamps, &impl->cmd, &impl->fence, &impl->query_pool,
+                                              &impl->profiler);
+      !s.ok()) {
+    return s;
   }
   for (auto [buffer, bytes, name] :
        {std::tuple{&impl->counts, kCountsBytes, "lidar_counts"},
@@ -239,17 +222,7 @@ absl::Status VulkanLidarRenderer::Upload(const GaussianStore& store) {
       return s;
     }
   }
-  // (mean, logit), (log-scale, 0), quaternion: the camera scene's 3 vec4 per Gaussian.
-  absl::Status s = vk::UploadWith(c, w.gauss, n * 48, 48, [&](size_t begin, size_t end, std::byte* out) {
-    float* dst = reinterpret_cast<float*>(out);
-    for (size_t i = begin / 48; i < end / 48; ++i, dst += 12) {
-      std::memcpy(dst, &store.means[i * 3], 12);
-      dst[3] = store.opacity_logits[i];
-      std::memcpy(dst + 4, &store.log_scales[i * 3], 12);
-      dst[7] = 0.0f;
-      std::memcpy(dst + 8, &store.rotations[i * 4], 16);
-    }
-  });
+  absl::Status s = vk::UploadGaussianGeometry(c, w.gauss, store);
   if (!s.ok()) return s;
   w.n = static_cast<uint32_t>(n);
   w.uploaded = true;
@@ -319,16 +292,9 @@ absl::Status VulkanLidarRenderer::Impl::RecordAndSubmit(const LidarModel& model,
   const vk::Context& c = *ctx;
   const uint32_t tiles_x = project.tiles_x, tiles_y = project.tiles_y;
   const VkDeviceSize rays = VkDeviceSize{static_cast<uint64_t>(model.beams())} * model.columns;
-  STREETSIM_VK_RETURN_IF_ERROR(vkResetCommandBuffer(cmd, 0), "vkResetCommandBuffer");
-  if (absl::Status s = arena->Reset(); !s.ok()) return s;
-  VkCommandBufferBeginInfo begin{VK_STRUCTURE_TYPE_COMMAND_BUFFER_BEGIN_INFO};
-  begin.flags = VK_COMMAND_BUFFER_USAGE_ONE_TIME_SUBMIT_BIT;
-  STREETSIM_VK_RETURN_IF_ERROR(vkBeginCommandBuffer(cmd, &begin), "vkBeginCommandBuffer");
+  if (absl::Status s = vk::BeginFrameCommands(cmd, *arena); !s.ok()) return s;
   vk::Recorder rec(c, cmd, arena.get());
-  if (profiler) {
-    profiler->Begin(cmd);
-    rec.set_profiler(profiler.get());
-  }
+  vk::AttachProfiler(rec, profiler.get());
   auto timestamp = [&](uint32_t index) {
     if (query_pool != VK_NULL_HANDLE) {
       vkCmdWriteTimestamp(cmd, VK_PIPELINE_STAGE_BOTTOM_OF_PIPE_BIT, query_pool, index);
@@ -360,28 +326,8 @@ absl::Status VulkanLidarRenderer::Impl::RecordAndSubmit(const LidarModel& model,
   timestamp(3);
   rec.Copy(counts, 0, readback, 0, kCountsBytes);
   rec.Copy(planes, 0, readback, kCountsBytes, rays * kPlanes * 4);
-  if (absl::Status s = SubmitAndWait(rec, readback); !s.ok()) return s;
+  if (absl::Status s = vk::SubmitFrameAndWait(c, rec, fence, readback, profiler.get()); !s.ok()) return s;
   std::memcpy(counts_out, readback.mapped(), kCountsBytes);
-  return absl::OkStatus();
-}
-
-absl::Status VulkanLidarRenderer::Impl::SubmitAndWait(vk::Recorder& rec, vk::Buffer& readback_buffer) {
-  const vk::Context& c = *ctx;
-  rec.HostReadBarrier();
-  if (!rec.status().ok()) {
-    vkEndCommandBuffer(cmd);
-    return rec.status();
-  }
-  STREETSIM_VK_RETURN_IF_ERROR(vkEndCommandBuffer(cmd), "vkEndCommandBuffer");
-  STREETSIM_VK_RETURN_IF_ERROR(vkResetFences(c.device(), 1, &fence), "vkResetFences");
-  VkSubmitInfo submit{VK_STRUCTURE_TYPE_SUBMIT_INFO};
-  submit.commandBufferCount = 1;
-  submit.pCommandBuffers = &cmd;
-  STREETSIM_VK_RETURN_IF_ERROR(vkQueueSubmit(c.queue(), 1, &submit, fence), "vkQueueSubmit");
-  STREETSIM_VK_RETURN_IF_ERROR(vkWaitForFences(c.device(), 1, &fence, VK_TRUE, UINT64_MAX),
-                               "vkWaitForFences");
-  if (absl::Status s = readback_buffer.InvalidateForHost(); !s.ok()) return s;
-  if (profiler) profiler->Report(c);
   return absl::OkStatus();
 }
 
@@ -565,16 +511,9 @@ absl::Status VulkanLidarRenderer::Impl::Backward(const LidarUpstreamGrads& upstr
       std::memset(staging + plane * P, 0, P * 4);
     }
   }
-  STREETSIM_VK_RETURN_IF_ERROR(vkResetCommandBuffer(cmd, 0), "vkResetCommandBuffer");
-  if (absl::Status s = arena->Reset(); !s.ok()) return s;
-  VkCommandBufferBeginInfo begin{VK_STRUCTURE_TYPE_COMMAND_BUFFER_BEGIN_INFO};
-  begin.flags = VK_COMMAND_BUFFER_USAGE_ONE_TIME_SUBMIT_BIT;
-  STREETSIM_VK_RETURN_IF_ERROR(vkBeginCommandBuffer(cmd, &begin), "vkBeginCommandBuffer");
+  if (absl::Status s = vk::BeginFrameCommands(cmd, *arena); !s.ok()) return s;
   vk::Recorder rec(c, cmd, arena.get());
-  if (profiler) {
-    profiler->Begin(cmd);
-    rec.set_profiler(profiler.get());
-  }
+  vk::AttachProfiler(rec, profiler.get());
   rec.Copy(ray_grads_staging, 0, ray_grads, 0, VkDeviceSize{P} * 12);
   rec.Barrier();
   const vk::LidarBackwardPush push{kept.blend.columns, kept.blend.beams, kept.blend.tiles_x,
@@ -582,7 +521,7 @@ absl::Status VulkanLidarRenderer::Impl::Backward(const LidarUpstreamGrads& upstr
   vk::RecordLidarBackward(rec, *kernels, Frame(kept.project.has_refl != 0), kept.bins, kept.project, push,
                           vk::LidarBackwardBuffers{&ray_grads, &splat_grads, &param_grads});
   if (n > 0) rec.Copy(param_grads, 0, bwd_readback, 0, VkDeviceSize{n} * vk::kLidarParamGradFloats * 4);
-  if (absl::Status s = SubmitAndWait(rec, bwd_readback); !s.ok()) return s;
+  if (absl::Status s = vk::SubmitFrameAndWait(c, rec, fence, bwd_readback, profiler.get()); !s.ok()) return s;
   vk::UnpackLidarGrads(static_cast<const float*>(bwd_readback.mapped()), n, grads);
   return absl::OkStatus();
 }

@@ -17,16 +17,8 @@ absl::StatusOr<std::unique_ptr<LidarKernels>> LidarKernels::Create(const Context
   auto shared = Kernels::Create(ctx);
   if (!shared.ok()) return shared.status();
   k->shared = *std::move(shared);
-  struct Spec {
-    std::unique_ptr<ComputePipeline>* out;
-    const char* name;
-    std::span<const uint32_t> spirv;
-    int buffers;
-    uint32_t push_bytes;
-    std::span<const SpecConstant> spec;
-  };
   const SpecConstant rolling[] = {{0, 1}};
-  const Spec specs[] = {
+  const PipelineSpec specs[] = {
       {&k->project, "lidar_project", spirv::lidar_project, 7, sizeof(LidarProjectPush), {}},
       {&k->project_rolling, "lidar_project_rolling", spirv::lidar_project, 7, sizeof(LidarProjectPush),
        rolling},
@@ -36,11 +28,7 @@ absl::StatusOr<std::unique_ptr<LidarKernels>> LidarKernels::Create(const Context
       {&k->project_backward, "lidar_project_backward", spirv::lidar_project_backward, 6,
        sizeof(LidarProjectPush), {}},
   };
-  for (const Spec& s : specs) {
-    auto p = ComputePipeline::Create(ctx, s.name, s.spirv, s.buffers, s.push_bytes, s.spec);
-    if (!p.ok()) return p.status();
-    *s.out = *std::move(p);
-  }
+  if (absl::Status s = CreatePipelines(ctx, specs); !s.ok()) return s;
   if (ctx.has_subgroup_arithmetic()) {
     const bool native = ctx.has_float_atomic_add();
     auto p = ComputePipeline::Create(ctx, native ? "lidar_blend_backward" : "lidar_blend_backward_cas",
@@ -101,42 +89,11 @@ BinningResult RecordLidarSortAndBin(Recorder& rec, const LidarKernels& k, const 
                        {f.ids[d], f.touched, f.touched_sorted, &counts, f.splats, f.sorted_splats},
                        splat_capacity, args, kArgsVThreads * kArgsSlotBytes);
   rec.Barrier();
-  RecordScan(rec, ks, scratch, *f.touched_sorted, counts, kCountV, num_entries, kCountI,
-             /*saturate=*/true, Launch{&args, kArgsVScan});
-  rec.Dispatch(*ks.setup_args, {&counts, &args},
-               SetupPush{1, static_cast<uint32_t>(instance_capacity)}, Grid{1, 1});
-  rec.Barrier();
-
-  // e. Emit (instances name the entry's range rank j).
-  const bool packed = rank_bits != 0;
-  struct EmitPush {
-    uint32_t tiles_x;
-    uint32_t capacity;
-    uint32_t rank_bits;
-  };
-  rec.DispatchIndirect(*ks.emit,
-                       {f.ids[d], f.touched_sorted, f.rects, f.inst_keys[0],
-                        packed ? f.inst_keys[0] : f.inst_vals[0], &counts},
-                       EmitPush{tiles_x, static_cast<uint32_t>(instance_capacity), rank_bits}, args,
-                       kArgsVThreads * kArgsSlotBytes);
-  rec.Barrier();
-
-  // f. Stable tile sort by the tile bits only.
-  const SortBuffers inst_bufs{
-      {f.inst_keys[0], f.inst_keys[1]},
-      {packed ? nullptr : f.inst_vals[0], packed ? nullptr : f.inst_vals[1]},
-      f.hist};
-  const int t =
-      RecordRadixSort(rec, ks, scratch, inst_bufs, counts, kCountIc, kCountTileHist,
-                      instance_capacity, static_cast<int>(rank_bits), TileBits(tiles_x * tiles_y),
-                      Launch{&args, kArgsTileSort}, Launch{&args, kArgsTileHistScan});
-
-  // g. Tile ranges (cleared at the start of the sweep).
-  rec.DispatchIndirect(*ks.tile_ranges, {f.inst_keys[t], f.ranges, &counts}, rank_bits, args,
-                       kArgsIcThreads * kArgsSlotBytes);
-  rec.Barrier();
-  return BinningResult{packed ? f.inst_keys[t] : f.inst_vals[t],
-                       packed ? (1u << rank_bits) - 1 : ~0u, f.ids[d]};
+  // e..g as for the camera (instances name the entry's range rank j; tile ranges cleared at the
+  // start of the sweep).
+  const BinningBuffers bins{{f.inst_keys[0], f.inst_keys[1]}, {f.inst_vals[0], f.inst_vals[1]}, f.hist, f.ranges};
+  return RecordEmitAndBin(rec, ks, scratch, {f.ids[d], f.touched_sorted, f.rects}, bins, counts, args,
+                          num_entries, instance_capacity, tiles_x, tiles_y, rank_bits);
 }
 
 void RecordLidarBlend(Recorder& rec, const LidarKernels& k, const LidarFrameBuffers& f,

@@ -1,7 +1,9 @@
 #include "render/vulkan/pipeline.h"
 
 #include <algorithm>
+#include <cstdlib>
 #include <map>
+#include <string_view>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
@@ -280,6 +282,75 @@ void Recorder::Copy(const Buffer& src, VkDeviceSize src_offset, const Buffer& ds
   if (!status_.ok() || size == 0) return;
   VkBufferCopy region{src_offset, dst_offset, size};
   vkCmdCopyBuffer(cmd_, src.handle(), dst.handle(), 1, &region);
+}
+
+absl::Status CreatePipelines(const Context& ctx, std::span<const PipelineSpec> specs) {
+  for (const PipelineSpec& s : specs) {
+    auto p = ComputePipeline::Create(ctx, s.name, s.spirv, s.buffers, s.push_bytes, s.spec);
+    if (!p.ok()) return p.status();
+    *s.out = *std::move(p);
+  }
+  return absl::OkStatus();
+}
+
+absl::Status CreateFrameObjects(const Context& ctx, uint32_t num_timestamps, VkCommandBuffer* cmd,
+                                VkFence* fence, VkQueryPool* query_pool, std::unique_ptr<Profiler>* profiler) {
+  VkCommandBufferAllocateInfo alloc{VK_STRUCTURE_TYPE_COMMAND_BUFFER_ALLOCATE_INFO};
+  alloc.commandPool = ctx.command_pool();
+  alloc.level = VK_COMMAND_BUFFER_LEVEL_PRIMARY;
+  alloc.commandBufferCount = 1;
+  STREETSIM_VK_RETURN_IF_ERROR(vkAllocateCommandBuffers(ctx.device(), &alloc, cmd), "vkAllocateCommandBuffers");
+  VkFenceCreateInfo fence_info{VK_STRUCTURE_TYPE_FENCE_CREATE_INFO};
+  STREETSIM_VK_RETURN_IF_ERROR(vkCreateFence(ctx.device(), &fence_info, nullptr, fence), "vkCreateFence");
+  if (ctx.has_timestamps()) {
+    VkQueryPoolCreateInfo query_info{VK_STRUCTURE_TYPE_QUERY_POOL_CREATE_INFO};
+    query_info.queryType = VK_QUERY_TYPE_TIMESTAMP;
+    query_info.queryCount = num_timestamps;
+    STREETSIM_VK_RETURN_IF_ERROR(vkCreateQueryPool(ctx.device(), &query_info, nullptr, query_pool),
+                                 "vkCreateQueryPool");
+  }
+  if (const char* env = std::getenv("STREETSIM_VK_PROFILE"); env && std::string_view(env) == "1") {
+    auto p = Profiler::Create(ctx);
+    if (p.ok()) *profiler = *std::move(p);
+  }
+  return absl::OkStatus();
+}
+
+absl::Status BeginFrameCommands(VkCommandBuffer cmd, DescriptorArena& arena) {
+  STREETSIM_VK_RETURN_IF_ERROR(vkResetCommandBuffer(cmd, 0), "vkResetCommandBuffer");
+  if (absl::Status s = arena.Reset(); !s.ok()) return s;
+  VkCommandBufferBeginInfo begin{VK_STRUCTURE_TYPE_COMMAND_BUFFER_BEGIN_INFO};
+  begin.flags = VK_COMMAND_BUFFER_USAGE_ONE_TIME_SUBMIT_BIT;
+  STREETSIM_VK_RETURN_IF_ERROR(vkBeginCommandBuffer(cmd, &begin), "vkBeginCommandBuffer");
+  return absl::OkStatus();
+}
+
+void AttachProfiler(Recorder& rec, Profiler* profiler) {
+  if (profiler) {
+    profiler->Begin(rec.cmd());
+    rec.set_profiler(profiler);
+  }
+}
+
+absl::Status SubmitFrameAndWait(const Context& ctx, Recorder& rec, VkFence fence, Buffer& readback,
+                                const Profiler* profiler) {
+  VkCommandBuffer cmd = rec.cmd();
+  rec.HostReadBarrier();
+  if (!rec.status().ok()) {
+    vkEndCommandBuffer(cmd);
+    return rec.status();
+  }
+  STREETSIM_VK_RETURN_IF_ERROR(vkEndCommandBuffer(cmd), "vkEndCommandBuffer");
+  STREETSIM_VK_RETURN_IF_ERROR(vkResetFences(ctx.device(), 1, &fence), "vkResetFences");
+  VkSubmitInfo submit{VK_STRUCTURE_TYPE_SUBMIT_INFO};
+  submit.commandBufferCount = 1;
+  submit.pCommandBuffers = &cmd;
+  STREETSIM_VK_RETURN_IF_ERROR(vkQueueSubmit(ctx.queue(), 1, &submit, fence), "vkQueueSubmit");
+  STREETSIM_VK_RETURN_IF_ERROR(vkWaitForFences(ctx.device(), 1, &fence, VK_TRUE, UINT64_MAX),
+                               "vkWaitForFences");
+  if (absl::Status s = readback.InvalidateForHost(); !s.ok()) return s;
+  if (profiler) profiler->Report(ctx);
+  return absl::OkStatus();
 }
 
 }  // namespace streetsim::vulkan

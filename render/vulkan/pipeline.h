@@ -52,6 +52,17 @@ class ComputePipeline {
   uint32_t push_constant_bytes_ = 0;
 };
 
+// One row of a kernel table: creates the pipeline into *out (Kernels::Create, LidarKernels::Create).
+struct PipelineSpec {
+  std::unique_ptr<ComputePipeline>* out;
+  const char* name;
+  std::span<const uint32_t> spirv;
+  int buffers;
+  uint32_t push_bytes;
+  std::span<const SpecConstant> spec;
+};
+absl::Status CreatePipelines(const Context& ctx, std::span<const PipelineSpec> specs);
+
 // Descriptor sets for one frame: allocated per dispatch and released together by Reset() once
 // the frame's fence has signalled. Buffers are reallocated on growth, so sets are never cached.
 class DescriptorArena {
@@ -154,5 +165,21 @@ class Recorder {
   Profiler* profiler_ = nullptr;
   std::string pending_label_;
 };
+
+// A renderer's reusable command buffer, recorded and submitted once per frame (the camera engine
+// and the LiDAR renderer share these steps). CreateFrameObjects allocates the command buffer and
+// its fence, a pool of `num_timestamps` timestamp queries where the device has timestamps (else
+// left null) and, with STREETSIM_VK_PROFILE=1, a profiler (left null when it cannot be made); on
+// an error, what was made is already in the outputs for the caller to destroy.
+// BeginFrameCommands resets `cmd` and the descriptor arena and begins one-time recording;
+// AttachProfiler (null: none) starts its timestamps.
+absl::Status CreateFrameObjects(const Context& ctx, uint32_t num_timestamps, VkCommandBuffer* cmd,
+                                VkFence* fence, VkQueryPool* query_pool, std::unique_ptr<Profiler>* profiler);
+absl::Status BeginFrameCommands(VkCommandBuffer cmd, DescriptorArena& arena);
+void AttachProfiler(Recorder& rec, Profiler* profiler);
+// Ends `rec`'s command buffer (or returns its sticky error), submits it, waits on `fence` and
+// makes `readback` visible to the host; then reports the profiler's times, if any.
+absl::Status SubmitFrameAndWait(const Context& ctx, Recorder& rec, VkFence fence, Buffer& readback,
+                                const Profiler* profiler);
 
 }  // namespace streetsim::vulkan

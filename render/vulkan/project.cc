@@ -3,9 +3,24 @@
 // index order with their depth keys.
 #include <Eigen/Geometry>
 
+#include <cstring>
+
 #include "render/vulkan/stages.h"
 
 namespace streetsim::vulkan {
+
+absl::Status UploadGaussianGeometry(const Context& ctx, const Buffer& gauss, const GaussianStore& store) {
+  return UploadWith(ctx, gauss, store.size() * 48, 48, [&](size_t begin, size_t end, std::byte* out) {
+    float* dst = reinterpret_cast<float*>(out);
+    for (size_t i = begin / 48; i < end / 48; ++i, dst += 12) {
+      std::memcpy(dst, &store.means[i * 3], 12);
+      dst[3] = store.opacity_logits[i];
+      std::memcpy(dst + 4, &store.log_scales[i * 3], 12);
+      dst[7] = 0.0f;
+      std::memcpy(dst + 8, &store.rotations[i * 4], 16);
+    }
+  });
+}
 
 // Same float camera as the cpu backend (render/cpu/project.cc: MakeCameraParams): pose inverted in
 // double, then rounded once.

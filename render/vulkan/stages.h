@@ -13,6 +13,7 @@
 #include "render/vulkan/buffer.h"
 #include "render/vulkan/context.h"
 #include "render/vulkan/pipeline.h"
+#include "scene/gaussians/gaussian_store.h"
 
 namespace streetsim::vulkan {
 
@@ -116,6 +117,10 @@ int RecordRadixSort(Recorder& rec, const Kernels& k, const ScanScratch& scratch,
 int RadixPasses(int bits);
 
 // --- project.cc ----------------------------------------------------------------------------------
+// Packs (mean, logit), (log-scale, 0), quaternion as the 3 vec4 per Gaussian that the projection
+// kernels read with aligned loads (the camera scene's and the LiDAR's layout) into `gauss`
+// (>= 48 bytes per Gaussian).
+absl::Status UploadGaussianGeometry(const Context& ctx, const Buffer& gauss, const GaussianStore& store);
 struct ProjectPush {
   float R[9];
   float t[3];
@@ -172,6 +177,18 @@ BinningResult RecordSortAndBin(Recorder& rec, const Kernels& k, const ScanScratc
                                const Buffer& counts, const Buffer& args, uint32_t num_gaussians,
                                uint64_t instance_capacity, uint32_t tiles_x, uint32_t tiles_y,
                                uint32_t rank_bits);
+// The tail of stages d..g, shared with the LiDAR sweep (lidar_stages_vk.cc): touched-tiles scan
+// of the gathered entries (I -> counts[kCountI], saturating), emit, stable tile sort by the tile
+// bits, tile ranges (cleared by the caller).
+struct EmitSources {
+  const Buffer* sorted_ids;      // entry id by sort rank
+  const Buffer* touched_sorted;  // tiles touched, by sort rank (scanned in place to offsets)
+  const Buffer* rects;           // uvec2 per entry
+};
+BinningResult RecordEmitAndBin(Recorder& rec, const Kernels& k, const ScanScratch& scratch,
+                               const EmitSources& src, const BinningBuffers& bins, const Buffer& counts,
+                               const Buffer& args, uint32_t num_entries, uint64_t instance_capacity,
+                               uint32_t tiles_x, uint32_t tiles_y, uint32_t rank_bits);
 
 // --- blend.cc ------------------------------------------------------------------------------------
 struct ImageBuffers {

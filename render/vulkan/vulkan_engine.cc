@@ -47,15 +47,7 @@ absl::StatusOr<std::unique_ptr<Kernels>> Kernels::Create(const Context& ctx) {
   auto k = std::make_unique<Kernels>();
   const SpecConstant saturate[] = {{0, 1}};
   const SpecConstant keys_only[] = {{0, 1}};
-  struct Spec {
-    std::unique_ptr<ComputePipeline>* out;
-    const char* name;
-    std::span<const uint32_t> spirv;
-    int buffers;
-    uint32_t push_bytes;
-    std::span<const SpecConstant> spec;
-  };
-  const Spec specs[] = {
+  const PipelineSpec specs[] = {
       {&k->project, "project", spirv::project, 9, sizeof(ProjectPush), {}},
       {&k->compact, "compact", spirv::compact, 6, 0, {}},
       {&k->setup_args, "setup_args", spirv::setup_args, 2, 8, {}},
@@ -72,11 +64,7 @@ absl::StatusOr<std::unique_ptr<Kernels>> Kernels::Create(const Context& ctx) {
       {&k->tile_ranges, "tile_ranges", spirv::tile_ranges, 3, 4, {}},
       {&k->blend, "blend", spirv::blend, 8, 28, {}},
   };
-  for (const Spec& s : specs) {
-    auto p = ComputePipeline::Create(ctx, s.name, s.spirv, s.buffers, s.push_bytes, s.spec);
-    if (!p.ok()) return p.status();
-    *s.out = *std::move(p);
-  }
+  if (absl::Status s = CreatePipelines(ctx, specs); !s.ok()) return s;
   for (uint32_t degree = 0; degree < k->project_backward.size(); ++degree) {
     const SpecConstant sh_degree[] = {{0, degree}};
     auto p = ComputePipeline::Create(ctx, "project_backward", spirv::project_backward, 13,
@@ -124,26 +112,10 @@ absl::StatusOr<std::unique_ptr<VulkanEngine>> VulkanEngine::Create(
   engine->kernels_ = *std::move(kernels);
   engine->arena_ = std::make_unique<DescriptorArena>(c.device());
 
-  VkCommandBufferAllocateInfo alloc{VK_STRUCTURE_TYPE_COMMAND_BUFFER_ALLOCATE_INFO};
-  alloc.commandPool = c.command_pool();
-  alloc.level = VK_COMMAND_BUFFER_LEVEL_PRIMARY;
-  alloc.commandBufferCount = 1;
-  STREETSIM_VK_RETURN_IF_ERROR(vkAllocateCommandBuffers(c.device(), &alloc, &engine->cmd_),
-                               "vkAllocateCommandBuffers");
-  VkFenceCreateInfo fence_info{VK_STRUCTURE_TYPE_FENCE_CREATE_INFO};
-  STREETSIM_VK_RETURN_IF_ERROR(vkCreateFence(c.device(), &fence_info, nullptr, &engine->fence_),
-                               "vkCreateFence");
-  if (c.has_timestamps()) {
-    VkQueryPoolCreateInfo query_info{VK_STRUCTURE_TYPE_QUERY_POOL_CREATE_INFO};
-    query_info.queryType = VK_QUERY_TYPE_TIMESTAMP;
-    query_info.queryCount = kNumTimestamps;
-    STREETSIM_VK_RETURN_IF_ERROR(
-        vkCreateQueryPool(c.device(), &query_info, nullptr, &engine->query_pool_),
-        "vkCreateQueryPool");
-  }
-  if (const char* env = std::getenv("STREETSIM_VK_PROFILE"); env && std::string_view(env) == "1") {
-    auto profiler = Profiler::Create(c);
-    if (profiler.ok()) engine->profiler_ = *std::move(profiler);
+  if (absl::Status s = CreateFrameObjects(c, kNumTimestamps, &engine->cmd_, &engine->fence_,
+                                          &engine->query_pool_, &engine->profiler_);
+      !s.ok()) {
+    return s;
   }
   for (auto [buffer, bytes, name] :
        {std::tuple{&engine->counts_, kCountsBytes, "counts"},
@@ -209,18 +181,7 @@ absl::Status VulkanEngine::UploadParams(const GaussianStore& store, VulkanScene*
   const size_t n = store.size();
   const VkDeviceSize n64 = n;
   const int K = store.sh_coeffs();
-  // Pack (mean, logit), (log-scale, 0), quaternion as 3 vec4 per Gaussian: aligned loads.
-  absl::Status s =
-      UploadWith(c, scene->gauss, n * 48, 48, [&](size_t begin, size_t end, std::byte* out) {
-        float* dst = reinterpret_cast<float*>(out);
-        for (size_t i = begin / 48; i < end / 48; ++i, dst += 12) {
-          std::memcpy(dst, &store.means[i * 3], 12);
-          dst[3] = store.opacity_logits[i];
-          std::memcpy(dst + 4, &store.log_scales[i * 3], 12);
-          dst[7] = 0.0f;
-          std::memcpy(dst + 8, &store.rotations[i * 4], 16);
-        }
-      });
+  absl::Status s = UploadGaussianGeometry(c, scene->gauss, store);
   if (!s.ok()) return s;
   for (int g = 0; g < kMaxShGroups && ShGroupFloats(K, g) > 0; ++g) {
     const size_t floats = ShGroupFloats(K, g);
@@ -288,23 +249,7 @@ absl::Status VulkanEngine::EnsureFrameResources(uint32_t n, uint32_t width, uint
 }
 
 absl::Status VulkanEngine::SubmitAndWait(Recorder& rec, Buffer& readback) {
-  const Context& c = *ctx_;
-  rec.HostReadBarrier();
-  if (!rec.status().ok()) {
-    vkEndCommandBuffer(cmd_);
-    return rec.status();
-  }
-  STREETSIM_VK_RETURN_IF_ERROR(vkEndCommandBuffer(cmd_), "vkEndCommandBuffer");
-  STREETSIM_VK_RETURN_IF_ERROR(vkResetFences(c.device(), 1, &fence_), "vkResetFences");
-  VkSubmitInfo submit{VK_STRUCTURE_TYPE_SUBMIT_INFO};
-  submit.commandBufferCount = 1;
-  submit.pCommandBuffers = &cmd_;
-  STREETSIM_VK_RETURN_IF_ERROR(vkQueueSubmit(c.queue(), 1, &submit, fence_), "vkQueueSubmit");
-  STREETSIM_VK_RETURN_IF_ERROR(vkWaitForFences(c.device(), 1, &fence_, VK_TRUE, UINT64_MAX),
-                               "vkWaitForFences");
-  if (absl::Status s = readback.InvalidateForHost(); !s.ok()) return s;
-  if (profiler_) profiler_->Report(c);
-  return absl::OkStatus();
+  return SubmitFrameAndWait(*ctx_, rec, fence_, readback, profiler_.get());
 }
 
 absl::Status VulkanEngine::RenderOnce(const VulkanScene& scene, const PinholeCamera& camera,
@@ -315,17 +260,9 @@ absl::Status VulkanEngine::RenderOnce(const VulkanScene& scene, const PinholeCam
   const uint32_t tiles_x = DivUp(width, kTileSize), tiles_y = DivUp(height, kTileSize);
   const VkDeviceSize pixels = VkDeviceSize{width} * height;
 
-  STREETSIM_VK_RETURN_IF_ERROR(vkResetCommandBuffer(cmd_, 0), "vkResetCommandBuffer");
-  if (absl::Status s = arena_->Reset(); !s.ok()) return s;
-  VkCommandBufferBeginInfo begin{VK_STRUCTURE_TYPE_COMMAND_BUFFER_BEGIN_INFO};
-  begin.flags = VK_COMMAND_BUFFER_USAGE_ONE_TIME_SUBMIT_BIT;
-  STREETSIM_VK_RETURN_IF_ERROR(vkBeginCommandBuffer(cmd_, &begin), "vkBeginCommandBuffer");
-
+  if (absl::Status s = BeginFrameCommands(cmd_, *arena_); !s.ok()) return s;
   Recorder rec(c, cmd_, arena_.get());
-  if (profiler_) {
-    profiler_->Begin(cmd_);
-    rec.set_profiler(profiler_.get());
-  }
+  AttachProfiler(rec, profiler_.get());
   auto timestamp = [&](uint32_t index) {
     if (query_pool_ != VK_NULL_HANDLE) {
       vkCmdWriteTimestamp(cmd_, VK_PIPELINE_STAGE_BOTTOM_OF_PIPE_BIT, query_pool_, index);
@@ -546,16 +483,9 @@ absl::Status VulkanEngine::RenderBackward(const DeviceScene& scene, const Render
     }
   }
 
-  STREETSIM_VK_RETURN_IF_ERROR(vkResetCommandBuffer(cmd_, 0), "vkResetCommandBuffer");
-  if (absl::Status s = arena_->Reset(); !s.ok()) return s;
-  VkCommandBufferBeginInfo begin{VK_STRUCTURE_TYPE_COMMAND_BUFFER_BEGIN_INFO};
-  begin.flags = VK_COMMAND_BUFFER_USAGE_ONE_TIME_SUBMIT_BIT;
-  STREETSIM_VK_RETURN_IF_ERROR(vkBeginCommandBuffer(cmd_, &begin), "vkBeginCommandBuffer");
+  if (absl::Status s = BeginFrameCommands(cmd_, *arena_); !s.ok()) return s;
   Recorder rec(c, cmd_, arena_.get());
-  if (profiler_) {
-    profiler_->Begin(cmd_);
-    rec.set_profiler(profiler_.get());
-  }
+  AttachProfiler(rec, profiler_.get());
   rec.Copy(pixel_grads_staging_, 0, pixel_grads_, 0, pixels * 20);
   BackwardBuffers bwd{&pixel_grads_, &splat_grads_, &param_grads_, {}, {}};
   VkDeviceSize sh_offsets[kMaxShGroups] = {};
