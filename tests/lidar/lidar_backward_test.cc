@@ -13,71 +13,13 @@
 #include "render/lidar/lidar_backward.h"
 #include "render/lidar/lidar_renderer.h"
 #include "scene/gaussians/synthetic_street.h"
+#include "tests/lidar/lidar_test_scenes.h"
 
 namespace streetsim {
 namespace {
 
-// A small sensor so that finite differences over every parameter stay cheap: 16 beams of the
-// HDL-64E table (every 4th: non-uniform spacing), 256 columns.
-LidarModel SmallModel() {
-  const LidarModel full = KittiHdl64e();
-  LidarModel m = full;
-  m.beam_elevation_deg.clear();
-  for (int b = 0; b < 64; b += 4) m.beam_elevation_deg.push_back(full.beam_elevation_deg[b]);
-  m.columns = 256;
-  return m;
-}
-
-struct Scene {
-  GaussianStore store;
-  std::vector<float> reflectance;
-  LidarModel model;
-  LidarSweepPose sweep;
-  std::vector<double> w_range, w_alpha, w_intensity;  // the loss: sum of w . outputs
-};
-
-// n Gaussians 4..9 m around the sensor within the beams' elevations, a fifth of them behind it (the
-// seam), opacities below the 0.99 clamp, random reflectance and loss weights.
-Scene RandomScene(unsigned seed, int n, bool rolling) {
-  std::mt19937 rng(seed);
-  std::uniform_real_distribution<double> u(0, 1);
-  Scene s;
-  s.model = SmallModel();
-  Eigen::Isometry3d start = Eigen::Isometry3d::Identity();
-  start.linear() = Eigen::AngleAxisd(0.2, Eigen::Vector3d(0.1, 0.05, 1).normalized()).toRotationMatrix();
-  start.translation() = Eigen::Vector3d(1.0, -0.5, 1.7);
-  Eigen::Isometry3d end = start;
-  if (rolling) {
-    end.translation() += Eigen::Vector3d(0.8, 0.3, 0.05);
-    end.rotate(Eigen::AngleAxisd(0.12, Eigen::Vector3d::UnitZ()));
-  }
-  s.sweep = {start, end};
-  GaussianStore& g = s.store;
-  g.sh_degree = 0;
-  g.Resize(n);
-  for (int i = 0; i < n; ++i) {
-    const double r = 4 + 5 * u(rng);
-    const double az = i % 5 == 0 ? M_PI + 0.3 * (u(rng) - 0.5) : 1.4 * (u(rng) - 0.5);
-    const double el = (-20 + 20 * u(rng)) * M_PI / 180;
-    const Eigen::Vector3d p_lidar(r * std::cos(el) * std::cos(az), r * std::cos(el) * std::sin(az), r * std::sin(el));
-    const Eigen::Vector3d p = start * p_lidar;
-    for (int k = 0; k < 3; ++k) {
-      g.means[i * 3 + k] = static_cast<float>(p[k]);
-      g.log_scales[i * 3 + k] = static_cast<float>(std::log(0.06 + 0.2 * u(rng)));
-    }
-    for (int k = 0; k < 4; ++k) g.rotations[i * 4 + k] = static_cast<float>(u(rng) - 0.5 + (k == 0 ? 0.6 : 0.0));
-    g.opacity_logits[i] = static_cast<float>(-1.5 + 2.5 * u(rng));
-    g.sh[i * 3] = g.sh[i * 3 + 1] = g.sh[i * 3 + 2] = 0.0f;
-    s.reflectance.push_back(static_cast<float>(0.1 + 0.8 * u(rng)));
-  }
-  const size_t P = static_cast<size_t>(s.model.beams()) * s.model.columns;
-  for (size_t p = 0; p < P; ++p) {
-    s.w_range.push_back(0.2 * (u(rng) - 0.5));
-    s.w_alpha.push_back(u(rng) - 0.5);
-    s.w_intensity.push_back(u(rng) - 0.3);
-  }
-  return s;
-}
+using Scene = lidar_test::GradScene;
+Scene RandomScene(unsigned seed, int n, bool rolling) { return lidar_test::RandomGradScene(seed, n, rolling); }
 
 double LossDouble(ThreadPool& pool, const Scene& s, const GaussianStore& store, const std::vector<float>& refl) {
   LidarReferenceOutput out;

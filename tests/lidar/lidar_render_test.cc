@@ -10,6 +10,7 @@
 #include "render/lidar/lidar_model.h"
 #include "render/lidar/lidar_renderer.h"
 #include "scene/gaussians/synthetic_street.h"
+#include "tests/lidar/lidar_test_scenes.h"
 #include "scene/init/initial_scene.h"
 #include "scene/log/open_log.h"
 
@@ -19,27 +20,8 @@ namespace {
 const std::string kData = STREETSIM_DATA_DIR;
 const std::string kRaw = kData + "/kitti_raw/2011_09_26/2011_09_26_drive_sfnd_sync";
 
-// A Gaussian appended to a store (SH degree 0).
-void AddGaussian(GaussianStore* s, const Eigen::Vector3d& mean, const Eigen::Vector3d& scale,
-                 float opacity, const Eigen::Quaterniond& q = Eigen::Quaterniond::Identity()) {
-  for (int k = 0; k < 3; ++k) {
-    s->means.push_back(static_cast<float>(mean[k]));
-    s->log_scales.push_back(static_cast<float>(std::log(scale[k])));
-    s->sh.push_back(0.0f);
-  }
-  s->rotations.insert(s->rotations.end(), {static_cast<float>(q.w()), static_cast<float>(q.x()),
-                                           static_cast<float>(q.y()), static_cast<float>(q.z())});
-  s->opacity_logits.push_back(std::log(opacity / (1 - opacity)));
-}
-
-// A non-trivial sensor pose: 3 m along x, 1.7 m up, yawed 30 degrees, pitched 2.
-Eigen::Isometry3d SensorPose() {
-  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
-  T.translate(Eigen::Vector3d(3, -1, 1.7));
-  T.rotate(Eigen::AngleAxisd(30 * M_PI / 180, Eigen::Vector3d::UnitZ()));
-  T.rotate(Eigen::AngleAxisd(2 * M_PI / 180, Eigen::Vector3d::UnitY()));
-  return T;
-}
+using lidar_test::AddGaussian;
+using lidar_test::SensorPose;
 
 TEST(LidarModel, KittiTableAndCoordinates) {
   const LidarModel m = KittiHdl64e(2048);

@@ -18,6 +18,7 @@
 #include "render/lidar/lidar_renderer.h"
 #include "render/vulkan/lidar_renderer_vk.h"
 #include "scene/gaussians/synthetic_street.h"
+#include "tests/lidar/lidar_test_scenes.h"
 
 namespace streetsim {
 namespace {
@@ -43,16 +44,6 @@ VulkanLidarRenderer& VkCas() {
   return *r;
 }
 
-// 16 beams of the HDL-64E table (every 4th: non-uniform spacing), 256 columns.
-LidarModel SmallModel() {
-  const LidarModel full = KittiHdl64e();
-  LidarModel m = full;
-  m.beam_elevation_deg.clear();
-  for (int b = 0; b < 64; b += 4) m.beam_elevation_deg.push_back(full.beam_elevation_deg[b]);
-  m.columns = 256;
-  return m;
-}
-
 struct Scene {
   GaussianStore store;
   std::vector<float> reflectance;
@@ -61,48 +52,11 @@ struct Scene {
   std::vector<float> w_range, w_alpha, w_intensity;  // upstream gradients per ray
 };
 
-// n Gaussians 4..9 m around the sensor within the beams' elevations, a fifth of them straight
-// behind it (on the seam), opacities below the 0.99 clamp, random reflectance and upstream
-// gradients (as lidar_backward_test.cc's gradient-check scene).
+// lidar_backward_test.cc's gradient-check scene, with the upstream gradients as floats.
 Scene RandomScene(unsigned seed, int n, bool rolling) {
-  std::mt19937 rng(seed);
-  std::uniform_real_distribution<double> u(0, 1);
-  Scene s;
-  s.model = SmallModel();
-  Eigen::Isometry3d start = Eigen::Isometry3d::Identity();
-  start.linear() = Eigen::AngleAxisd(0.2, Eigen::Vector3d(0.1, 0.05, 1).normalized()).toRotationMatrix();
-  start.translation() = Eigen::Vector3d(1.0, -0.5, 1.7);
-  Eigen::Isometry3d end = start;
-  if (rolling) {
-    end.translation() += Eigen::Vector3d(0.8, 0.3, 0.05);
-    end.rotate(Eigen::AngleAxisd(0.12, Eigen::Vector3d::UnitZ()));
-  }
-  s.sweep = {start, end};
-  GaussianStore& g = s.store;
-  g.sh_degree = 0;
-  g.Resize(n);
-  for (int i = 0; i < n; ++i) {
-    const double r = 4 + 5 * u(rng);
-    const double az = i % 5 == 0 ? M_PI + 0.3 * (u(rng) - 0.5) : 1.4 * (u(rng) - 0.5);
-    const double el = (-20 + 20 * u(rng)) * M_PI / 180;
-    const Eigen::Vector3d p = start * Eigen::Vector3d(r * std::cos(el) * std::cos(az),
-                                                      r * std::cos(el) * std::sin(az), r * std::sin(el));
-    for (int k = 0; k < 3; ++k) {
-      g.means[i * 3 + k] = static_cast<float>(p[k]);
-      g.log_scales[i * 3 + k] = static_cast<float>(std::log(0.06 + 0.2 * u(rng)));
-    }
-    for (int k = 0; k < 4; ++k) g.rotations[i * 4 + k] = static_cast<float>(u(rng) - 0.5 + (k == 0 ? 0.6 : 0.0));
-    g.opacity_logits[i] = static_cast<float>(-1.5 + 2.5 * u(rng));
-    g.sh[i * 3] = g.sh[i * 3 + 1] = g.sh[i * 3 + 2] = 0.0f;
-    s.reflectance.push_back(static_cast<float>(0.1 + 0.8 * u(rng)));
-  }
-  const size_t P = static_cast<size_t>(s.model.beams()) * s.model.columns;
-  for (size_t p = 0; p < P; ++p) {
-    s.w_range.push_back(static_cast<float>(0.2 * (u(rng) - 0.5)));
-    s.w_alpha.push_back(static_cast<float>(u(rng) - 0.5));
-    s.w_intensity.push_back(static_cast<float>(u(rng) - 0.3));
-  }
-  return s;
+  lidar_test::GradScene g = lidar_test::RandomGradScene(seed, n, rolling);
+  auto f = [](const std::vector<double>& v) { return std::vector<float>(v.begin(), v.end()); };
+  return {std::move(g.store), std::move(g.reflectance), g.model, g.sweep, f(g.w_range), f(g.w_alpha), f(g.w_intensity)};
 }
 
 using Grads = LidarGaussianGradsT<double>;

@@ -23,6 +23,7 @@
 #include "render/vulkan/lidar_renderer_vk.h"
 #include "scene/gaussians/ply_io.h"
 #include "scene/gaussians/synthetic_street.h"
+#include "tests/lidar/lidar_test_scenes.h"
 
 namespace streetsim {
 namespace {
@@ -42,25 +43,8 @@ VulkanLidarRenderer& Vk() {
   return *renderer;
 }
 
-void AddGaussian(GaussianStore* s, const Eigen::Vector3d& mean, const Eigen::Vector3d& scale, float opacity,
-                 const Eigen::Quaterniond& q = Eigen::Quaterniond::Identity()) {
-  for (int k = 0; k < 3; ++k) {
-    s->means.push_back(static_cast<float>(mean[k]));
-    s->log_scales.push_back(static_cast<float>(std::log(scale[k])));
-    s->sh.push_back(0.0f);
-  }
-  s->rotations.insert(s->rotations.end(), {static_cast<float>(q.w()), static_cast<float>(q.x()),
-                                           static_cast<float>(q.y()), static_cast<float>(q.z())});
-  s->opacity_logits.push_back(std::log(opacity / (1 - opacity)));
-}
-
-Eigen::Isometry3d SensorPose() {
-  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
-  T.translate(Eigen::Vector3d(3, -1, 1.7));
-  T.rotate(Eigen::AngleAxisd(30 * M_PI / 180, Eigen::Vector3d::UnitZ()));
-  T.rotate(Eigen::AngleAxisd(2 * M_PI / 180, Eigen::Vector3d::UnitY()));
-  return T;
-}
+using lidar_test::AddGaussian;
+using lidar_test::SensorPose;
 
 // Gaussians all around the sensor (the seam behind it included): ranges 3..60 m, elevations
 // -30..+8 degrees (some above and below the beams), anisotropic, rotated, opacity 0.05..0.95.

@@ -16,6 +16,8 @@
 #include "scene/log/open_log.h"
 #include "scene/train/lidar_eval.h"
 #include "scene/train/trainer.h"
+#include "tests/lidar/lidar_test_scenes.h"
+#include "tests/train/lidar_loss_reference.h"
 
 namespace streetsim::train {
 namespace {
@@ -30,15 +32,7 @@ std::string TempDir(const std::string& name) {
   return d.string();
 }
 
-// 16 beams of the HDL-64E table (every 4th), 256 columns: small enough for finite differences.
-LidarModel SmallModel() {
-  const LidarModel full = KittiHdl64e();
-  LidarModel m = full;
-  m.beam_elevation_deg.clear();
-  for (int b = 0; b < 64; b += 4) m.beam_elevation_deg.push_back(full.beam_elevation_deg[b]);
-  m.columns = 256;
-  return m;
-}
+using lidar_test::SmallModel;
 
 // n Gaussians 4..9 m in front of and behind a yawed sensor, within the beams' elevations.
 GaussianStore RandomStore(std::mt19937& rng, int n, const Eigen::Isometry3d& T_world_from_lidar) {
@@ -62,27 +56,6 @@ GaussianStore RandomStore(std::mt19937& rng, int n, const Eigen::Isometry3d& T_w
   return g;
 }
 
-// lidar_losses.h's three terms in double (so that finite differences are not drowned by float
-// rounding of the loss inputs), on the double reference render.
-double DoubleLidarLoss(const LidarReferenceOutput& o, const LidarFrameTarget& t, const LidarLossWeights& w) {
-  const double floor = 0.1, eps = 1e-3;
-  double range = 0, intensity = 0, bce = 0;
-  size_t returns = 0;
-  for (size_t p = 0; p < t.range.size(); ++p) {
-    const double a = o.alpha[p];
-    const bool ret = t.range[p] > 0;
-    const double ac = std::min(std::max(a, eps), 1 - eps);
-    bce += ret ? -std::log(ac) : -std::log(1 - ac);
-    if (!ret) continue;
-    ++returns;
-    if (a <= 0) continue;
-    const double k = std::min(1.0, a / floor);
-    range += k * std::fabs(o.range_sum[p] / a - t.range[p]);
-    intensity += k * std::fabs(o.intensity_sum[p] / a - t.intensity[p]);
-  }
-  const double r = std::max<size_t>(returns, 1);
-  return w.range * range / r + w.ret * bce / t.range.size() + w.intensity * intensity / r;
-}
 
 double ReferenceLoss(ThreadPool& pool, const GaussianStore& store, const std::vector<float>& logits,
                      const LidarFrameTarget& target, const LidarLossWeights& w) {
@@ -419,7 +392,9 @@ TEST(LidarTraining, StageAddsItsGradientsToTheCameraGradients) {
   EXPECT_GT(norm, 0);
   // Logits moved against their gradient.
   for (size_t i = 0; i < st.size(); ++i) {
-    if (std::fabs(g.reflectance[i]) > 1e-8f) EXPECT_LT(st.reflectance_logit[i] * g.reflectance[i], 0) << i;
+    if (std::fabs(g.reflectance[i]) > 1e-8f) {
+      EXPECT_LT(st.reflectance_logit[i] * g.reflectance[i], 0) << i;
+    }
   }
   // Not due: nothing added.
   LidarStageOptions every2 = lo;
