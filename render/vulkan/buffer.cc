@@ -128,6 +128,17 @@ namespace {
 constexpr size_t kStagingChunkBytes = size_t{48} << 20;
 }  // namespace
 
+absl::Status EnsureBufferCapacity(const Context& ctx, Buffer* buffer, VkDeviceSize bytes, Buffer::Kind kind,
+                                  const char* name) {
+  if (!buffer->valid()) {
+    auto created = Buffer::Create(ctx, bytes, kind, name);
+    if (!created.ok()) return created.status();
+    *buffer = *std::move(created);
+    return absl::OkStatus();
+  }
+  return buffer->EnsureSize(ctx, bytes);
+}
+
 absl::Status UploadWith(const Context& ctx, const Buffer& dst, size_t bytes, size_t granularity,
                         const std::function<void(size_t begin, size_t end, std::byte* out)>& fill) {
   if (bytes == 0) return absl::OkStatus();

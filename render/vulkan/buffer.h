@@ -59,6 +59,10 @@ class Buffer {
   std::string name_;
 };
 
+// Creates `*buffer` on first use, else grows it to at least `bytes` (contents not kept).
+absl::Status EnsureBufferCapacity(const Context& ctx, Buffer* buffer, VkDeviceSize bytes, Buffer::Kind kind,
+                                  const char* name);
+
 // Host -> device copy through a staging buffer of bounded size: `fill(begin, end, out)` writes
 // source bytes [begin, end) to `out`; chunk boundaries are multiples of `granularity`.
 absl::Status UploadWith(const Context& ctx, const Buffer& dst, size_t bytes, size_t granularity,

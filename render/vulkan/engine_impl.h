@@ -10,6 +10,7 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "render/common/thread_pool.h"
 #include "render/engine.h"
 #include "render/vulkan/buffer.h"
 #include "render/vulkan/context.h"
@@ -56,6 +57,9 @@ class VulkanEngine : public Engine {
                               const BackwardOptions& options, GaussianGrads* out) override;
   absl::Status UpdateScene(const GaussianStore& store,
                            std::unique_ptr<DeviceScene>* scene) override;
+  // param_upload.cc: packed in parallel into one persistent staging buffer, one submission.
+  absl::Status UpdateSceneParams(const GaussianParamsView& params,
+                                 std::unique_ptr<DeviceScene>* scene) override;
 
   // For testing.cc.
   const Context& context() const { return *ctx_; }
@@ -111,6 +115,8 @@ class VulkanEngine : public Engine {
   } kept_;
   Buffer pixel_grads_, pixel_grads_staging_, splat_grads_, param_grads_, bwd_readback_;
   std::array<Buffer, kMaxShGroups> sh_grads_;
+  Buffer param_staging_;                 // UpdateSceneParams
+  std::unique_ptr<ThreadPool> host_pool_;  // host-side packing / unpacking (created on first use)
   std::unique_ptr<Profiler> profiler_;  // STREETSIM_VK_PROFILE=1
   std::mutex mu_;                       // Render/Upload share the frame resources
 };

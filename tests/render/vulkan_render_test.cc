@@ -488,5 +488,60 @@ TEST_F(VulkanTest, RejectsTooManyGaussiansAndInvalidStores) {
   EXPECT_EQ(SharedEngine().Upload(broken).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
+// Training uploads through UpdateSceneParams (param_upload.cc: packed in parallel into one
+// persistent staging buffer): the frame must equal a plain Upload's bit for bit at every SH
+// degree, in place on the second call, and a non-finite value or a zero rotation anywhere must be
+// refused without touching the uploaded scene.
+TEST_F(VulkanTest, UpdateSceneParamsRendersLikeUpload) {
+  const GaussianStore full = MakeSyntheticStreet({.num_gaussians = 9'001, .seed = 4, .sh_degree = 3});
+  PinholeCamera camera = MakeCamera(160, 96, 120.0);
+  camera.T_world_from_cam = StreetCameraPose(4.0);
+  Engine& engine = SharedEngine();
+  for (int degree : {0, 1, 3}) {
+    GaussianParamsView v;
+    v.n = full.size();
+    v.sh_degree = degree;
+    v.sh_stride = 16;
+    v.means = full.means.data();
+    v.log_scales = full.log_scales.data();
+    v.rotations = full.rotations.data();
+    v.opacity_logits = full.opacity_logits.data();
+    v.sh = full.sh.data();
+    std::unique_ptr<DeviceScene> updated;
+    ASSERT_TRUE(engine.UpdateSceneParams(v, &updated).ok());  // creates the scene
+    const DeviceScene* first = updated.get();
+    ASSERT_TRUE(engine.UpdateSceneParams(v, &updated).ok());  // in place
+    EXPECT_EQ(updated.get(), first);
+    GaussianStore store = full;
+    store.sh_degree = degree;
+    const int K = store.sh_coeffs();
+    store.sh.resize(full.size() * K * 3);
+    for (size_t i = 0; i < full.size(); ++i)
+      for (int kc = 0; kc < K * 3; ++kc) store.sh[i * K * 3 + kc] = full.sh[i * 48 + kc];
+    auto uploaded = engine.Upload(store);
+    ASSERT_TRUE(uploaded.ok());
+    RenderOutput a, b;
+    ASSERT_TRUE(engine.Render(*updated, camera, {}, &a).ok());
+    ASSERT_TRUE(engine.Render(**uploaded, camera, {}, &b).ok());
+    EXPECT_GT(a.stats.num_visible, 100u);
+    EXPECT_EQ(a.rgb, b.rgb) << "degree " << degree;
+    // A nan in the last SH coefficient of the degree, an inf mean, a zero rotation.
+    std::vector<float> sh = full.sh, means = full.means, rotations = full.rotations;
+    sh[9'000 * 48 + K * 3 - 1] = std::nanf("");
+    means[4'321 * 3 + 1] = INFINITY;
+    for (int k = 0; k < 4; ++k) rotations[17 * 4 + k] = 0.0f;
+    for (int bad = 0; bad < 3; ++bad) {
+      GaussianParamsView w = v;
+      if (bad == 0) w.sh = sh.data();
+      if (bad == 1) w.means = means.data();
+      if (bad == 2) w.rotations = rotations.data();
+      EXPECT_EQ(engine.UpdateSceneParams(w, &updated).code(), absl::StatusCode::kInvalidArgument) << bad;
+    }
+    RenderOutput c;
+    ASSERT_TRUE(engine.Render(*updated, camera, {}, &c).ok());
+    EXPECT_EQ(c.rgb, a.rgb) << "a refused update must leave the scene as it was";
+  }
+}
+
 }  // namespace
 }  // namespace streetsim
