@@ -28,11 +28,17 @@ CancelCheck ContextCancelCheck(const grpc::ServerContextBase* ctx) {
   };
 }
 
-RenderCore::RenderCore(std::unique_ptr<Engine> engine, const ServerLimits& limits, int debug_delay_ms)
-    : engine_(std::move(engine)), limits_(limits), debug_delay_ms_(debug_delay_ms) {}
+RenderCore::RenderCore(std::unique_ptr<Engine> engine, const ServerLimits& limits, int debug_delay_ms,
+                       LidarDevice lidar_device)
+    : engine_(std::move(engine)), lidar_device_(lidar_device), limits_(limits), debug_delay_ms_(debug_delay_ms) {}
 
 std::string RenderCore::backend_name() const { return std::string(BackendName(engine_->backend())); }
 std::string RenderCore::device_name() const { return engine_->device_name(); }
+
+std::string RenderCore::lidar_device_name() {
+  std::lock_guard<std::timed_mutex> lock(engine_mu_);
+  return lidar_ ? lidar_->device_name() : std::string();
+}
 
 absl::StatusOr<std::unique_ptr<DeviceScene>> RenderCore::Upload(const GaussianStore& store) {
   std::lock_guard<std::timed_mutex> lock(engine_mu_);
@@ -41,7 +47,13 @@ absl::StatusOr<std::unique_ptr<DeviceScene>> RenderCore::Upload(const GaussianSt
 
 absl::Status RenderCore::RenderLidar(const std::shared_ptr<const HostScene>& host, const LidarJob& job,
                                      LidarRenderOutput* out) {
-  if (!lidar_) lidar_ = std::make_unique<LidarRenderer>();
+  if (!lidar_) {
+    absl::StatusOr<std::unique_ptr<LidarSweeper>> created = CreateLidarSweeper(engine_->backend(), lidar_device_);
+    if (!created.ok()) {
+      return absl::UnavailableError(absl::StrCat("LiDAR renderer unavailable: ", created.status().message()));
+    }
+    lidar_ = *std::move(created);
+  }
   if (lidar_scene_ != host) {
     lidar_scene_.reset();
     if (absl::Status s = lidar_->Upload(host->store); !s.ok()) {

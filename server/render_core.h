@@ -16,6 +16,7 @@
 #include "absl/status/statusor.h"
 #include "render/engine.h"
 #include "server/lidar_request.h"
+#include "server/lidar_sweeper.h"
 #include "server/limits.h"
 #include "server/proto_convert.h"
 #include "server/scene_field.h"
@@ -54,7 +55,8 @@ struct RenderExtras {
 
 class RenderCore {
  public:
-  RenderCore(std::unique_ptr<Engine> engine, const ServerLimits& limits, int debug_delay_ms);
+  RenderCore(std::unique_ptr<Engine> engine, const ServerLimits& limits, int debug_delay_ms,
+             LidarDevice lidar_device = LidarDevice::kFollowEngine);
 
   // Engine::Upload under the engine lock.
   absl::StatusOr<std::unique_ptr<DeviceScene>> Upload(const GaussianStore& store);
@@ -69,6 +71,8 @@ class RenderCore {
   int in_flight() const { return in_flight_.load(); }
   std::string backend_name() const;
   std::string device_name() const;
+  // Where sweeps run ("" until the first LiDAR request creates the renderer).
+  std::string lidar_device_name();
 
  private:
   // Sweeps `job` of `host` (uploading it first unless it is the one uploaded last).
@@ -76,8 +80,10 @@ class RenderCore {
                            LidarRenderOutput* out);
 
   std::unique_ptr<Engine> engine_;
-  // Under engine_mu_ (one renderer at a time: both use every core). Created on first use.
-  std::unique_ptr<LidarRenderer> lidar_;
+  // Under engine_mu_ (one renderer at a time: both use every core, or the same GPU). Created on
+  // first use (lidar_sweeper.h: on the engine's GPU when it has one, else the cpu).
+  std::unique_ptr<LidarSweeper> lidar_;
+  LidarDevice lidar_device_;
   std::shared_ptr<const HostScene> lidar_scene_;  // held so that its address is not reused
   ServerLimits limits_;
   int debug_delay_ms_;
