@@ -175,8 +175,15 @@ grpc::Status RenderServiceImpl::RenderTrajectory(grpc::ServerContext* ctx, const
     if (!manifest.ok()) return manifest.status();
     absl::StatusOr<std::vector<RigCamera>> cams = ResolveSensors(**manifest, req->sensors(), deps_->limits);
     if (!cams.ok()) return cams.status();
+    std::optional<LidarJob> lidar_template;
+    if (req->has_lidar()) {
+      absl::StatusOr<LidarJob> job = ResolveLidar(req->lidar(), **manifest);
+      if (!job.ok()) return job.status();
+      lidar_template = std::move(*job);
+    }
     // Validate every point before rendering any.
     std::vector<std::vector<CameraView>> all_views;
+    std::vector<std::optional<LidarJob>> lidar_jobs(req->points_size());
     for (int i = 0; i < req->points_size(); ++i) {
       const v1::TrajectoryPoint& p = req->points(i);
       const std::string field = absl::StrCat("points[", i, "].");
@@ -188,6 +195,13 @@ grpc::Status RenderServiceImpl::RenderTrajectory(grpc::ServerContext* ctx, const
       absl::StatusOr<std::vector<CameraView>> views = Views(**manifest, *cams, *plan, p.time_us());
       if (!views.ok()) return absl::InvalidArgumentError(absl::StrCat(field, " ", views.status().message()));
       all_views.push_back(std::move(*views));
+      if (lidar_template) {
+        lidar_jobs[i] = *lidar_template;
+        if (absl::Status s = PlaceLidarFor(**manifest, *plan, p.time_us(), /*no_cameras=*/false, &*lidar_jobs[i]);
+            !s.ok()) {
+          return absl::InvalidArgumentError(absl::StrCat(field, "lidar: ", s.message()));
+        }
+      }
     }
     const CancelCheck cancel = ContextCancelCheck(ctx);
     absl::StatusOr<SceneHandle> scene = deps_->scenes->Acquire(req->scene(), cancel);
@@ -195,6 +209,7 @@ grpc::Status RenderServiceImpl::RenderTrajectory(grpc::ServerContext* ctx, const
     for (int i = 0; i < req->points_size(); ++i) {
       RenderExtras extras;
       extras.default_background = (*manifest)->background;
+      if (lidar_jobs[i]) extras.lidar = &*lidar_jobs[i];
       absl::StatusOr<RenderResult> r =
           deps_->core->Render(*scene->scene->field, req->points(i).time_us(), all_views[i], *outputs, cancel, extras);
       if (!r.ok()) return r.status();

@@ -175,6 +175,58 @@ TEST_F(LidarServerTest, LogPoseGivesARollingSweepAndNoCamerasRendersOnlyTheLidar
   EXPECT_EQ(Diff(r->lidar().range(), Local(256, LidarSweepPose::Static(EgoAt(5)), 1000000, false).range), "");
 }
 
+TEST_F(LidarServerTest, TrajectoryPointsCarryTheirOwnSweeps) {
+  v1::RenderTrajectoryRequest traj;
+  traj.set_scene("lidarscene");
+  traj.mutable_lidar()->set_columns(256);
+  v1::TrajectoryPoint* p0 = traj.add_points();  // explicit ego pose: a held sweep
+  p0->set_time_us(500000);
+  *p0->mutable_t_world_from_ego() = client::ToPose(EgoAt(12));
+  traj.add_points()->set_time_us(1000000);  // the log's pose: a rolling sweep
+  std::vector<v1::TrajectoryFrame> frames;
+  absl::Status s = client_->RenderTrajectory(traj, [&](const v1::TrajectoryFrame& f) {
+    frames.push_back(f);
+    return absl::OkStatus();
+  });
+  ASSERT_TRUE(s.ok()) << s;
+  ASSERT_EQ(frames.size(), 2u);
+  for (const v1::TrajectoryFrame& f : frames) {
+    ASSERT_TRUE(f.response().has_lidar()) << f.index();
+    EXPECT_EQ(f.response().frames_size(), 1);  // the camera too
+  }
+  EXPECT_FALSE(frames[0].response().lidar().rolling_sweep());
+  EXPECT_EQ(Diff(frames[0].response().lidar().range(),
+                 Local(256, LidarSweepPose::Static(EgoAt(12) * Mount()), 500000, false).range),
+            "");
+  EXPECT_TRUE(frames[1].response().lidar().rolling_sweep());
+  // The same as a single Render of each point.
+  v1::RenderRequest single;
+  single.set_scene("lidarscene");
+  single.set_time_us(1000000);
+  single.mutable_lidar()->set_columns(256);
+  absl::StatusOr<v1::RenderResponse> r = client_->Render(single);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_EQ(r->content_digest(), frames[1].response().content_digest());
+
+  // A sensor pose cannot place a LiDAR beside the cameras: refused before anything renders.
+  *traj.add_points()->mutable_t_world_from_sensor() = client::ToPose(EgoAt(5));
+  traj.mutable_points(2)->set_time_us(700000);
+  traj.mutable_sensors()->Add()->set_sensor_id("cam_front");
+  frames.clear();
+  s = client_->RenderTrajectory(traj, [&](const v1::TrajectoryFrame& f) {
+    frames.push_back(f);
+    return absl::OkStatus();
+  });
+  EXPECT_EQ(s.code(), absl::StatusCode::kInvalidArgument) << s;
+  EXPECT_NE(std::string(s.message()).find("points[2]"), std::string::npos) << s;
+  EXPECT_TRUE(frames.empty());
+  // A bad LiDAR request is refused as in Render.
+  traj.mutable_points()->RemoveLast();
+  traj.mutable_lidar()->set_columns(-1);
+  EXPECT_EQ(client_->RenderTrajectory(traj, [](const v1::TrajectoryFrame&) { return absl::OkStatus(); }).code(),
+            absl::StatusCode::kInvalidArgument);
+}
+
 TEST_F(LidarServerTest, BadLidarRequestsAreInvalidArgument) {
   auto base = [] {
     v1::RenderRequest req;
