@@ -1,8 +1,7 @@
 // ms per LiDAR sweep with a rolling sweep, and of the cpu LiDAR backward pass, on the synthetic
 // street (the scene and sensor of lidar_bench).
 //   lidar_backward_bench [gaussians=500000] [columns=2048] [repeats=5] [simd|scalar|vulkan]
-// vulkan: VulkanLidarRenderer (lavapipe unless STREETSIM_VK_DEVICE names another device); it has
-// no deterministic mode (that row prints n/a).
+// vulkan: VulkanLidarRenderer (lavapipe unless STREETSIM_VK_DEVICE names another device).
 // Per repeat, back to back on the same uploaded scene: a static sweep, a rolling sweep (the sensor
 // moves 1.5 m forward and yaws 2 degrees during it: 15 m/s at 10 Hz), then a static sweep with
 // keep_for_backward and LidarRenderer::Backward with fixed pseudo-random upstream gradients on
@@ -75,7 +74,7 @@ int main(int argc, char** argv) {
                 [&](const LidarModel& m, const LidarSweepPose& sw, const LidarRenderOptions& o,
                     LidarRenderOutput* r) { return vk_renderer->Render(m, sw, o, r); },
                 [&](const LidarUpstreamGrads& u, LidarGaussianGrads* g, bool det) {
-                  return det ? absl::OkStatus() : vk_renderer->Backward(u, g);
+                  return vk_renderer->Backward(u, g, det);
                 }};
   } else {
     renderer = {[&](const GaussianStore& s) { return cpu_renderer.Upload(s); },
@@ -115,8 +114,7 @@ int main(int argc, char** argv) {
         !s.ok()) {
       return fail(s);
     }
-    const double tbd = vk_renderer ? std::numeric_limits<double>::quiet_NaN()
-                                   : std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - b1).count();
+    const double tbd = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - b1).count();
     if (i == 0) continue;  // warm-up
     t_static.push_back(ts);
     t_static_proj.push_back(tsp);
@@ -138,10 +136,6 @@ int main(int argc, char** argv) {
               rolling_splats);
   std::printf("  forward, kept        %7.1f ms\n", med(t_keep));
   std::printf("  backward             %7.1f ms\n", med(t_backward));
-  if (vk_renderer) {
-    std::printf("  backward, determ.        n/a\n");
-  } else {
-    std::printf("  backward, determ.    %7.1f ms\n", med(t_backward_det));
-  }
+  std::printf("  backward, determ.    %7.1f ms\n", med(t_backward_det));
   return 0;
 }

@@ -69,6 +69,9 @@ class VulkanEngine : public Engine {
   const Buffer& final_t() const { return final_t_; }
   const Buffer& n_contrib() const { return n_contrib_; }
   void set_force_pair_mode(bool force) { force_pair_mode_ = force; }
+  // Caps the deterministic backward's slot buffer below the device's storage buffer range
+  // (0: the device's), so that tests reach its ResourceExhausted path with small frames.
+  void set_det_slot_limit_bytes(uint64_t bytes) { det_slot_limit_bytes_ = bytes; }
 
  private:
   VulkanEngine() = default;
@@ -112,9 +115,12 @@ class VulkanEngine : public Engine {
     ProjectPush push{};
     BlendParams blend{};
     BinningResult bins{};
+    uint64_t instances = 0;  // I of the kept frame (sizes the deterministic backward's slots)
   } kept_;
   Buffer pixel_grads_, pixel_grads_staging_, splat_grads_, param_grads_, bwd_readback_;
   std::array<Buffer, kMaxShGroups> sh_grads_;
+  Buffer det_slots_;  // deterministic backward: kDetSlotFloats per tile instance
+  uint64_t det_slot_limit_bytes_ = 0;
   Buffer param_staging_;                 // UpdateSceneParams
   std::unique_ptr<ThreadPool> host_pool_;  // host-side packing / unpacking (created on first use)
   std::unique_ptr<Profiler> profiler_;  // STREETSIM_VK_PROFILE=1

@@ -30,10 +30,23 @@ struct LidarBackwardBuffers {
   const Buffer* ray_grads;    // dL/d range_sum [P] | alpha [P] | intensity_sum [P]
   const Buffer* splat_grads;  // kLidarSplatGradFloats per Gaussian (zeroed here)
   const Buffer* param_grads;  // kLidarParamGradFloats per Gaussian (every one written)
+  // Deterministic mode (null det_slots: float atomics): kLidarSplatGradFloats per tile instance
+  // of the kept sweep (det_slot_capacity of them), a uint per entry (2 n) for the range order's
+  // inverse, and the sweep's counts / args buffers (V, I, the per-rank grid).
+  const Buffer* det_slots = nullptr;
+  uint64_t det_slot_capacity = 0;
+  const Buffer* det_rank_of = nullptr;
+  const Buffer* counts = nullptr;
+  const Buffer* args = nullptr;
 };
 
+// Builds k's deterministic-mode pipelines unless built: FailedPrecondition on a device that cannot
+// run them (no subgroup arithmetic, a subgroup size outside [4, 64]).
+absl::Status EnsureLidarDeterministicKernels(const Context& ctx, LidarKernels* k);
+
 // The kept sweep's buffers f and binning bins; project: the sweep's projection push constants.
-// Fails the recorder (FailedPrecondition) when the device has no blend backward.
+// Fails the recorder (FailedPrecondition) when the device has no blend backward. With
+// bwd.det_slots the deterministic kernels replace the atomic blend backward (docs/lidar.md).
 void RecordLidarBackward(Recorder& rec, const LidarKernels& k, const LidarFrameBuffers& f,
                          const BinningResult& bins, const LidarProjectPush& project,
                          const LidarBackwardPush& push, const LidarBackwardBuffers& bwd);

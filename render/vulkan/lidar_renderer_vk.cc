@@ -100,6 +100,7 @@ struct VulkanLidarRenderer::Impl {
   int rerenders = 0;
   // Backward: per-ray state (written by every sweep), upstream gradients, accumulators, results.
   vk::Buffer ray_state, ray_grads, ray_grads_staging, splat_grads, param_grads, bwd_readback;
+  vk::Buffer det_slots, det_rank_of;  // deterministic Backward (lidar_backward_vk.h)
   // What Backward needs from the last sweep with keep_for_backward (its buffers stay untouched
   // until the next Render or Upload, which clear `valid`).
   struct Kept {
@@ -107,6 +108,7 @@ struct VulkanLidarRenderer::Impl {
     vk::LidarProjectPush project{};
     vk::LidarBlendPush blend{};
     vk::BinningResult bins{};
+    uint64_t instances = 0;  // I of the kept sweep (sizes the deterministic backward's slots)
   } kept;
   std::mutex mu;
 
@@ -144,7 +146,8 @@ struct VulkanLidarRenderer::Impl {
   absl::Status RecordAndSubmit(const LidarModel& model, const vk::LidarProjectPush& project,
                                const vk::LidarBlendPush& blend, uint32_t* counts_out,
                                vk::BinningResult* bins_out);
-  absl::Status Backward(const LidarUpstreamGrads& upstream, LidarGaussianGrads* grads);
+  absl::Status Backward(const LidarUpstreamGrads& upstream, LidarGaussianGrads* grads,
+                        bool deterministic);
   absl::Status Render(const LidarModel& model, const LidarSweepPose& sweep,
                       const LidarRenderOptions& options, LidarRenderOutput* out);
 };
@@ -419,6 +422,7 @@ absl::Status VulkanLidarRenderer::Impl::Render(const LidarModel& model, const Li
     kept.blend.splat_capacity = splat_capacity;
     kept.blend.rank_mask = bins.rank_mask;
     kept.bins = bins;
+    kept.instances = counts[vk::kCountI];
   }
 
   // Readback: counts | alpha | range_sum | intensity_sum | range | intensity.
@@ -475,7 +479,7 @@ absl::Status VulkanLidarRenderer::Impl::Render(const LidarModel& model, const Li
 }
 
 absl::Status VulkanLidarRenderer::Impl::Backward(const LidarUpstreamGrads& upstream,
-                                                 LidarGaussianGrads* grads) {
+                                                 LidarGaussianGrads* grads, bool deterministic) {
   if (grads == nullptr) return absl::InvalidArgumentError("VulkanLidarRenderer::Backward: grads is null");
   std::lock_guard<std::mutex> lock(mu);
   if (!kept.valid) {
@@ -501,6 +505,27 @@ absl::Status VulkanLidarRenderer::Impl::Backward(const LidarUpstreamGrads& upstr
                    vk::Buffer::Kind::kReadback, "lidar_bwd_readback"}}) {
     if (absl::Status s = EnsureBuffer(c, buffer, bytes, kind, name); !s.ok()) return s;
   }
+  // Deterministic mode: one slot of kLidarSplatGradFloats per tile instance of the kept sweep.
+  uint64_t det_slot_capacity = 0;
+  if (deterministic) {
+    if (absl::Status s = vk::EnsureLidarDeterministicKernels(c, kernels.get()); !s.ok()) return s;
+    const uint64_t limit = c.limits().maxStorageBufferRange;
+    const uint64_t slot_bytes = std::max<uint64_t>(kept.instances, 1) * vk::kLidarSplatGradFloats * 4;
+    if (slot_bytes > limit) {
+      return absl::ResourceExhaustedError(absl::StrCat(
+          "vulkan LiDAR: the deterministic backward needs ", slot_bytes, " bytes of slots for ",
+          kept.instances, " tile instances, more than the storage buffer range of ", limit,
+          " bytes; use the default (atomic) backward"));
+    }
+    for (auto [buffer, bytes, name] :
+         {std::tuple{&det_slots, VkDeviceSize{slot_bytes}, "lidar_det_slots"},
+          std::tuple{&det_rank_of, VkDeviceSize{std::max<uint32_t>(n, 1)} * 8, "lidar_det_rank_of"}}) {
+      if (absl::Status s = EnsureBuffer(c, buffer, bytes, vk::Buffer::Kind::kDevice, name); !s.ok()) {
+        return s;
+      }
+    }
+    det_slot_capacity = slot_bytes / (vk::kLidarSplatGradFloats * 4);
+  }
   // dL/d range_sum | alpha | intensity_sum into the staging buffer, zeros for a null pointer.
   auto* staging = static_cast<float*>(ray_grads_staging.mapped());
   for (auto [src, plane] : {std::pair{upstream.d_range_sum, 0}, std::pair{upstream.d_alpha, 1},
@@ -519,7 +544,9 @@ absl::Status VulkanLidarRenderer::Impl::Backward(const LidarUpstreamGrads& upstr
   const vk::LidarBackwardPush push{kept.blend.columns, kept.blend.beams, kept.blend.tiles_x,
                                    kept.blend.rank_mask, kept.blend.splat_capacity};
   vk::RecordLidarBackward(rec, *kernels, Frame(kept.project.has_refl != 0), kept.bins, kept.project, push,
-                          vk::LidarBackwardBuffers{&ray_grads, &splat_grads, &param_grads});
+                          vk::LidarBackwardBuffers{&ray_grads, &splat_grads, &param_grads,
+                                                   deterministic ? &det_slots : nullptr,
+                                                   det_slot_capacity, &det_rank_of, &counts, &args});
   if (n > 0) rec.Copy(param_grads, 0, bwd_readback, 0, VkDeviceSize{n} * vk::kLidarParamGradFloats * 4);
   if (absl::Status s = vk::SubmitFrameAndWait(c, rec, fence, bwd_readback, profiler.get()); !s.ok()) return s;
   vk::UnpackLidarGrads(static_cast<const float*>(bwd_readback.mapped()), n, grads);
@@ -528,11 +555,7 @@ absl::Status VulkanLidarRenderer::Impl::Backward(const LidarUpstreamGrads& upstr
 
 absl::Status VulkanLidarRenderer::Backward(const LidarUpstreamGrads& upstream, LidarGaussianGrads* grads,
                                            bool deterministic) {
-  if (deterministic) {
-    return absl::UnimplementedError(
-        "VulkanLidarRenderer::Backward: no deterministic mode (gradients are summed with float atomics)");
-  }
-  return impl_->Backward(upstream, grads);
+  return impl_->Backward(upstream, grads, deterministic);
 }
 
 absl::Status VulkanLidarRenderer::Render(const LidarModel& model, const LidarSweepPose& sweep,

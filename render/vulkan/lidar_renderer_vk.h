@@ -68,8 +68,9 @@ class VulkanLidarRenderer {
   // upstream per ray [beams * columns] (null = zero) -> dL/d(means, log-scales, raw quaternions,
   // opacity logits, reflectance in [0, 1]), zero for undrawn Gaussians. FailedPrecondition unless
   // the last Render had keep_for_backward and succeeded with no Upload since, or when the device
-  // lacks subgroup arithmetic; InvalidArgument for a null grads; deterministic = true is
-  // Unimplemented (per-Gaussian sums use float atomics: the rounding varies from run to run).
+  // lacks subgroup arithmetic; InvalidArgument for a null grads. deterministic = true: fixed-order
+  // sums instead of float atomics, identical bits run to run (ResourceExhausted when its 32 bytes
+  // per tile instance exceed the device's storage buffer range).
   absl::Status Backward(const LidarUpstreamGrads& upstream, LidarGaussianGrads* grads,
                         bool deterministic = false);
 

@@ -24,6 +24,9 @@ struct LidarKernels {
   // (VulkanLidarRenderer::Backward is then FailedPrecondition); it uses float atomic adds where the
   // device has them, a compare-and-swap loop otherwise.
   std::unique_ptr<ComputePipeline> blend_backward, project_backward;
+  // Deterministic mode (lidar_backward_vk.h): per-tile-instance slots, the range order's inverse
+  // and the per-Gaussian fixed-order sums; built on first use (EnsureLidarDeterministicKernels).
+  std::unique_ptr<ComputePipeline> blend_backward_det, det_rank_of, det_reduce;
   static absl::StatusOr<std::unique_ptr<LidarKernels>> Create(const Context& ctx);
 };
 

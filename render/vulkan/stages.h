@@ -65,6 +65,9 @@ struct Kernels {
   // compare-and-swap one.
   // project_backward: one pipeline per SH degree (specialization constant).
   std::unique_ptr<ComputePipeline> blend_backward;
+  // Deterministic mode (BackwardOptions::deterministic): per-tile-instance slots summed in a
+  // fixed order, no atomics; built on first use (EnsureDeterministicKernels).
+  std::unique_ptr<ComputePipeline> blend_backward_det, blend_backward_reduce;
   std::array<std::unique_ptr<ComputePipeline>, 4> project_backward;
 
   static absl::StatusOr<std::unique_ptr<Kernels>> Create(const Context& ctx);
@@ -215,10 +218,22 @@ struct BackwardBuffers {
   const Buffer* param_grads;                 // kParamGradFloats per Gaussian, zeroed here
   const Buffer* sh_grads[kMaxShGroups];      // scene SH group layout; unused groups: any buffer
   VkDeviceSize sh_grad_bytes[kMaxShGroups];  // bytes to zero per group (0: unused)
+  // Deterministic mode: kDetSlotFloats per tile instance of the kept frame (>= its I slots);
+  // null: float atomics.
+  const Buffer* det_slots = nullptr;
+  uint64_t det_slot_capacity = 0;  // slots of det_slots in use (the blend writes every one)
 };
+inline constexpr uint32_t kDetSlotFloats = 10;  // common.glsl: DET_SLOT_FLOATS
+// Shared memory of blend_backward_det (blend_backward.glsl: partial, tile_last).
+inline constexpr uint32_t kDetSharedBytes = kDetSlotFloats * 256 * 3 * 4 + 4;
+// Builds k's deterministic-mode pipelines unless built: FailedPrecondition on a device that
+// cannot run them (no subgroup arithmetic, less than kDetSharedBytes of shared memory, a
+// subgroup size outside [4, 64]).
+absl::Status EnsureDeterministicKernels(const Context& ctx, Kernels* k);
 // The blend backward (per tile, back to front) then the projection backward (per visible
 // Gaussian, indirect over V) of the frame recorded last with these buffers; `push` is that
-// frame's camera.
+// frame's camera. With bwd.det_slots the blend backward is the deterministic pair
+// (blend_backward_det + blend_backward_reduce).
 void RecordBackward(Recorder& rec, const Kernels& k, const SceneBuffers& scene,
                     const Buffer& ranges, const BinningResult& bins, const ImageBuffers& image,
                     const BlendParams& params, const Buffer& counts, const Buffer& args,

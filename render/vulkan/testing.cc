@@ -148,6 +148,10 @@ void ForcePairMode(Engine& engine, bool force) {
   if (auto* v = dynamic_cast<vulkan::VulkanEngine*>(&engine)) v->set_force_pair_mode(force);
 }
 
+void SetDeterministicSlotLimit(Engine& engine, uint64_t bytes) {
+  if (auto* v = dynamic_cast<vulkan::VulkanEngine*>(&engine)) v->set_det_slot_limit_bytes(bytes);
+}
+
 int Rerenders(const Engine& engine) {
   auto v = AsVulkan(engine);
   return v.ok() ? (*v)->rerenders() : -1;

@@ -32,6 +32,9 @@ absl::StatusOr<PixelState> LastPixelState(Engine& engine, int width, int height)
 // Tile instances as (key, value) pairs even when they would pack into one uint (stages.h).
 void ForcePairMode(Engine& engine, bool force);
 
+// Caps the deterministic backward's slot buffer (bytes; 0: the device's storage buffer range).
+void SetDeterministicSlotLimit(Engine& engine, uint64_t bytes);
+
 int Rerenders(const Engine& engine);  // frames rendered twice to grow instance buffers
 uint64_t InstanceCapacity(const Engine& engine);
 int ValidationMessages(const Engine& engine);  // 0 unless validation is on and complained

@@ -351,7 +351,10 @@ absl::Status VulkanEngine::Render(const DeviceScene& scene, const PinholeCamera&
     ++rerenders_;
   }
   last_instances_ = counts[kCountI];
-  if (options.keep_for_backward) kept_.scene = vscene;
+  if (options.keep_for_backward) {
+    kept_.scene = vscene;
+    kept_.instances = counts[kCountI];
+  }
 
   if (absl::Status s = Readback(camera, options, out); !s.ok()) return s;
   out->stats.num_gaussians = n;
@@ -450,10 +453,6 @@ absl::Status VulkanEngine::RenderBackward(const DeviceScene& scene, const Render
   if (grads.rgb == nullptr) {
     return absl::InvalidArgumentError("vulkan: RenderBackward: dL/drgb is required");
   }
-  if (options.deterministic) {
-    return absl::UnimplementedError(
-        "vulkan: RenderBackward: no deterministic mode (gradients are summed with float atomics)");
-  }
   std::lock_guard<std::mutex> lock(mu_);
   const auto* vscene = dynamic_cast<const VulkanScene*>(&scene);
   if (vscene == nullptr || vscene != kept_.scene) {
@@ -472,6 +471,26 @@ absl::Status VulkanEngine::RenderBackward(const DeviceScene& scene, const Render
   if (absl::Status s = EnsureBackwardResources(*vscene, static_cast<uint32_t>(pixels)); !s.ok()) {
     return s;
   }
+  // Deterministic mode: one slot of kDetSlotFloats per tile instance of the kept frame.
+  uint64_t det_slot_capacity = 0;
+  if (options.deterministic) {
+    if (absl::Status s = EnsureDeterministicKernels(c, kernels_.get()); !s.ok()) return s;
+    const uint64_t limit = det_slot_limit_bytes_ > 0 ? det_slot_limit_bytes_
+                                                     : uint64_t{c.limits().maxStorageBufferRange};
+    const uint64_t slot_bytes = std::max<uint64_t>(kept_.instances, 1) * kDetSlotFloats * 4;
+    if (slot_bytes > limit) {
+      return absl::ResourceExhaustedError(absl::StrCat(
+          "vulkan: the deterministic backward needs ", slot_bytes, " bytes of slots for ",
+          kept_.instances, " tile instances, more than the storage buffer range of ", limit,
+          " bytes; render fewer tile instances or use the default (atomic) backward"));
+    }
+    if (absl::Status s = EnsureBuffer(c, &det_slots_, slot_bytes, Buffer::Kind::kDevice,
+                                      "det_slots");
+        !s.ok()) {
+      return s;
+    }
+    det_slot_capacity = slot_bytes / (kDetSlotFloats * 4);  // what the frame uses
+  }
   // dL/d(outputs) into the staging buffer: rgb | depth | alpha, zeros for a null pointer.
   auto* staging = static_cast<float*>(pixel_grads_staging_.mapped());
   std::memcpy(staging, grads.rgb, pixels * 12);
@@ -487,7 +506,8 @@ absl::Status VulkanEngine::RenderBackward(const DeviceScene& scene, const Render
   Recorder rec(c, cmd_, arena_.get());
   AttachProfiler(rec, profiler_.get());
   rec.Copy(pixel_grads_staging_, 0, pixel_grads_, 0, pixels * 20);
-  BackwardBuffers bwd{&pixel_grads_, &splat_grads_, &param_grads_, {}, {}};
+  BackwardBuffers bwd{&pixel_grads_, &splat_grads_, &param_grads_, {}, {},
+                      options.deterministic ? &det_slots_ : nullptr, det_slot_capacity};
   VkDeviceSize sh_offsets[kMaxShGroups] = {};
   VkDeviceSize offset = VkDeviceSize{n} * kParamGradFloats * 4;
   for (int g = 0; g < kMaxShGroups; ++g) {

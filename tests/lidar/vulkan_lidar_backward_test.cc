@@ -2,12 +2,14 @@
 // on lavapipe: gradients against the cpu double-precision reference (RenderLidarReference with
 // upstream gradients) on small random scenes around the sensor (a fifth of them on the seam behind
 // it), static and rolling sweeps; against the cpu scalar float backward on a street with saturated
-// rays; the compare-and-swap fallback; the preconditions. Relative error per parameter group
+// rays; the compare-and-swap fallback; the deterministic mode (the same checks, and identical bits
+// across calls, sweeps and renderers on the street); the preconditions. Relative error per parameter group
 // (||a - b|| / ||b||), the style of tests/lidar/lidar_backward_test.cc and
 // tests/render/vulkan_backward_test.cc. ctest also runs it at lavapipe subgroup sizes 4 and 16.
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <memory>
 #include <random>
 #include <vector>
@@ -69,7 +71,7 @@ Grads ToDouble(const LidarGaussianGrads& g) {
 // The vulkan backward after a kept vulkan forward; num_visible: the forward's splat count.
 Grads VulkanGrads(VulkanLidarRenderer& vk, const GaussianStore& store, const LidarModel& model,
                   const LidarSweepPose& sweep, const std::vector<float>& refl, const LidarUpstreamGrads& up,
-                  size_t* num_visible = nullptr) {
+                  size_t* num_visible = nullptr, bool deterministic = false) {
   LidarRenderOptions opt;
   opt.reflectance = &refl;
   opt.keep_for_backward = true;
@@ -78,7 +80,7 @@ Grads VulkanGrads(VulkanLidarRenderer& vk, const GaussianStore& store, const Lid
   EXPECT_TRUE(st.ok()) << st;
   if (num_visible) *num_visible = out.num_visible;
   LidarGaussianGrads g;
-  st = vk.Backward(up, &g);
+  st = vk.Backward(up, &g, deterministic);
   EXPECT_TRUE(st.ok()) << st;
   return ToDouble(g);
 }
@@ -141,6 +143,7 @@ TEST_P(VulkanLidarBackwardSweep, MatchesTheDoubleReference) {
   size_t visible = 0;
   const Grads vk = VulkanGrads(Vk(), s.store, s.model, s.sweep, s.reflectance, up, &visible);
   const Grads cpu = CpuGrads(s.store, s.model, s.sweep, s.reflectance, up);
+  const Grads det = VulkanGrads(Vk(), s.store, s.model, s.sweep, s.reflectance, up, nullptr, true);
   // Most Gaussians drawn, and seam copies among the splats (more splats than drawn Gaussians).
   size_t drawn = 0;
   for (double v : ref.opacity_logits) drawn += v != 0;
@@ -149,9 +152,11 @@ TEST_P(VulkanLidarBackwardSweep, MatchesTheDoubleReference) {
   for (const Group& g : kGroups) {
     const double e_vk = RelError(vk.*(g.grads), ref.*(g.grads));
     const double e_cpu = RelError(cpu.*(g.grads), ref.*(g.grads));
-    std::printf("%s %-15s rel. error vs double reference: vulkan %.2e  cpu float %.2e\n",
-                rolling ? "rolling" : "static ", g.name, e_vk, e_cpu);
+    const double e_det = RelError(det.*(g.grads), ref.*(g.grads));
+    std::printf("%s %-15s rel. error vs double reference: vulkan %.2e  deterministic %.2e  cpu "
+                "float %.2e\n", rolling ? "rolling" : "static ", g.name, e_vk, e_det, e_cpu);
     EXPECT_LT(e_vk, 1e-4) << g.name;
+    EXPECT_LT(e_det, 1e-4) << g.name << " deterministic";
   }
 }
 
@@ -162,6 +167,89 @@ INSTANTIATE_TEST_SUITE_P(Sweeps, VulkanLidarBackwardSweep, ::testing::Values(fal
 // gradients, against the cpu scalar backward. The two forwards differ in rounding (a threshold
 // can flip on a few rays), so the whole vector per group is compared, as the cpu's own
 // VectorisedBackwardMatchesTheScalarReference (bound 1e-2 there; 1e-3 here).
+struct Street {
+  GaussianStore store;
+  std::vector<float> refl;
+  LidarModel model = KittiHdl64e(1024);
+  LidarSweepPose sweep;
+  std::vector<float> dr, da, di;
+  LidarUpstreamGrads up() const { return {dr.data(), da.data(), di.data()}; }
+};
+
+const Street& TheStreet() {
+  static const Street* street = [] {
+    auto* t = new Street;
+    SyntheticStreetOptions so;
+    so.num_gaussians = 60'000;
+    so.sh_degree = 0;
+    t->store = MakeSyntheticStreet(so);
+    t->refl.resize(t->store.size());
+    for (size_t i = 0; i < t->refl.size(); ++i) t->refl[i] = static_cast<float>((i * 37) % 101) / 100.0f;
+    t->sweep.T_world_from_lidar_start.translate(Eigen::Vector3d(20, 0.5, 1.73));
+    t->sweep.T_world_from_lidar_end = t->sweep.T_world_from_lidar_start;
+    t->sweep.T_world_from_lidar_end.translate(Eigen::Vector3d(1.5, 0, 0));
+    t->sweep.T_world_from_lidar_end.rotate(Eigen::AngleAxisd(0.05, Eigen::Vector3d::UnitZ()));
+    const size_t P = static_cast<size_t>(t->model.beams()) * t->model.columns;
+    std::mt19937 rng(4);
+    std::uniform_real_distribution<float> u(-0.5f, 0.5f);
+    for (size_t p = 0; p < P; ++p) {
+      t->dr.push_back(0.1f * u(rng));
+      t->da.push_back(u(rng));
+      t->di.push_back(u(rng));
+    }
+    return t;
+  }();
+  return *street;
+}
+
+// The deterministic mode on the street (thousands of splats per tile, where two atomic passes
+// differ in their last bits): identical bits across two Backward calls on one kept sweep, a
+// second sweep, and a freshly created renderer; the atomic mode's gradients up to rounding.
+TEST(VulkanLidarBackward, DeterministicIdenticalBitsOnAStreet) {
+  const Street& t = TheStreet();
+  LidarRenderOptions opt;
+  opt.reflectance = &t.refl;
+  opt.keep_for_backward = true;
+  LidarRenderOutput out;
+  ASSERT_TRUE(Vk().Render(t.store, t.model, t.sweep, opt, &out).ok());
+  LidarGaussianGrads a, b, atomic[2];
+  ASSERT_TRUE(Vk().Backward(t.up(), &a, true).ok());
+  ASSERT_TRUE(Vk().Backward(t.up(), &b, true).ok());
+  ASSERT_TRUE(Vk().Backward(t.up(), &atomic[0]).ok());
+  ASSERT_TRUE(Vk().Backward(t.up(), &atomic[1]).ok());
+  LidarGaussianGrads c;
+  ASSERT_TRUE(Vk().Render(t.store, t.model, t.sweep, opt, &out).ok());
+  ASSERT_TRUE(Vk().Backward(t.up(), &c, true).ok());
+  std::unique_ptr<VulkanLidarRenderer> fresh(MakeRenderer(false));
+  LidarGaussianGrads d;
+  ASSERT_TRUE(fresh->Render(t.store, t.model, t.sweep, opt, &out).ok());
+  ASSERT_TRUE(fresh->Backward(t.up(), &d, true).ok());
+  std::printf("street: %zu splats, %zu tile instances\n", out.num_visible, out.num_tile_instances);
+  using Field = std::vector<float> LidarGaussianGrads::*;
+  const std::pair<const char*, Field> fields[] = {
+      {"means", &LidarGaussianGrads::means}, {"log_scales", &LidarGaussianGrads::log_scales},
+      {"rotations", &LidarGaussianGrads::rotations},
+      {"opacity_logits", &LidarGaussianGrads::opacity_logits},
+      {"reflectance", &LidarGaussianGrads::reflectance}};
+  auto bit_differences = [](const std::vector<float>& x, const std::vector<float>& y) {
+    if (x.size() != y.size()) return x.size() + y.size() + 1;
+    size_t n = 0;
+    for (size_t i = 0; i < x.size(); ++i) n += std::memcmp(&x[i], &y[i], sizeof(float)) != 0;
+    return n;
+  };
+  for (const auto& [name, field] : fields) {
+    EXPECT_EQ(bit_differences(a.*field, b.*field), 0u) << name << ": second call";
+    EXPECT_EQ(bit_differences(a.*field, c.*field), 0u) << name << ": second sweep";
+    EXPECT_EQ(bit_differences(a.*field, d.*field), 0u) << name << ": fresh renderer";
+    auto dbl = [](const std::vector<float>& v) { return std::vector<double>(v.begin(), v.end()); };
+    const double e = RelError(dbl(a.*field), dbl(atomic[0].*field));
+    std::printf("street %-15s deterministic vs atomic rel. error %.2e; atomic run to run: %zu of %zu "
+                "floats differ\n", name, e, bit_differences(atomic[0].*field, atomic[1].*field),
+                (a.*field).size());
+    EXPECT_LT(e, 1e-5) << name;
+  }
+}
+
 TEST(VulkanLidarBackward, MatchesTheCpuBackwardOnAStreet) {
   SyntheticStreetOptions so;
   so.num_gaussians = 60'000;
@@ -227,8 +315,10 @@ TEST(VulkanLidarBackward, PreconditionsAndNullUpstream) {
   opt.keep_for_backward = true;
   ASSERT_TRUE(vk.Render(s.store, s.model, s.sweep, opt, &out).ok());
   EXPECT_EQ(vk.Backward({d.data()}, nullptr).code(), absl::StatusCode::kInvalidArgument);
-  EXPECT_EQ(vk.Backward({d.data()}, &g, /*deterministic=*/true).code(), absl::StatusCode::kUnimplemented);
+  LidarGaussianGrads det;
+  ASSERT_TRUE(vk.Backward({d.data()}, &det, /*deterministic=*/true).ok());
   ASSERT_TRUE(vk.Backward({d.data()}, &g).ok());
+  EXPECT_LT(RelError(ToDouble(det).means, ToDouble(g).means), 1e-5);
   EXPECT_EQ(g.means.size(), 3 * s.store.size());
   EXPECT_EQ(g.log_scales.size(), 3 * s.store.size());
   EXPECT_EQ(g.rotations.size(), 4 * s.store.size());

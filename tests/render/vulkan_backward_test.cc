@@ -47,7 +47,8 @@ using gradcheck::LossDouble;
 using gradcheck::RandomScene;
 using gradcheck::Scene;
 
-GaussianGrads Analytic(Engine& engine, const Scene& s, bool with_depth_alpha = true) {
+GaussianGrads Analytic(Engine& engine, const Scene& s, bool with_depth_alpha = true,
+                       bool deterministic = false) {
   auto scene = engine.Upload(s.store);
   EXPECT_TRUE(scene.ok()) << scene.status();
   if (!scene.ok()) return {};
@@ -62,7 +63,7 @@ GaussianGrads Analytic(Engine& engine, const Scene& s, bool with_depth_alpha = t
   GaussianGrads grads;
   RenderOutputGrads og{g_rgb.data(), with_depth_alpha ? g_d.data() : nullptr,
                        with_depth_alpha ? g_a.data() : nullptr};
-  st = engine.RenderBackward(**scene, og, {}, &grads);
+  st = engine.RenderBackward(**scene, og, {.deterministic = deterministic}, &grads);
   EXPECT_TRUE(st.ok()) << st;
   return grads;
 }
@@ -113,13 +114,18 @@ TEST_F(VulkanBackward, AgreesWithCpuBackward) {
     const GaussianGrads ref = Analytic(*cpu_double, s);
     const GaussianGrads simd = Analytic(*cpu_simd, s);
     const GaussianGrads vk = Analytic(*Vulkan(), s);
+    const GaussianGrads det = Analytic(*Vulkan(), s, true, /*deterministic=*/true);
     for (const Group& g : kGroups) {
       const double e_vk = RelError(ref.*(g.grads), vk.*(g.grads));
+      const double e_det = RelError(ref.*(g.grads), det.*(g.grads));
       const double e_simd = RelError(ref.*(g.grads), simd.*(g.grads));
-      std::printf("degree %d %dx%d %-15s rel. error vs cpu double: vulkan %.2e  cpu simd %.2e\n",
-                  c.degree, c.width, c.height, g.name, e_vk, e_simd);
+      std::printf("degree %d %dx%d %-15s rel. error vs cpu double: vulkan %.2e  deterministic "
+                  "%.2e  cpu simd %.2e\n",
+                  c.degree, c.width, c.height, g.name, e_vk, e_det, e_simd);
       EXPECT_LT(e_vk, 3e-5) << g.name << " degree " << c.degree;
+      EXPECT_LT(e_det, 3e-5) << g.name << " degree " << c.degree << " deterministic";
     }
+    EXPECT_EQ(ref.radii, det.radii);
     const double e2d = RelError(ref.means2d, vk.means2d);
     std::printf("degree %d %dx%d %-15s rel. error vs cpu double: vulkan %.2e\n", c.degree, c.width,
                 c.height, "means2d", e2d);
@@ -128,11 +134,11 @@ TEST_F(VulkanBackward, AgreesWithCpuBackward) {
   }
 }
 
-TEST_F(VulkanBackward, AgreesWithFiniteDifferences) {
+void CheckFiniteDifferences(bool deterministic) {
   ThreadPool pool(0);
   for (int degree : {0, 1, 3}) {
     const Scene s = RandomScene(17 + degree, 24, degree, 72, 56);
-    const GaussianGrads vk = Analytic(*Vulkan(), s);
+    const GaussianGrads vk = Analytic(*Vulkan(), s, /*with_depth_alpha=*/true, deterministic);
     int visible = 0;
     for (float r : vk.radii) visible += r > 0;
     EXPECT_GE(visible, 18);
@@ -163,13 +169,38 @@ TEST_F(VulkanBackward, AgreesWithFiniteDifferences) {
         den += d2 * d2;
       }
       const double e = std::sqrt(num / std::max(den, 1e-300));
-      std::printf("degree %d %-15s vulkan rel. error vs finite differences %.2e (%zu of %zu left out)\n",
-                  degree, group.name, e, skipped, p.size());
+      std::printf("degree %d %-15s vulkan%s rel. error vs finite differences %.2e (%zu of %zu left out)\n",
+                  degree, group.name, deterministic ? " deterministic" : "", e, skipped, p.size());
       EXPECT_LT(skipped, p.size() / 4 + 1) << group.name;
       EXPECT_LT(e, 2e-5) << group.name << " degree " << degree;
     }
   }
 }
+
+// Thousands of faint splats in one or three tiles: long walks per tile (llvmpipe ends an
+// invocation's loops after 65535 trips in total, which a per-batch loop over the subgroups
+// exceeded at subgroup size 4, and a per-block loop at 8), against the atomic and cpu backwards.
+TEST_F(VulkanBackward, DeterministicLongTileLists) {
+  auto cpu_double = CreateCpuEngine({.precision = CpuPrecision::kDouble});
+  for (int width : {16, 48}) {
+    Scene s = RandomScene(5, 3000, 0, width, 16);
+    for (float& o : s.store.opacity_logits) o -= 3.0f;  // opacity 0.01..0.15: long n_contrib
+    const GaussianGrads ref = Analytic(*cpu_double, s);
+    const GaussianGrads atomic = Analytic(*Vulkan(), s);
+    const GaussianGrads det = Analytic(*Vulkan(), s, true, /*deterministic=*/true);
+    for (const Group& g : kGroups) {
+      const double e_atomic = RelError(ref.*(g.grads), atomic.*(g.grads));
+      const double e_det = RelError(ref.*(g.grads), det.*(g.grads));
+      std::printf("3000 faint, %dx16 %-15s rel. error vs cpu double: atomic %.2e deterministic "
+                  "%.2e\n", width, g.name, e_atomic, e_det);
+      EXPECT_LT(e_det, 3e-5) << g.name << " width " << width;
+      EXPECT_LT(RelError(atomic.*(g.grads), det.*(g.grads)), 1e-5) << g.name;
+    }
+  }
+}
+
+TEST_F(VulkanBackward, AgreesWithFiniteDifferences) { CheckFiniteDifferences(false); }
+TEST_F(VulkanBackward, DeterministicAgreesWithFiniteDifferences) { CheckFiniteDifferences(true); }
 
 TEST_F(VulkanBackward, CompareAndSwapFallbackAgrees) {
   Engine* cas = VulkanCas();
@@ -211,9 +242,16 @@ TEST_F(VulkanBackward, PreconditionsAndUpdateScene) {
             absl::StatusCode::kInvalidArgument);
   BackwardOptions det;
   det.deterministic = true;
-  EXPECT_EQ(vk.RenderBackward(**scene, {g.data()}, det, &grads).code(),
-            absl::StatusCode::kUnimplemented);
+  GaussianGrads det_grads;
+  EXPECT_TRUE(vk.RenderBackward(**scene, {g.data()}, det, &det_grads).ok());
+  // More slot bytes than the (test-lowered) storage buffer range: a clear ResourceExhausted.
+  vulkan_testing::SetDeterministicSlotLimit(vk, 64);
+  const absl::Status big = vk.RenderBackward(**scene, {g.data()}, det, &grads);
+  vulkan_testing::SetDeterministicSlotLimit(vk, 0);
+  EXPECT_EQ(big.code(), absl::StatusCode::kResourceExhausted) << big;
+  EXPECT_NE(big.message().find("deterministic"), std::string::npos) << big;
   EXPECT_TRUE(vk.RenderBackward(**scene, {g.data()}, {}, &grads).ok());
+  EXPECT_LT(RelError(grads.means, det_grads.means), 1e-5);
   // Backward may run twice on one kept forward (same result up to atomics order).
   GaussianGrads again;
   EXPECT_TRUE(vk.RenderBackward(**scene, {g.data()}, {}, &again).ok());

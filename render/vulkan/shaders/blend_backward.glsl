@@ -13,6 +13,16 @@
 // the batch each lane adds its splat's sums with 10 float atomics, all lanes at once ("atomics
 // per Gaussian per lane", the variant that ran best on lavapipe: ../shared/docs/cpu-vs-lavapipe.md).
 //
+// DETERMINISTIC (blend_backward_det.comp): no atomics. The subgroups of a tile walk the list in
+// the same chunks of DET_SUB batches (aligned to the tile's largest n_contrib); every lane leaves
+// its splat's subgroup sums of each batch in shared memory and, after a barrier, the chunk's
+// entries are summed over the subgroups in subgroup order and written to the entry's own slot
+// (the instance number emit.comp gave it). blend_backward_reduce.comp then sums each Gaussian's
+// slots in emit order (row-major tiles). Every sum has a fixed shape, so the bits repeat run to
+// run (docs/rendering.md "Deterministic mode", also on subgroupAdd). Loops per chunk stay short:
+// llvmpipe ends an invocation's loops after 65535 back-edges in total (gallivm's loop limiter),
+// so the sums over the subgroups are unrolled.
+//
 // Per pixel, back to front from its last contributor: T_i = T_{i+1} / (1 - alpha_i),
 //   dL/dc_i     = g_c alpha_i T_i                          (c = r, g, b; depth likewise)
 //   dL/dalpha_i = T_i sum_c g_c (c_i - S_c) + (g_alpha - g . bg) T_final / (1 - alpha_i)
@@ -22,7 +32,7 @@
 #extension GL_KHR_shader_subgroup_basic : require
 #extension GL_KHR_shader_subgroup_ballot : require
 #extension GL_KHR_shader_subgroup_arithmetic : require
-#ifndef CAS_ATOMICS
+#if !defined(CAS_ATOMICS) && !defined(DETERMINISTIC)
 #extension GL_EXT_shader_atomic_float : require
 #endif
 #include "common.glsl"
@@ -36,7 +46,15 @@ layout(std430, binding = 4) readonly buffer NContrib { uint n_contrib[]; };
 // dL/d(outputs): rgb [3P], depth [P], alpha [P] (zeros where the caller gave none).
 layout(std430, binding = 5) readonly buffer PixelGrads { float pixel_grads[]; };
 // dL/d(splat) by depth rank (common.glsl: SPLAT_GRAD_STRIDE, SG_*), zeroed before.
-#ifdef CAS_ATOMICS
+#if defined(DETERMINISTIC)
+// DET_SLOT_FLOATS per tile instance, by emit index, in SG_* order (every slot of the frame is
+// written: reached entries with their sums, the rest with zeros).
+layout(std430, binding = 6) writeonly buffer Slots { float slots[]; };
+layout(std430, binding = 7) readonly buffer Ids { uint sorted_ids[]; };  // Gaussian id by rank
+// The touched-tiles scan by rank (exclusive): a rank's first emit index.
+layout(std430, binding = 8) readonly buffer Offsets { uint offsets[]; };
+layout(std430, binding = 9) readonly buffer Rects { uvec2 rects[]; };  // by Gaussian id
+#elif defined(CAS_ATOMICS)
 layout(std430, binding = 6) buffer SplatGrads { uint splat_grads[]; };
 #else
 layout(std430, binding = 6) buffer SplatGrads { float splat_grads[]; };
@@ -47,8 +65,54 @@ layout(push_constant, std430) uniform Params {
   uint tiles_x;
   uint rank_mask;
   float bg_r, bg_g, bg_b;
+#ifdef DETERMINISTIC
+  uint slot_capacity;  // slots in the buffer (>= the frame's tile instances)
+#endif
 } pc;
 
+#ifdef DETERMINISTIC
+#define NT (TILE_SIZE * TILE_SIZE)
+// The device's subgroup size, specialised by the host, so that the subgroup count and every index
+// below fold to constants (main() poisons the slots if the runtime size differs).
+layout(constant_id = 0) const uint DET_S = 8u;
+const uint NSG = NT / DET_S;
+// Batches per chunk (one barrier pair per chunk: barriers are dear on llvmpipe). 30 KB of shared
+// memory (stages.h: kDetSharedBytes, checked against the device's limit).
+#define DET_SUB 3u
+// [component][subgroup * chunk + batch * gl_SubgroupSize + lane]: one chunk's per-subgroup sums
+// (the subgroup size is a power of two, so there are NT * DET_SUB columns).
+shared float partial[DET_SLOT_FLOATS][NT * DET_SUB];
+shared uint tile_last;
+
+// The instance number emit.comp gave rank j's instance in this workgroup's tile (its rect is
+// emitted row-major from offsets[j]).
+uint EmitIndex(uint j) {
+  const uvec2 r = rects[sorted_ids[j]];
+  const uint x0 = r.x & 0xffffu, y0 = r.x >> 16u, x1 = r.y & 0xffffu;
+  return offsets[j] + (gl_WorkGroupID.y - y0) * (x1 - x0) + (gl_WorkGroupID.x - x0);
+}
+
+// Column k's entry of component c summed over the subgroups 0, 1, 2, ... in order (unrolled:
+// see the loop limiter above).
+#define DET_ADD(s) if ((s) < NSG) sum += partial[c][(s) * DET_SUB * DET_S + k];
+#define DET_ADD4(s) DET_ADD(s) DET_ADD((s) + 1u) DET_ADD((s) + 2u) DET_ADD((s) + 3u)
+#define DET_ADD16(s) DET_ADD4(s) DET_ADD4((s) + 4u) DET_ADD4((s) + 8u) DET_ADD4((s) + 12u)
+float SubgroupOrderSum(uint c, uint k) {
+  float sum = partial[c][k];
+  DET_ADD(1u) DET_ADD(2u) DET_ADD(3u) DET_ADD4(4u) DET_ADD4(8u) DET_ADD4(12u)
+  DET_ADD16(16u) DET_ADD16(32u) DET_ADD16(48u)
+  return sum;
+}
+
+// Task t = k * DET_SLOT_FLOATS + c of a chunk of B entries ending at `end`: entry end - 1 - k,
+// component c.
+void WriteTask(uint t, uint end, uint range_begin) {
+  const uint k = t / DET_SLOT_FLOATS, c = t % DET_SLOT_FLOATS;
+  const uint e = EmitIndex(inst_list[range_begin + end - 1u - k] & pc.rank_mask);
+  const float sum = SubgroupOrderSum(c, k);
+  if (e < pc.slot_capacity) slots[e * DET_SLOT_FLOATS + c] = sum;
+}
+#else
 void AtomicAddF(uint index, float value) {
 #ifdef CAS_ATOMICS
   uint old = splat_grads[index];
@@ -62,6 +126,7 @@ void AtomicAddF(uint index, float value) {
   atomicAdd(splat_grads[index], value);
 #endif
 }
+#endif
 
 // As blend.comp's Reaches (keep the two identical).
 bool Reaches(vec4 sa, vec2 sb, float x0, float x1, float y0, float y1) {
@@ -109,8 +174,32 @@ void main() {
 
   // Lane k of a batch holds list entry end - 1 - k, so lanes in ascending order (FindLSB) walk
   // the list back to front.
+#ifdef DETERMINISTIC
+  // A subgroup size other than the specialised one would garble the sums: poison them (NaN
+  // gradients, which the tests catch) rather than return wrong numbers quietly.
+  if (S != DET_S || gl_NumSubgroups != NSG) {
+    for (uint i = range.x + l; i < range.y; i += NT) {
+      const uint e = EmitIndex(inst_list[i] & pc.rank_mask);
+      if (e < pc.slot_capacity) slots[e * DET_SLOT_FLOATS] = uintBitsToFloat(0x7fc00000u);
+    }
+    return;
+  }
+  // The tile's largest n_contrib, so that every subgroup walks the same chunks.
+  if (l == 0u) tile_last = 0u;
+  barrier();
+  atomicMax(tile_last, last);
+  barrier();
+  const uint wg_last = tile_last;
+  const uint B = DET_SUB * DET_S;
+  for (uint chunk_end = wg_last; chunk_end > 0u; chunk_end -= min(chunk_end, B)) {
+  for (uint h = 0u; h < DET_SUB; ++h) {
+    const uint end = chunk_end > h * DET_S ? chunk_end - h * DET_S : 0u;  // [end - S, end)
+    const uint column = gl_SubgroupID * B + h * DET_S + lane_id;
+    const bool has = lane_id < end && end - 1u - lane_id < max_last;
+#else
   for (uint end = max_last; end > 0u; end -= min(end, S)) {
     const bool has = lane_id < end;
+#endif
     const uint idx = has ? end - 1u - lane_id : 0u;
     const uint j = inst_list[range.x + idx] & pc.rank_mask;
     const bool reach = has && Reaches(sorted_splats[3u * j], sorted_splats[3u * j + 1u].xy, lo.x,
@@ -120,6 +209,11 @@ void main() {
     vec4 acc0 = vec4(0.0), acc1 = vec4(0.0);  // this lane's splat: (x, y, a, b), (c, o, r, g)
     vec2 acc2 = vec2(0.0);                    // (b, depth)
     // max(1, n) trips: with n == 0 the one trip changes nothing (valid = false).
+#ifdef DETERMINISTIC
+    // Most of a subgroup's batches lie past its own pixels' last contributor here (the tile's
+    // chunks are shared): skip the empty trip where a branch skips (llvmpipe runs it masked).
+    if (n != 0u)
+#endif
     do {
       const uint lane = n == 0u ? 0u : subgroupBallotFindLSB(todo);
       todo[lane >> 5u] &= ~(1u << (lane & 31u));
@@ -157,6 +251,24 @@ void main() {
       acc2 = mine ? s2 : acc2;
       n = n == 0u ? 0u : n - 1u;
     } while (n != 0u);
+#ifdef DETERMINISTIC
+    // This lane's splat's sums over the subgroup's pixels (zeros when it reached none).
+    partial[SG_X][column] = reach ? acc0.x : 0.0;
+    partial[SG_Y][column] = reach ? acc0.y : 0.0;
+    partial[SG_A][column] = reach ? acc0.z : 0.0;
+    partial[SG_B][column] = reach ? acc0.w : 0.0;
+    partial[SG_C][column] = reach ? acc1.x : 0.0;
+    partial[SG_O][column] = reach ? acc1.y : 0.0;
+    partial[SG_R][column] = reach ? acc1.z : 0.0;
+    partial[SG_G][column] = reach ? acc1.w : 0.0;
+    partial[SG_BL][column] = reach ? acc2.x : 0.0;
+    partial[SG_DEPTH][column] = reach ? acc2.y : 0.0;
+  }  // batches of the chunk
+    barrier();
+    const uint tasks = min(chunk_end, B) * DET_SLOT_FLOATS;
+    for (uint t = l; t < tasks; t += NT) WriteTask(t, chunk_end, range.x);
+    barrier();  // the next chunk overwrites partial
+#else
     if (reach) {
       const uint o = j * SPLAT_GRAD_STRIDE;
       AtomicAddF(o + SG_X, acc0.x);
@@ -170,5 +282,15 @@ void main() {
       AtomicAddF(o + SG_BL, acc2.x);
       AtomicAddF(o + SG_DEPTH, acc2.y);
     }
+#endif
   }
+#ifdef DETERMINISTIC
+  // Entries past every pixel's last contributor reach nothing: their slots get zeros.
+  for (uint i = wg_last + l; i < range.y - range.x; i += NT) {
+    const uint e = EmitIndex(inst_list[range.x + i] & pc.rank_mask);
+    if (e < pc.slot_capacity) {
+      for (uint c = 0u; c < DET_SLOT_FLOATS; ++c) slots[e * DET_SLOT_FLOATS + c] = 0.0;
+    }
+  }
+#endif
 }

@@ -64,6 +64,8 @@ uint ShGroupFloats(uint K, uint g) {
 #define SG_G 7u
 #define SG_BL 8u
 #define SG_DEPTH 9u
+// The deterministic backward's per-tile-instance partial sums (blend_backward.glsl): SG_X..SG_DEPTH.
+#define DET_SLOT_FLOATS 10u
 // Parameter gradients of the backward, 4 vec4 per Gaussian (zero where not visible):
 //   [0] = (d mean xyz, d opacity logit), [1] = (d log-scale xyz, screen radius),
 //   [2] = d quaternion (w, x, y, z), [3] = (d u, d v of the 2D mean, 0, 0);

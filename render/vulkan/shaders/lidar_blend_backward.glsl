@@ -13,6 +13,13 @@
 // loaded the splat keeps the sums; after the batch each lane adds them into its splat's Gaussian
 // (a seam copy into its Gaussian too) with 8 float atomics, all lanes at once.
 //
+// DETERMINISTIC (lidar_blend_backward_det.comp), as the camera's (blend_backward.glsl): the
+// subgroups walk the list in the same chunks of DET_SUB batches, leave their per-splat sums in
+// shared memory, and after a barrier each chunk entry's sums over the subgroups, in subgroup
+// order, go to the entry's own slot (its emit index); lidar_det_reduce.comp sums each Gaussian's
+// slots (entry 2i's, then its seam copy's) in emit order. Loops are kept short for llvmpipe's loop
+// limiter (65535 trips per invocation in total).
+//
 // Per ray, back to front: T_i = T / (1 - alpha), w = alpha T_i,
 //   dL/d range_i += w gD,  dL/d refl_i += w gI,
 //   dL/d alpha_i  = gA T_f / (1 - alpha) + T_i (gD (range_i - S_r) + gI (refl_i - S_i)),
@@ -22,7 +29,7 @@
 #extension GL_KHR_shader_subgroup_ballot : require
 #extension GL_KHR_shader_subgroup_arithmetic : require
 #extension GL_EXT_control_flow_attributes : require
-#ifndef CAS_ATOMICS
+#if !defined(CAS_ATOMICS) && !defined(DETERMINISTIC)
 #extension GL_EXT_shader_atomic_float : require
 #endif
 #include "lidar_common.glsl"
@@ -40,7 +47,13 @@ layout(std430, binding = 4) readonly buffer RayState { uint ray_state[]; };
 // dL/d(range_sum) [P], dL/d(alpha) [P], dL/d(intensity_sum) [P] (zeros where the caller gave none).
 layout(std430, binding = 5) readonly buffer RayGrads { float ray_grads[]; };
 // dL/d(splat terms) per Gaussian (GRAD_STRIDE floats), zeroed before.
-#ifdef CAS_ATOMICS
+#if defined(DETERMINISTIC)
+// GRAD_STRIDE floats per tile instance, by emit index (every slot of the sweep is written).
+layout(std430, binding = 6) writeonly buffer Slots { float slots[]; };
+// The touched-tiles scan by rank (exclusive): a rank's first emit index.
+layout(std430, binding = 7) readonly buffer Offsets { uint offsets[]; };
+layout(std430, binding = 8) readonly buffer Rects { uvec2 rects[]; };  // by entry
+#elif defined(CAS_ATOMICS)
 layout(std430, binding = 6) buffer SplatGrads { uint splat_grads[]; };
 #else
 layout(std430, binding = 6) buffer SplatGrads { float splat_grads[]; };
@@ -51,8 +64,46 @@ layout(push_constant, std430) uniform Params {
   uint tiles_x;
   uint rank_mask;
   uint splat_capacity;
+#ifdef DETERMINISTIC
+  uint slot_capacity;  // slots in the buffer (>= the sweep's tile instances)
+#endif
 } pc;
 
+#ifdef DETERMINISTIC
+#define NT (TILE_SIZE * TILE_SIZE / ROWS)  // invocations per tile
+#define DET_SUB 4u                          // batches per chunk (one barrier pair each)
+// The device's subgroup size, specialised by the host so that the subgroup count and the indices
+// below fold to constants (main() poisons the slots if the runtime size differs).
+layout(constant_id = 0) const uint DET_S = 8u;
+const uint NSG = NT / DET_S;
+// [component][subgroup * chunk + batch * gl_SubgroupSize + lane]: 8 KB.
+shared float partial[GRAD_STRIDE][NT * DET_SUB];
+shared uint tile_last;
+
+// The instance number emit.comp gave rank j's instance in this workgroup's tile.
+uint EmitIndex(uint j) {
+  const uvec2 r = rects[sorted_ids[j]];
+  const uint x0 = r.x & 0xffffu, y0 = r.x >> 16u, x1 = r.y & 0xffffu;
+  return offsets[j] + (gl_WorkGroupID.y - y0) * (x1 - x0) + (gl_WorkGroupID.x - x0);
+}
+
+// Summed over subgroups 0, 1, ... in order, unrolled (16 subgroups of 4 at most).
+#define DET_ADD(s) if ((s) < NSG) sum += partial[c][(s) * DET_SUB * DET_S + k];
+#define DET_ADD4(s) DET_ADD(s) DET_ADD((s) + 1u) DET_ADD((s) + 2u) DET_ADD((s) + 3u)
+float SubgroupOrderSum(uint c, uint k) {
+  float sum = partial[c][k];
+  DET_ADD(1u) DET_ADD(2u) DET_ADD(3u) DET_ADD4(4u) DET_ADD4(8u) DET_ADD4(12u)
+  return sum;
+}
+
+void WriteTask(uint t, uint end, uint range_begin) {
+  const uint k = t / GRAD_STRIDE, c = t % GRAD_STRIDE;
+  const uint j = min(inst_list[range_begin + end - 1u - k] & pc.rank_mask, pc.splat_capacity - 1u);
+  const uint e = EmitIndex(j);
+  const float sum = SubgroupOrderSum(c, k);
+  if (e < pc.slot_capacity) slots[e * GRAD_STRIDE + c] = sum;
+}
+#else
 void AtomicAddF(uint index, float value) {
 #ifdef CAS_ATOMICS
   uint old = splat_grads[index];
@@ -66,6 +117,7 @@ void AtomicAddF(uint index, float value) {
   atomicAdd(splat_grads[index], value);
 #endif
 }
+#endif
 
 // As lidar_blend.comp's Reaches (keep the two identical).
 bool Reaches(vec4 sa, vec2 lo, vec2 hi) {
@@ -107,8 +159,32 @@ void main() {
 
   // Lane k of a batch holds list position end - 1 - k, so lanes in ascending order (FindLSB) walk
   // the list back to front.
+#ifdef DETERMINISTIC
+  const uint l = gl_LocalInvocationIndex;
+  // A subgroup size other than the specialised one would garble the sums: poison them (NaN
+  // gradients, which the tests catch) rather than return wrong numbers quietly.
+  if (S != DET_S || gl_NumSubgroups != NSG) {
+    for (uint i = range.x + l; i < range.y; i += NT) {
+      const uint e = EmitIndex(min(inst_list[i] & pc.rank_mask, pc.splat_capacity - 1u));
+      if (e < pc.slot_capacity) slots[e * GRAD_STRIDE] = uintBitsToFloat(0x7fc00000u);
+    }
+    return;
+  }
+  if (l == 0u) tile_last = 0u;
+  barrier();
+  atomicMax(tile_last, my_last);
+  barrier();
+  const uint wg_last = tile_last;
+  const uint B = DET_SUB * DET_S;
+  for (uint chunk_end = wg_last; chunk_end > 0u; chunk_end -= min(chunk_end, B)) {
+  for (uint h = 0u; h < DET_SUB; ++h) {
+    const uint end = chunk_end > h * DET_S ? chunk_end - h * DET_S : 0u;  // [end - S, end)
+    const uint column = gl_SubgroupID * B + h * DET_S + lane_id;
+    const bool has = lane_id < end && end - 1u - lane_id < max_last;
+#else
   for (uint end = max_last; end > 0u; end -= min(end, S)) {
     const bool has = lane_id < end;
+#endif
     const uint idx = has ? end - 1u - lane_id : 0u;
     const uint j = min(inst_list[range.x + idx] & pc.rank_mask, pc.splat_capacity - 1u);
     const bool reach = has && Reaches(sorted_splats[3u * j], lo, hi);
@@ -116,6 +192,11 @@ void main() {
     uint n = subgroupBallotBitCount(todo);
     vec4 acc0 = vec4(0.0), acc1 = vec4(0.0);  // this lane's splat: (u, v, a, b), (c, o, range, refl)
     // max(1, n) trips: with n == 0 the one trip changes nothing (valid = false).
+#ifdef DETERMINISTIC
+    // Many of a subgroup's batches lie past its own rays' last contributor here (the tile's
+    // chunks are shared): skip the empty trip where a branch skips (llvmpipe runs it masked).
+    if (n != 0u)
+#endif
     do {
       const uint lane = n == 0u ? 0u : subgroupBallotFindLSB(todo);
       todo[lane >> 5u] &= ~(1u << (lane & 31u));
@@ -157,6 +238,21 @@ void main() {
       acc1 = mine ? s1 : acc1;
       n = n == 0u ? 0u : n - 1u;
     } while (n != 0u);
+#ifdef DETERMINISTIC
+    partial[0][column] = reach ? acc0.x : 0.0;
+    partial[1][column] = reach ? acc0.y : 0.0;
+    partial[2][column] = reach ? acc0.z : 0.0;
+    partial[3][column] = reach ? acc0.w : 0.0;
+    partial[4][column] = reach ? acc1.x : 0.0;
+    partial[5][column] = reach ? acc1.y : 0.0;
+    partial[6][column] = reach ? acc1.z : 0.0;
+    partial[7][column] = reach ? acc1.w : 0.0;
+  }  // batches of the chunk
+    barrier();
+    const uint tasks = min(chunk_end, B) * GRAD_STRIDE;
+    for (uint t = l; t < tasks; t += NT) WriteTask(t, chunk_end, range.x);
+    barrier();  // the next chunk overwrites partial
+#else
     if (reach) {
       const uint o = (sorted_ids[j] >> 1u) * GRAD_STRIDE;  // entry 2i / 2i + 1 -> Gaussian i
       AtomicAddF(o, acc0.x);
@@ -168,5 +264,16 @@ void main() {
       AtomicAddF(o + 6u, acc1.z);
       AtomicAddF(o + 7u, acc1.w);
     }
+#endif
   }
+#ifdef DETERMINISTIC
+  // Entries past every ray's last contributor reach nothing: their slots get zeros.
+  for (uint i = wg_last + l; i < range.y - range.x; i += NT) {
+    const uint j = min(inst_list[range.x + i] & pc.rank_mask, pc.splat_capacity - 1u);
+    const uint e = EmitIndex(j);
+    if (e < pc.slot_capacity) {
+      for (uint c = 0u; c < GRAD_STRIDE; ++c) slots[e * GRAD_STRIDE + c] = 0.0;
+    }
+  }
+#endif
 }
