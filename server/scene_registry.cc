@@ -6,8 +6,10 @@
 
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
+#include "scene/field/extended/extended_io.h"
 #include "scene/field/field_io.h"
 #include "scene/gaussians/ply_io.h"
+#include "scene/train/clips.h"
 #include "scene/train/lidar_eval.h"
 #include "scene/train/trainer.h"
 #include "server/dynamic_scene_field.h"
@@ -77,6 +79,19 @@ void SceneRegistry::RescanLocked() {
     }
     found.emplace(name, std::move(e));
   };
+  // A clip set (DIR/clips.json, docs/training.md "Clips") is not served as one scene: it is listed
+  // with an error naming its clips, each of which is a scene directory of its own.
+  auto add_clip_set = [&](const std::string& name, const std::string& manifest, const std::string& source) {
+    if (found.count(name)) return;
+    Entry e;
+    e.name = name;
+    e.ply_path = manifest;
+    e.source = source;
+    e.manifest_error = absl::StrCat("a clip set (", train::kClipManifestName,
+                                    "), which the server does not serve as one scene; its clips (", name,
+                                    "/clip_000, ...) are scenes of their own");
+    found.emplace(name, std::move(e));
+  };
   auto scan = [&](const std::string& root, const std::string& source, bool bare_ply) {
     const std::string real_root = Canonical(root);
     if (real_root.empty()) return;
@@ -89,6 +104,11 @@ void SceneRegistry::RescanLocked() {
       const fs::path& p = it->path();
       std::error_code ec2;
       if (it->is_directory(ec2)) {
+        const std::string clips = Canonical((p / train::kClipManifestName).string());
+        if (!clips.empty() && IsInside(real_root, clips)) {
+          add_clip_set(fs::relative(p, real_root).generic_string(), clips, source);
+          continue;  // its clip directories are still scanned
+        }
         const std::string ply = (p / "scene.ply").string();
         const std::string real = Canonical(ply);
         if (!real.empty() && IsInside(real_root, real)) {
@@ -249,6 +269,14 @@ void SceneRegistry::StartLoadLocked(Entry* e) {
       const fs::path field_path = fs::path(path).parent_path() / field::kFieldFileName;
       std::error_code ec;
       if (fs::path(path).filename() == "scene.ply" && fs::exists(field_path, ec)) {
+        // --field extended scenes need the extended field at every timestamp; serving them with
+        // field.bin alone would silently drop the seed paper's modules.
+        const fs::path ext_path = fs::path(path).parent_path() / field::kExtendedFieldFileName;
+        if (fs::exists(ext_path, ec)) {
+          return absl::FailedPreconditionError(absl::StrCat(
+              ext_path.string(), ": a scene trained with --field extended, which the server does not serve yet "
+                                 "(render or eval it with the streetsim CLI)"));
+        }
         absl::StatusOr<field::DeformationField> f = field::LoadField(field_path.string());
         if (!f.ok()) return f.status();  // DATA_LOSS naming the file
         absl::StatusOr<std::unique_ptr<DynamicSceneField>> dynamic = DynamicSceneField::Create(

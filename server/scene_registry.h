@@ -6,6 +6,8 @@
 //  - a bare .ply file under the data root: named by its relative path without ".ply"; a static
 //    scene (any time accepted) with the default rig;
 //  - a finished training job's output, <state_dir>/scenes/<name>/.
+// A clip set (a directory with clips.json, docs/training.md "Clips") is listed with an error and
+// never loaded; its clip directories are scenes of their own.
 // Names are looked up in the catalogue only; request strings never become paths.
 // Loading (PLY read, field.bin and its static analysis when present, Engine::Upload) runs on its
 // own thread; other calls never wait for it.

@@ -16,8 +16,10 @@
 #include "render/engine.h"
 #include "scene/gaussians/ply_io.h"
 #include "scene/log/open_log.h"
+#include "scene/train/clips.h"
 #include "scene/train/dynamic_pixels.h"
 #include "scene/train/dynamic_stage.h"
+#include "scene/train/eval_outputs.h"
 #include "scene/train/lidar_eval.h"
 #include "scene/train/trainer.h"
 
@@ -40,6 +42,46 @@ nlohmann::json Metrics(const train::FrameMetrics& m) {
 
 nlohmann::json Defined(double v) { return v >= 0 ? nlohmann::json(v) : nlohmann::json(nullptr); }
 
+// --decomposition DIR / --video PATH [--video-fps F] (scene/train/eval_outputs.h); the options stay
+// empty when neither is given.
+absl::StatusOr<train::EvalOutputOptions> ParseOutputOptions(const ParsedArgs& args) {
+  train::EvalOutputOptions o;
+  o.decomposition_dir = args.Get("decomposition").value_or("");
+  o.video_path = args.Get("video").value_or("");
+  if (args.Has("decomposition") && o.decomposition_dir.empty()) {
+    return absl::InvalidArgumentError("--decomposition needs a directory");
+  }
+  if (args.Has("video") && o.video_path.empty()) return absl::InvalidArgumentError("--video needs a file (.avi or .mp4)");
+  if (auto v = args.Get("video-fps")) {
+    if (o.video_path.empty()) return absl::InvalidArgumentError("--video-fps needs --video");
+    if (!absl::SimpleAtod(*v, &o.video_fps) || !(o.video_fps > 0 && o.video_fps <= 1000)) {
+      return absl::InvalidArgumentError("--video-fps must be in (0, 1000]");
+    }
+  }
+  if (absl::Status s = train::PrepareEvalOutputs(o); !s.ok()) return s;
+  return o;
+}
+
+nlohmann::json OutputsJson(const train::EvalOutputOptions& o, const train::EvalOutputSummary& s) {
+  nlohmann::json j = nlohmann::json::object();
+  if (s.split) {
+    nlohmann::json d;
+    d["dir"] = o.decomposition_dir.empty() ? nlohmann::json(nullptr) : nlohmann::json(o.decomposition_dir);
+    d["views"] = s.decomposition_views;
+    d["static_gaussians"] = s.split->static_gaussians;
+    d["dynamic_gaussians"] = s.split->dynamic_gaussians;
+    d["has_field"] = s.split->scenes_with_field > 0;
+    if (s.split->scenes_with_field == 0) d["note"] = "no field.bin: every Gaussian is static";
+    j["decomposition"] = d;
+  }
+  if (s.video) {
+    j["video"] = {{"path", s.video->path},     {"frames", s.video->frames}, {"width", s.video->width},
+                  {"height", s.video->height}, {"fps", s.video->fps},       {"codec", s.video->codec},
+                  {"backend", s.video->backend}};
+  }
+  return j;
+}
+
 void AddLidar(const train::LidarFrameMetrics& m, nlohmann::json* j) {
   (*j)["lidar_range_median_abs_m"] = Defined(m.range_median_abs_m);
   (*j)["lidar_chamfer_m"] = Defined(m.chamfer_m);
@@ -54,7 +96,7 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args =
       ParsedArgs::Parse(argv, {{"scene"}, {"log"}, {"split"}, {"holdout-every"}, {"resolution-scale"}, {"backend"},
                                 {"no-lidar", false}, {"lidar-columns"},
-                                {"lidar-static-sweep", false}});
+                                {"lidar-static-sweep", false}, {"decomposition"}, {"video"}, {"video-fps"}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
@@ -65,7 +107,20 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
   if (!log_path.ok()) return Fail(2, log_path.status());
   const std::string split = args->Get("split").value_or("test");
   if (split != "test" && split != "train") return Fail(2, absl::InvalidArgumentError("--split must be test or train"));
-  absl::StatusOr<train::SceneMeta> meta = train::ReadSceneMeta(*scene_dir);
+  // A clip set (DIR/clips.json, docs/training.md "Clips"): each view is evaluated by the clip whose
+  // time range holds it (scene/train/clips.h PickClip); the settings come from the first clip.
+  absl::StatusOr<std::optional<train::ClipSet>> clip_set = train::ReadClipSet(*scene_dir);
+  if (!clip_set.ok()) return Fail(2, clip_set.status());
+  std::vector<std::string> scene_dirs = {*scene_dir};
+  if (*clip_set) {
+    scene_dirs.clear();
+    for (const train::ClipEntry& c : (*clip_set)->clips) {
+      absl::StatusOr<std::string> d = train::ClipPath(*scene_dir, c);
+      if (!d.ok()) return Fail(2, d.status());
+      scene_dirs.push_back(*d);
+    }
+  }
+  absl::StatusOr<train::SceneMeta> meta = train::ReadSceneMeta(scene_dirs[0]);
   if (!meta.ok()) return Fail(2, meta.status());
   train::DatasetOptions dopt;
   dopt.holdout_every = meta->holdout_every;
@@ -95,41 +150,85 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
   if (split == "test" && dopt.holdout_every == 0) {
     return Fail(2, absl::InvalidArgumentError("--split test needs --holdout-every > 0"));
   }
-  const std::string ply = (std::filesystem::path(*scene_dir) / "scene.ply").string();
-  absl::StatusOr<GaussianStore> store = ReadGaussianPly(ply);
-  if (!store.ok()) return Fail(2, store.status());
+  absl::StatusOr<train::EvalOutputOptions> output_options = ParseOutputOptions(*args);
+  if (!output_options.ok()) return Fail(2, output_options.status());
   absl::StatusOr<DriveLog> log = OpenLog(*log_path);
   if (!log.ok()) return Fail(absl::IsInternal(log.status()) ? 1 : 2, log.status());
-  absl::StatusOr<std::vector<train::View>> views = train::LoadViews(*log, dopt);
-  if (!views.ok()) return Fail(2, views.status());
-  if (views->empty()) return Fail(2, absl::InvalidArgumentError(absl::StrCat("the log has no ", split, " views")));
+  absl::StatusOr<std::vector<train::View>> all_views = train::LoadViews(*log, dopt);
+  if (!all_views.ok()) return Fail(2, all_views.status());
+  if (all_views->empty()) return Fail(2, absl::InvalidArgumentError(absl::StrCat("the log has no ", split, " views")));
   absl::StatusOr<std::unique_ptr<Engine>> engine = CreateEngine(backend);
   if (!engine.ok()) return Fail(1, engine.status());
-  if (absl::Status s = train::AttachDynamicPixels(*log, &*views); !s.ok()) return Fail(1, s);
-  // A field scene (DIR/field.bin) is deformed at each view's time.
-  absl::StatusOr<train::EvalResult> r = train::EvaluateSceneDir(**engine, *scene_dir, *store, *views, meta->background);
-  if (!r.ok()) return Fail(1, r.status());
-
-  // LiDAR: every evaluated frame with a scan, once per frame (a frame may have several views).
-  std::map<int, train::LidarFrameMetrics> lidar_by_frame;
-  train::LidarEvalResult lidar_result;
-  std::string reflectance_source = "constant 0.5 (scene.ply has no reflectance property)";
-  if (lidar) {
-    absl::StatusOr<std::optional<std::vector<float>>> refl = train::ReadPlyReflectance(ply, store->size());
-    if (!refl.ok()) return Fail(2, refl.status());
-    if (refl->has_value()) reflectance_source = "scene.ply reflectance";
-    std::set<int> frames;
-    for (const train::View& v : *views) frames.insert(v.frame);
-    // A field scene's sweeps, like its views, are rendered deformed at the frame's time.
-    absl::StatusOr<std::shared_ptr<const field::DeformationField>> f = train::LoadSceneField(*scene_dir);
-    if (!f.ok()) return Fail(2, f.status());
-    absl::StatusOr<train::LidarEvalResult> lr =
-        train::EvaluateLidar(*log, std::vector<int>(frames.begin(), frames.end()), *store,
-                             refl->has_value() ? &**refl : nullptr, lopt, train::MakeStoreAtTime(*f, *store));
-    if (!lr.ok()) return Fail(1, lr.status());
-    lidar_result = std::move(*lr);
-    for (const train::LidarFrameMetrics& m : lidar_result.frames) lidar_by_frame[m.frame] = m;
+  if (absl::Status s = train::AttachDynamicPixels(*log, &*all_views); !s.ok()) return Fail(1, s);
+  // Decomposition images / video: fed by the evaluation's renders (UseScene once per scene).
+  std::unique_ptr<train::EvalOutputs> outputs;
+  if (!output_options->decomposition_dir.empty() || !output_options->video_path.empty()) {
+    absl::StatusOr<std::unique_ptr<train::EvalOutputs>> o = train::EvalOutputs::Create(**engine, *output_options);
+    if (!o.ok()) return Fail(2, o.status());
+    outputs = std::move(*o);
   }
+  // The views of each scene directory: all of them, or for a clip set those of each clip's times.
+  std::vector<std::vector<size_t>> view_groups(1);
+  if (*clip_set) {
+    view_groups = train::GroupViewsByClip(**clip_set, *all_views);
+  } else {
+    for (size_t i = 0; i < all_views->size(); ++i) view_groups[0].push_back(i);
+  }
+  std::vector<train::EvalResult> parts;
+  std::vector<train::LidarEvalResult> lidar_parts;
+  int scenes_with_reflectance = 0, scenes_evaluated = 0;
+  for (size_t k = 0; k < view_groups.size(); ++k) {
+    if (view_groups[k].empty()) continue;
+    const std::string& dir = scene_dirs[k];
+    absl::StatusOr<train::SceneMeta> scene_meta = train::ReadSceneMeta(dir);  // its own learned sky
+    if (!scene_meta.ok()) return Fail(2, scene_meta.status());
+    const std::string ply = (std::filesystem::path(dir) / "scene.ply").string();
+    absl::StatusOr<GaussianStore> store = ReadGaussianPly(ply);
+    if (!store.ok()) return Fail(2, store.status());
+    std::vector<train::View> views;
+    for (size_t i : view_groups[k]) views.push_back(std::move((*all_views)[i]));
+    // A field scene (DIR/field.bin) is deformed at each view's time.
+    absl::StatusOr<std::shared_ptr<const field::DeformationField>> f = train::LoadSceneField(dir);
+    if (!f.ok()) return Fail(2, f.status());
+    if (outputs) {
+      if (absl::Status s = outputs->UseScene(*store, *f, scene_meta->background); !s.ok()) return Fail(1, s);
+    }
+    absl::StatusOr<train::EvalResult> r = train::EvaluateSceneDir(**engine, dir, *store, views, scene_meta->background,
+                                                                  outputs ? outputs->sink() : train::EvalFrameSink());
+    if (!r.ok()) return Fail(1, r.status());
+    parts.push_back(std::move(*r));
+    ++scenes_evaluated;
+    // LiDAR: every evaluated frame with a scan, once per frame (a frame may have several views).
+    if (lidar) {
+      absl::StatusOr<std::optional<std::vector<float>>> refl = train::ReadPlyReflectance(ply, store->size());
+      if (!refl.ok()) return Fail(2, refl.status());
+      scenes_with_reflectance += refl->has_value();
+      std::set<int> frames;
+      for (const train::View& v : views) frames.insert(v.frame);
+      // A field scene's sweeps, like its views, are rendered deformed at the frame's time.
+      absl::StatusOr<train::LidarEvalResult> lr =
+          train::EvaluateLidar(*log, std::vector<int>(frames.begin(), frames.end()), *store,
+                               refl->has_value() ? &**refl : nullptr, lopt, train::MakeStoreAtTime(*f, *store));
+      if (!lr.ok()) return Fail(1, lr.status());
+      lidar_parts.push_back(std::move(*lr));
+    }
+  }
+  const train::EvalResult merged = parts.size() == 1 ? std::move(parts[0]) : train::MergeEvalResults(parts);
+  const train::EvalResult* r = &merged;
+  train::EvalOutputSummary output_summary;
+  if (outputs) {
+    absl::StatusOr<train::EvalOutputSummary> os = outputs->Finish();
+    if (!os.ok()) return Fail(1, os.status());
+    output_summary = std::move(*os);
+  }
+  std::map<int, train::LidarFrameMetrics> lidar_by_frame;
+  const train::LidarEvalResult lidar_result =
+      lidar_parts.size() == 1 ? std::move(lidar_parts[0]) : train::MergeLidarEvalResults(lidar_parts);
+  for (const train::LidarFrameMetrics& m : lidar_result.frames) lidar_by_frame[m.frame] = m;
+  const std::string reflectance_source =
+      scenes_with_reflectance == scenes_evaluated ? "scene.ply reflectance"
+      : scenes_with_reflectance == 0 ? "constant 0.5 (scene.ply has no reflectance property)"
+                                     : "scene.ply reflectance where the clip's scene.ply has it, else constant 0.5";
   const bool have_lidar = !lidar_by_frame.empty();
 
   nlohmann::json j;
@@ -139,6 +238,8 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
     j["lidar_reflectance"] = reflectance_source;
   }
   j["split"] = split;
+  const nlohmann::json outputs_json = OutputsJson(*output_options, output_summary);
+  for (const auto& [key, value] : outputs_json.items()) j[key] = value;
   j["frames"] = nlohmann::json::array();
   std::fprintf(stderr, "%-34s %6s %8s %7s %12s %10s", "view", "frame", "PSNR", "SSIM", "depth med m", "within 5%");
   if (have_lidar) {
@@ -153,6 +254,7 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
     nlohmann::json f = Metrics(m);
     f["name"] = m.name;
     f["frame"] = m.frame;
+    if (*clip_set) f["clip"] = train::PickClip(**clip_set, log->frames[m.frame].time_us);
     auto l = lidar_by_frame.find(m.frame);
     if (l != lidar_by_frame.end()) AddLidar(l->second, &f);
     j["frames"].push_back(f);

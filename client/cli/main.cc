@@ -38,6 +38,7 @@ void PrintUsage(FILE* out) {
                "              [--checkpoint-every N] [--no-sky] [--exposure] [--no-depth] [--deterministic]\n"
                "              [--lidar-weight W] [--lidar-every K] [--no-lidar-loss]\n"
                "  eval      metrics of a trained scene: streetsim eval --scene DIR --log PATH [--split test|train] [--no-lidar]\n"
+               "              [--decomposition DIR] [--video OUT.avi|OUT.mp4] [--video-fps F]\n"
                "              [--holdout-every K]   (JSON on stdout, a table on stderr)\n");
 }
 

@@ -14,6 +14,7 @@
 #include "render/engine.h"
 #include "render/common/thread_pool.h"
 #include "scene/gaussians/ply_io.h"
+#include "scene/train/clips.h"
 #include "scene/train/dynamic_stage.h"
 
 namespace streetsim {
@@ -68,7 +69,7 @@ int RunRenderCommand(const std::vector<std::string>& argv) {
   if (args->Has("scene") && args->Has("ply")) {
     return Fail(2, absl::InvalidArgumentError("give one of --ply SCENE.ply and --scene DIR, not both"));
   }
-  const std::string scene_dir = args->Get("scene").value_or("");
+  std::string scene_dir = args->Get("scene").value_or("");
   absl::StatusOr<std::string> ply =
       args->Has("scene") ? (std::filesystem::path(scene_dir) / "scene.ply").string() : args->Required("ply");
   if (!ply.ok()) return Fail(2, ply.status());
@@ -78,6 +79,13 @@ int RunRenderCommand(const std::vector<std::string>& argv) {
     if (!args->Has("scene")) return Fail(2, absl::InvalidArgumentError("--time-us needs --scene DIR"));
     if (!absl::SimpleAtoi(*v, &t)) return Fail(2, absl::InvalidArgumentError("--time-us must be an integer (microseconds)"));
     time_us = t;
+  }
+  // A clip set (DIR/clips.json, docs/training.md "Clips"): the clip whose time range holds T.
+  if (!scene_dir.empty()) {
+    absl::StatusOr<std::string> clip_dir = train::SceneDirForTime(scene_dir, time_us);
+    if (!clip_dir.ok()) return Fail(2, clip_dir.status());
+    scene_dir = *clip_dir;
+    ply = (std::filesystem::path(scene_dir) / "scene.ply").string();
   }
   absl::StatusOr<std::string> camera_path = args->Required("camera");
   if (!camera_path.ok()) return Fail(2, camera_path.status());

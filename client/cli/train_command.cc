@@ -1,6 +1,7 @@
 // streetsim train: static 3DGS training of a driving log (docs/training.md).
 #include <unistd.h>
 
+#include <algorithm>
 #include <cstdio>
 #include <filesystem>
 
@@ -11,6 +12,7 @@
 #include "render/engine.h"
 #include "scene/log/open_log.h"
 #include "scene/log/scene_manifest.h"
+#include "scene/train/clip_training.h"
 #include "scene/train/trainer.h"
 
 namespace streetsim {
@@ -32,7 +34,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
       argv, {{"log"}, {"out"}, {"iterations"}, {"resolution-scale"}, {"holdout-every"}, {"seed"}, {"resume", false},
              {"checkpoint-every"}, {"no-sky", false}, {"exposure", false}, {"no-depth", false},
              {"deterministic", false}, {"backend"}, {"voxel"}, {"field"}, {"static-iterations"}, {"field-size"},
-             {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}});
+             {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"field-modules"}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
@@ -70,9 +72,23 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     opt.backend = *b == Backend::kAuto ? Backend::kCpu : *b;
   }
   if (auto v = args->Get("field")) {
-    absl::StatusOr<train::FieldMode> m = train::ParseFieldMode(*v);
-    if (!m.ok()) return Fail(2, m.status());
+    // --field extended: S3Gaussian's stages with the seed paper's modules on its field
+    // (docs/field.md "Extended field"); --field-modules picks them (default: all).
+    absl::StatusOr<train::FieldMode> m = *v == "extended" ? train::FieldMode::kS3Gaussian : train::ParseFieldMode(*v);
+    if (!m.ok()) {
+      return Fail(2, absl::InvalidArgumentError(absl::StrCat("--field must be static, s3gaussian or extended, not '",
+                                                             *v, "'")));
+    }
     opt.field.mode = *m;
+    if (*v == "extended") {
+      absl::StatusOr<field::ExtendedFieldConfig> ec =
+          field::ExtendedFieldConfig::WithModules(args->Get("field-modules").value_or("all"));
+      if (!ec.ok()) return Fail(2, ec.status());
+      opt.field.extended = *ec;
+    }
+  }
+  if (args->Get("field-modules") && !opt.field.extended) {
+    return Fail(2, absl::InvalidArgumentError("--field-modules needs --field extended"));
   }
   if (auto v = args->Get("static-iterations")) {
     if (opt.field.mode != train::FieldMode::kS3Gaussian) {
@@ -121,8 +137,22 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     opt.lidar_weight = 0;
   }
 
+  // Clips (docs/training.md "Clips"): 0 = one clip over the whole log; S3Gaussian uses 50.
+  train::ClipTrainOptions clip_opt;
+  if (auto v = args->Get("clip-frames"); v && !absl::SimpleAtoi(*v, &clip_opt.clip_frames)) {
+    return Fail(2, absl::InvalidArgumentError(absl::StrCat("--clip-frames must be an integer, not '", *v, "'")));
+  }
+  if (absl::Status s = train::PlanClips(1, clip_opt.clip_frames).status(); !s.ok()) return Fail(2, s);
+
   absl::StatusOr<DriveLog> log = OpenLog(*log_path);
   if (!log.ok()) return Fail(absl::IsInternal(log.status()) ? 1 : 2, log.status());
+  if (opt.field.extended && log->frames.size() >= 2) {
+    // The token window's Δ: one frame (the median interval of the log's frames).
+    std::vector<int64_t> dt;
+    for (size_t i = 1; i < log->frames.size(); ++i) dt.push_back(log->frames[i].time_us - log->frames[i - 1].time_us);
+    std::nth_element(dt.begin(), dt.begin() + dt.size() / 2, dt.end());
+    opt.field.frame_interval_us = std::max<int64_t>(0, dt[dt.size() / 2]);
+  }
   const bool tty = isatty(fileno(stderr));
   auto progress = [&](const train::Progress& p) {
     const int width = 30;
@@ -135,8 +165,11 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
                  tty ? "" : "\n");
     std::fflush(stderr);
   };
-  absl::StatusOr<train::TrainResult> r = train::Train(*log, *out, opt, progress);
+  absl::StatusOr<train::ClipTrainResult> clips = train::TrainClips(*log, *out, opt, clip_opt, progress);
   if (tty) std::fprintf(stderr, "\n");
+  absl::StatusOr<train::TrainResult> r =
+      !clips.ok() ? absl::StatusOr<train::TrainResult>(clips.status())
+                  : clips->runs.empty() ? train::TrainResult{} : clips->runs.back().result;
   if (!r.ok()) {
     const absl::StatusCode c = r.status().code();
     return Fail(c == absl::StatusCode::kInvalidArgument || c == absl::StatusCode::kNotFound ||
@@ -150,6 +183,19 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
                                           (out_dir / "scene.json").string());
       !s.ok()) {
     return Fail(1, s);
+  }
+  if (clips->set) {
+    for (const train::ClipRun& c : clips->runs) {
+      std::fprintf(stderr, "streetsim train: clip %d, frames [%d, %d): %lld iterations, %zu Gaussians, %.1f s -> %s\n",
+                   c.clip, c.frames.first_frame, c.frames.end_frame, static_cast<long long>(c.result.iterations),
+                   c.result.gaussians, c.result.seconds, c.dir.c_str());
+      if (!c.result.heldout.frames.empty()) {
+        std::fprintf(stderr, "streetsim train: clip %d held-out (%zu views): PSNR %.2f dB, SSIM %.4f\n", c.clip,
+                     c.result.heldout.frames.size(), c.result.heldout.mean.psnr, c.result.heldout.mean.ssim);
+      }
+    }
+    std::fprintf(stderr, "streetsim train: %zu clips -> %s/clips.json\n", clips->set->clips.size(), out->c_str());
+    return 0;
   }
   std::fprintf(stderr, "streetsim train: %lld iterations, %zu Gaussians, %.1f s -> %s/scene.ply\n",
                static_cast<long long>(r->iterations), r->gaussians, r->seconds, out->c_str());

@@ -47,12 +47,15 @@ field::FieldAabb AabbOfMeans(const std::vector<float>& means) {
 
 DynamicStage::DynamicStage(field::DeformationField f, field::FieldAdamState adam, const FieldOptions& options)
     : field_(std::move(f)), adam_(std::move(adam)), hyper_(options.hyper),
-      ws_(std::make_unique<field::FieldWorkspace>()) {}
+      ws_(std::make_unique<field::FieldWorkspace>()), ext_hyper_(options.ext_hyper), ext_noise_seed_(options.seed) {}
 
 absl::StatusOr<std::unique_ptr<DynamicStage>> DynamicStage::Begin(TrainState* st, const FieldOptions& options,
                                                                    const field::FieldTimeRange& time_range) {
   absl::StatusOr<field::DeformationField> f =
-      field::DeformationField::Create(options.config, AabbOfMeans(st->params.means), time_range, options.seed);
+      options.prior ? field::DeformationField::FromParams(options.prior->config(), AabbOfMeans(st->params.means),
+                                                          time_range, options.prior->params())
+                    : field::DeformationField::Create(options.config, AabbOfMeans(st->params.means), time_range,
+                                                      options.seed);
   if (!f.ok()) return f.status();
   field::FieldAdamState adam;
   adam.Init(f->layout().total);
@@ -66,7 +69,23 @@ absl::StatusOr<std::unique_ptr<DynamicStage>> DynamicStage::Begin(TrainState* st
   std::fill(st->grad_accum.begin(), st->grad_accum.end(), 0.0f);
   std::fill(st->denom.begin(), st->denom.end(), 0.0f);
   std::fill(st->max_radii.begin(), st->max_radii.end(), 0.0f);
-  return std::unique_ptr<DynamicStage>(new DynamicStage(std::move(*f), std::move(adam), options));
+  auto stage = std::unique_ptr<DynamicStage>(new DynamicStage(std::move(*f), std::move(adam), options));
+  if (options.extended) {
+    // --field extended: the base moves into the extended field; Δ of the token window is one
+    // frame on this run's time axis.
+    field::ExtendedFieldConfig ec = *options.extended;
+    const double span_us = static_cast<double>(time_range.end_us - time_range.start_us);
+    if (options.frame_interval_us > 0) {
+      ec.window_dt = span_us > 0 ? std::min(2.0, (stage->field_.config().full_time_range ? 2.0 : 1.0) *
+                                                     options.frame_interval_us / span_us)
+                                 : 0.0;
+    }
+    absl::StatusOr<field::ExtendedField> ext =
+        field::ExtendedField::Create(std::move(stage->field_), ec, options.seed + 0x9e37);
+    if (!ext.ok()) return ext.status();
+    stage->ext_ = std::make_unique<field::ExtendedField>(std::move(*ext));
+  }
+  return stage;
 }
 
 absl::StatusOr<std::unique_ptr<DynamicStage>> DynamicStage::Resume(const std::string& path,
@@ -80,15 +99,66 @@ absl::StatusOr<std::unique_ptr<DynamicStage>> DynamicStage::Resume(const std::st
                                                       " fine iterations, the Gaussian checkpoint ", fine_iterations,
                                                       " (was --static-iterations changed?)"));
   }
-  return std::unique_ptr<DynamicStage>(new DynamicStage(std::move(ck->field), std::move(ck->adam), options));
+  const std::string ext_path = ExtendedCheckpointPath(path);
+  std::error_code ec;
+  if (!options.extended) {
+    if (std::filesystem::exists(ext_path, ec)) {
+      return absl::FailedPreconditionError(
+          absl::StrCat(path, ": the checkpoint is from a --field extended run; resume it with that"));
+    }
+    return std::unique_ptr<DynamicStage>(new DynamicStage(std::move(ck->field), std::move(ck->adam), options));
+  }
+  auto stage = std::unique_ptr<DynamicStage>(new DynamicStage(std::move(ck->field), std::move(ck->adam), options));
+  field::ExtAdamState ext_adam;
+  absl::StatusOr<field::ExtendedField> ext =
+      field::LoadExtendedCheckpoint(ext_path, std::move(stage->field_), &ext_adam);
+  if (!ext.ok()) return ext.status();
+  if (ext->config().ModulesString() != options.extended->ModulesString()) {
+    return absl::FailedPreconditionError(absl::StrCat(ext_path, ": the checkpoint has --field-modules ",
+                                                      ext->config().ModulesString(), ", not ",
+                                                      options.extended->ModulesString()));
+  }
+  if (ext_adam.step != fine_iterations) {
+    return absl::FailedPreconditionError(absl::StrCat(ext_path, ": ", ext_adam.step, " fine iterations, the "
+                                                      "Gaussian checkpoint ", fine_iterations));
+  }
+  stage->ext_ = std::make_unique<field::ExtendedField>(std::move(*ext));
+  stage->ext_adam_ = std::move(ext_adam);
+  stage->ext_deforms_ = fine_iterations;
+  return stage;
 }
 
 absl::Status DynamicStage::SaveCheckpoint(const std::string& path) const {
-  return field::SaveFieldCheckpoint(field_, adam_, path);
+  // The scene directory's field_ext.bin follows the checkpoints (the trainer writes field.bin from
+  // field() after the last one); a plain field's run removes an older run's extension.
+  const std::string scene_ext =
+      (std::filesystem::path(path).parent_path() / field::kExtendedFieldFileName).string();
+  if (!ext_) {
+    std::error_code ec;
+    std::filesystem::remove(scene_ext, ec);
+    return field::SaveFieldCheckpoint(field_, adam_, path);
+  }
+  if (absl::Status s = field::SaveFieldCheckpoint(ext_->base(), adam_, path); !s.ok()) return s;
+  if (absl::Status s = field::SaveExtendedCheckpoint(*ext_, ext_adam_, ExtendedCheckpointPath(path)); !s.ok()) {
+    return s;
+  }
+  return field::SaveExtendedField(*ext_, scene_ext);
+}
+
+std::shared_ptr<const field::DeformationField> DynamicStage::SceneField() const {
+  if (ext_) return field::ShareWithExtension(*ext_);
+  return std::make_shared<const field::DeformationField>(field_);
+}
+
+std::string ExtendedCheckpointPath(const std::string& field_checkpoint_path) {
+  std::string p = field_checkpoint_path;
+  if (p.size() >= 4 && p.compare(p.size() - 4, 4, ".bin") == 0) p.resize(p.size() - 4);
+  return p + "_ext.bin";
 }
 
 absl::StatusOr<GaussianParamsView> DynamicStage::Deform(const TrainState& st, int active_degree, int64_t time_us,
                                                         ThreadPool& pool) {
+  if (ext_) return DeformExtended(st, active_degree, time_us, pool);
   field::CanonicalView c{st.size(), st.params.means.data(), st.params.sh.data()};
   if (absl::Status s = field::DeformScene(field_, field_.TimeCoordinate(time_us), c, pool, *ws_, &deformed_); !s.ok()) {
     return s;
@@ -100,6 +170,7 @@ absl::StatusOr<GaussianParamsView> DynamicStage::Deform(const TrainState& st, in
 
 absl::StatusOr<double> DynamicStage::Backward(const TrainState& st, int active_degree, int64_t fine_iteration,
                                               GaussianGrads* grads, ThreadPool& pool) {
+  if (ext_) return BackwardExtended(st, active_degree, fine_iteration, grads, pool);
   field::CanonicalView c{st.size(), st.params.means.data(), st.params.sh.data()};
   if (deformed_.dx.size() != c.n * 3) return absl::InternalError("DynamicStage::Backward without a matching Deform");
   if (d_field_.size() == field_.layout().total) {
@@ -131,13 +202,20 @@ void RemoveFieldCheckpoints(const std::string& out_dir, int64_t keep_iteration) 
   std::vector<std::filesystem::path> doomed;
   for (const auto& e : std::filesystem::directory_iterator(out_dir, ec)) {
     const std::string name = e.path().filename().string();
-    if (name.rfind("checkpoint_field_", 0) == 0 && e.path().string() != keep) doomed.push_back(e.path());
+    if (name.rfind("checkpoint_field_", 0) == 0 && e.path().string() != keep &&
+        (keep.empty() || e.path().string() != ExtendedCheckpointPath(keep))) {
+      doomed.push_back(e.path());
+    }
   }
   for (const auto& p : doomed) std::filesystem::remove(p, ec);
 }
 
 absl::StatusOr<GaussianStore> DeformedStore(const field::DeformationField& f, const GaussianStore& canonical,
                                             int64_t time_us, ThreadPool& pool) {
+  // A field loaded with its extension (LoadSceneField, DynamicStage::SceneField).
+  if (std::shared_ptr<const field::ExtendedField> ext = field::ExtensionOf(f)) {
+    return field::ExtDeformedStore(*ext, canonical, time_us, pool);
+  }
   if (canonical.sh_degree != 3) {
     return absl::InvalidArgumentError(
         absl::StrCat("a scene with a field needs SH degree 3 Gaussians, this one has degree ", canonical.sh_degree));
@@ -189,7 +267,64 @@ absl::StatusOr<std::shared_ptr<const field::DeformationField>> LoadSceneField(co
   if (!std::filesystem::exists(path)) return std::shared_ptr<const field::DeformationField>();
   absl::StatusOr<field::DeformationField> f = field::LoadField(path);
   if (!f.ok()) return f.status();
+  // --field extended: DIR/field_ext.bin (its base checksum ties it to this field.bin).
+  const std::string ext_path = (std::filesystem::path(dir) / field::kExtendedFieldFileName).string();
+  if (std::filesystem::exists(ext_path)) {
+    absl::StatusOr<field::ExtendedField> ext = field::LoadExtendedField(ext_path, std::move(*f));
+    if (!ext.ok()) return ext.status();
+    return field::ShareWithExtension(std::move(*ext));
+  }
   return std::make_shared<const field::DeformationField>(std::move(*f));
+}
+
+// --field extended: the fine step through field::ExtendedField (extended_deform.h).
+absl::StatusOr<GaussianParamsView> DynamicStage::DeformExtended(const TrainState& st, int active_degree,
+                                                                int64_t time_us, ThreadPool& pool) {
+  if (!ext_ws_) ext_ws_ = std::make_unique<field::ExtWorkspace>();
+  field::ExtPass pass;
+  pass.time_coord = ext_->base().TimeCoordinate(time_us);
+  pass.training = true;
+  // A new ε per fine iteration, reproducible from the stage's seed and the iteration (resume).
+  pass.noise_seed = ext_noise_seed_ * 0x9e3779b97f4a7c15ull + static_cast<uint64_t>(++ext_deforms_);
+  const field::ExtCanonicalView c{st.size(), st.params.means.data(), st.params.sh.data(),
+                                  st.params.log_scales.data(), st.params.rotations.data(),
+                                  st.params.opacity_logits.data()};
+  if (absl::Status s = field::DeformSceneExt(*ext_, pass, c, pool, *ext_ws_, &ext_deformed_); !s.ok()) return s;
+  return field::ExtDeformedParamsView(ParamsView(st, active_degree), ext_deformed_);
+}
+
+absl::StatusOr<double> DynamicStage::BackwardExtended(const TrainState& st, int active_degree,
+                                                      int64_t fine_iteration, GaussianGrads* grads,
+                                                      ThreadPool& pool) {
+  const field::ExtCanonicalView c{st.size(), st.params.means.data(), st.params.sh.data(),
+                                  st.params.log_scales.data(), st.params.rotations.data(),
+                                  st.params.opacity_logits.data()};
+  if (ext_deformed_.dx.size() != c.n * 3) {
+    return absl::InternalError("DynamicStage::Backward without a matching Deform");
+  }
+  field::DeformationField& base = ext_->mutable_base();
+  if (d_field_.size() == base.layout().total) {
+    std::fill(d_field_.begin(), d_field_.end(), 0.0f);
+  } else {
+    d_field_.clear();  // DeformBackwardExt allocates it on huge pages
+  }
+  std::fill(d_ext_.begin(), d_ext_.end(), 0.0f);
+  absl::StatusOr<field::ExtDeformLosses> dl =
+      field::DeformBackwardExt(*ext_, c, ext_deformed_, active_degree, hyper_,
+                               field::ExtKlBeta(ext_->config(), fine_iteration), pool, *ext_ws_, grads, &d_field_,
+                               &d_ext_);
+  if (!dl.ok()) return dl.status();
+  field::RegularizerWeights w;
+  w.plane_tv = hyper_.plane_tv_weight;
+  w.time_smoothness = hyper_.time_smoothness_weight;
+  w.l1_time_planes = hyper_.l1_time_planes;
+  const field::RegularizerLosses reg =
+      field::PlaneRegularizers<float>(base.layout(), base.params().data(), w, d_field_.data(), pool);
+  field::FieldAdamStep(base.layout(), base.mutable_params().data(), d_field_.data(), &adam_,
+                       field::FieldLearningRates(hyper_, fine_iteration, st.extent), pool);
+  field::ExtAdamStep(ext_->mutable_params().data(), d_ext_.data(), d_ext_.size(), &ext_adam_,
+                     field::ExtNetworkLr(ext_hyper_, fine_iteration));
+  return dl->weighted + reg.weighted;
 }
 
 }  // namespace streetsim::train

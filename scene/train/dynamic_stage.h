@@ -19,6 +19,7 @@
 #include "render/engine.h"
 #include "scene/field/deformation_field.h"
 #include "scene/field/deformed_scene.h"
+#include "scene/field/extended/extended_deform.h"
 #include "scene/field/field_adam.h"
 #include "scene/gaussians/gaussian_store.h"
 #include "scene/train/dataset.h"
@@ -40,6 +41,18 @@ struct FieldOptions {
   // frame). Both 0: TrainOnViews takes the range of its training and held-out views' times.
   field::FieldTimeRange time_range;
   uint64_t seed = 0;  // field initialisation (added to TrainOptions::seed)
+  // Clips (clip_training.h, docs/training.md "Clips"): the previous clip's field, whose parameters
+  // start the fine stage instead of the spec init (spec 8's prior checkpoint). The AABB (of this
+  // run's Gaussians) and the time range stay this run's. Must have `config`'s layout.
+  std::shared_ptr<const field::DeformationField> prior;
+  // --field extended (docs/field.md "Extended field"): the seed paper's modules on top of the
+  // field above (set: the fine stage trains an ExtendedField; its base is what `config`, `prior`
+  // and field.bin describe). The extension's parameters start from their init in every run.
+  std::optional<field::ExtendedFieldConfig> extended;
+  field::ExtHyper ext_hyper;  // the extension's Adam group ("network", lr 1.6e-3)
+  // The log's frame interval: the token window's Δ is one frame on the time axis (0: keep
+  // extended->window_dt as given).
+  int64_t frame_interval_us = 0;
 };
 
 // The field's AABB from the canonical Gaussians at the start of the fine stage: their bounding
@@ -69,9 +82,15 @@ class DynamicStage {
   absl::StatusOr<double> Backward(const TrainState& st, int active_degree, int64_t fine_iteration,
                                   GaussianGrads* grads, ThreadPool& pool);
 
-  const field::DeformationField& field() const { return field_; }
+  // The base field (planes, S3Gaussian's MLP; field.bin) also with --field extended.
+  const field::DeformationField& field() const { return ext_ ? ext_->base() : field_; }
+  // The extended field (null without --field extended).
+  const field::ExtendedField* extended() const { return ext_.get(); }
+  // The trained field as render / eval take it (an extended field travels with its base,
+  // field::ShareWithExtension). A copy.
+  std::shared_ptr<const field::DeformationField> SceneField() const;
   // The means of the last Deform (what the camera rendered; the LiDAR step renders them too).
-  const std::vector<float>& deformed_means() const { return deformed_.means; }
+  const std::vector<float>& deformed_means() const { return ext_ ? ext_deformed_.means : deformed_.means; }
 
  private:
   DynamicStage(field::DeformationField f, field::FieldAdamState adam, const FieldOptions& options);
@@ -81,7 +100,23 @@ class DynamicStage {
   std::unique_ptr<field::FieldWorkspace> ws_;
   field::DeformedScene deformed_;
   std::vector<float> d_field_;
+  // --field extended (field_ is moved into ext_).
+  absl::StatusOr<GaussianParamsView> DeformExtended(const TrainState& st, int active_degree, int64_t time_us,
+                                                    ThreadPool& pool);
+  absl::StatusOr<double> BackwardExtended(const TrainState& st, int active_degree, int64_t fine_iteration,
+                                          GaussianGrads* grads, ThreadPool& pool);
+  std::unique_ptr<field::ExtendedField> ext_;
+  field::ExtAdamState ext_adam_;
+  field::ExtHyper ext_hyper_;
+  std::unique_ptr<field::ExtWorkspace> ext_ws_;
+  field::ExtDeformedScene ext_deformed_;
+  std::vector<float> d_ext_;
+  uint64_t ext_noise_seed_ = 0;
+  int64_t ext_deforms_ = 0;  // ε of the VAE: a new draw per fine iteration
 };
+
+// The extension's fine-stage checkpoint beside FieldCheckpointPath's file (checkpoint_field_N_ext.bin).
+std::string ExtendedCheckpointPath(const std::string& field_checkpoint_path);
 
 // Fine-stage checkpoint of the field beside the Gaussian checkpoint: one file per iteration (so
 // that a crash between the two writes never pairs a field with the wrong Gaussians).

@@ -18,16 +18,18 @@ absl::StatusOr<EvalResult> Evaluate(Engine& engine, const GaussianStore& scene, 
 }
 
 absl::StatusOr<EvalResult> EvaluateSceneDir(Engine& engine, const std::string& dir, const GaussianStore& canonical,
-                                            const std::vector<View>& views, const Eigen::Vector3f& background) {
+                                            const std::vector<View>& views, const Eigen::Vector3f& background,
+                                            const EvalFrameSink& sink) {
   absl::StatusOr<std::shared_ptr<const field::DeformationField>> f = LoadSceneField(dir);
   if (!f.ok()) return f.status();
   absl::StatusOr<SceneForView> sv = MakeSceneForView(engine, canonical, *f);
   if (!sv.ok()) return sv.status();
-  return EvaluateViews(engine, *sv, views, background);
+  return EvaluateViews(engine, *sv, views, background, sink);
 }
 
 absl::StatusOr<EvalResult> EvaluateViews(Engine& engine, const SceneForView& scene_for_view,
-                                         const std::vector<View>& views, const Eigen::Vector3f& background) {
+                                         const std::vector<View>& views, const Eigen::Vector3f& background,
+                                         const EvalFrameSink& sink) {
   ThreadPool pool(0);
   EvalResult result;
   RenderOptions ro;
@@ -44,6 +46,9 @@ absl::StatusOr<EvalResult> EvaluateViews(Engine& engine, const SceneForView& sce
     const std::vector<float> gt = v.RgbFloat();
     std::vector<float> clamped(out.rgb.size());
     for (size_t i = 0; i < clamped.size(); ++i) clamped[i] = std::min(std::max(out.rgb[i], 0.0f), 1.0f);
+    if (sink) {
+      if (absl::Status s = sink(v, clamped); !s.ok()) return s;
+    }
     FrameMetrics m;
     m.name = v.name;
     m.frame = v.frame;

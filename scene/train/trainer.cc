@@ -524,7 +524,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       const Eigen::Vector3f bg = opt.sky ? Eigen::Vector3f(st.sky[0], st.sky[1], st.sky[2]) : Eigen::Vector3f::Zero();
       // Each held-out view at its own time when there is a field.
       std::shared_ptr<const field::DeformationField> f;
-      if (stage) f = std::make_shared<const field::DeformationField>(stage->field());
+      if (stage) f = stage->SceneField();
       absl::StatusOr<SceneForView> scene_for_view = MakeSceneForView(**engine, st.params, f);
       if (!scene_for_view.ok()) return scene_for_view.status();
       absl::StatusOr<EvalResult> ev = EvaluateViews(**engine, *scene_for_view, *test, bg);

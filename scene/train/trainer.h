@@ -88,16 +88,21 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& views, const G
                                          const TrainOptions& options,
                                          const std::function<void(const Progress&)>& progress = nullptr);
 
+// Called once per evaluated view after its render (eval outputs, eval_outputs.h: decomposition
+// images, video); `rgb` is the measured render, clamped to [0, 1] [H*W*3]. An error stops the eval.
+using EvalFrameSink = std::function<absl::Status(const View& view, const std::vector<float>& rgb)>;
+
 // Renders every view of `views` and measures it. background: the learned sky colour. The means
 // of psnr_dynamic / psnr_static are over the views that have such pixels.
 absl::StatusOr<EvalResult> Evaluate(Engine& engine, const GaussianStore& scene, const std::vector<View>& views,
                                     const Eigen::Vector3f& background);
 // The same with a scene per view (a field scene deformed at each view's time).
 absl::StatusOr<EvalResult> EvaluateViews(Engine& engine, const SceneForView& scene, const std::vector<View>& views,
-                                         const Eigen::Vector3f& background);
+                                         const Eigen::Vector3f& background, const EvalFrameSink& sink = nullptr);
 // A trained scene directory's Gaussians (`canonical`, its scene.ply) with DIR/field.bin if any.
 absl::StatusOr<EvalResult> EvaluateSceneDir(Engine& engine, const std::string& dir, const GaussianStore& canonical,
-                                            const std::vector<View>& views, const Eigen::Vector3f& background);
+                                            const std::vector<View>& views, const Eigen::Vector3f& background,
+                                            const EvalFrameSink& sink = nullptr);
 
 // DIR/train_meta.json written by Train: the background colour and the resolution scale.
 struct SceneMeta {

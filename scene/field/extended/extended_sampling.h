@@ -1,0 +1,216 @@
+// HexPlane features of the extended field (internal): per Gaussian the spatial-plane product S(x)
+// (xy, xz, yz; it does not depend on time) and, for each of the K token times t_j, the space-time
+// product T(x, t_j) (xt, yt, zt), giving the token features f(x, t_j) = S(x) ⊙ T(x, t_j) per level
+// (f(x, t) is S3Gaussian's f). Built on scene/field's per-sample kernels (hexplane_kernels.h:
+// taps, bilinear sample, coordinate gradient, splat), so the grid_sample rules are the field's.
+//
+// The backward keeps every slot's taps and sample per row of a block (slot = level x {3 spatial,
+// 3 x K space-time}); Scatter then splats the block's dL/d(sample) one plane per task, in row order
+// (no locks, identical plane gradients for any thread count, as FieldBackward does).
+#pragma once
+
+#include <algorithm>
+#include <vector>
+
+#include "render/common/thread_pool.h"
+#include "scene/field/deformation_field.h"
+#include "scene/field/hexplane_kernels.h"
+#include "scene/field/nn/nn_types.h"
+
+namespace streetsim::field::internal {
+
+inline constexpr int kSpatialPlaneIds[3] = {0, 1, 3};  // xy, xz, yz
+inline constexpr int kTimePlaneIds[3] = {2, 4, 5};     // xt, yt, zt
+inline constexpr int kMaxSamplerChannels = 256;
+inline constexpr int64_t kPrefetchRows = 16;  // sampling: prefetch the taps of the row this far ahead
+
+template <typename T>
+class TokenSampler {
+ public:
+  // Token j's time: clamp(t + (j - (K-1)/2) dt, -1, 1).
+  TokenSampler(const FieldLayout& L, const T* params, const FieldAabb& aabb, double time_coord, int tokens, double dt)
+      : L_(L), params_(params), K_(tokens) {
+    for (int k = 0; k < 3; ++k) {
+      const double ext = aabb.max[k] - aabb.min[k];
+      nm_a[k] = static_cast<T>(-2.0 / ext);
+      nm_b[k] = static_cast<T>(1.0 + 2.0 * aabb.min[k] / ext);
+    }
+    const int kc = (tokens - 1) / 2;
+    for (int j = 0; j < tokens; ++j) {
+      const double tj = std::clamp(time_coord + (j - kc) * dt, -1.0, 1.0);
+      token_time.push_back(static_cast<T>(tokens == 1 ? time_coord : tj));
+      time_taps_.push_back(MakeTap(token_time.back(), L.time_resolution));
+    }
+  }
+
+  int slots_per_level() const { return 3 + 3 * K_; }
+  int slots_per_row() const { return L_.num_levels * slots_per_level(); }
+
+  // Rows [b, e) of `means`: S [B, D], Ftok [B, K*D]. With taps_out / samples_out (the backward's
+  // block storage, row 0 = row b), keeps every slot's taps and sample. Plane-major over the rows
+  // with the taps of a row kPrefetchRows ahead prefetched (field_eval's order: the rows' cache
+  // misses on a plane overlap).
+  // `taps` and `tbuf` are the calling thread's scratch.
+  void Forward(const T* means, int64_t b, int64_t e, nn::Mat<T>* S, nn::Mat<T>* Ftok, std::vector<Tap<T>>& taps,
+               std::vector<T>& tbuf, PlaneTaps<T>* taps_out, T* samples_out) const {
+    const int C = L_.channels, D = L_.feature_dim(), NS = slots_per_row(), SL = slots_per_level();
+    const int64_t B = e - b;
+    S->resize(B, D);
+    Ftok->resize(B, static_cast<Eigen::Index>(K_) * D);
+    taps.resize(B * 3);
+    tbuf.resize(static_cast<size_t>(B) * C);
+    // One plane over every row: out[r] *= sample (and keep it for the backward at `slot`).
+    auto plane_pass = [&](int l, int c, int j, int slot, T* out, int64_t out_stride) {
+      const PlaneInfo& pi = L_.planes[l * kPlanesPerLevel + c];
+      const T* plane = params_ + pi.offset;
+      const int cu = kPlaneCoords[c][0], cv = kPlaneCoords[c][1];
+      auto tv = [&](int64_t r) -> const Tap<T>& { return cv == 3 ? time_taps_[j] : taps[r * 3 + cv]; };
+      for (int64_t r = 0; r < B; ++r) {
+        if (r + kPrefetchRows < B) {
+          const int64_t q = r + kPrefetchRows;
+          const PlaneTaps<T> ahead = MakePlaneTaps(taps[q * 3 + cu], tv(q), pi.width, C);
+          const char* a0 = reinterpret_cast<const char*>(plane + ahead.off00);
+          const char* a1 = reinterpret_cast<const char*>(plane + ahead.off00 + ahead.row);
+          for (size_t o = 0; o < 2 * C * sizeof(T); o += 64) {
+            __builtin_prefetch(a0 + o);
+            __builtin_prefetch(a1 + o);
+          }
+        }
+        const PlaneTaps<T> pt = MakePlaneTaps(taps[r * 3 + cu], tv(r), pi.width, C);
+        T* o = out + r * out_stride;
+        if (samples_out) {
+          const size_t sl = static_cast<size_t>(r) * NS + slot;
+          T* smp = samples_out + sl * C;
+          SamplePlane(plane, pt, C, smp);
+          for (int k = 0; k < C; ++k) o[k] *= smp[k];
+          taps_out[sl] = pt;
+        } else {
+          SampleMulPlane(plane, pt, C, o);
+        }
+      }
+    };
+    for (int l = 0; l < L_.num_levels; ++l) {
+      const int R = L_.level_resolution[l];
+      for (int64_t r = 0; r < B; ++r)
+        for (int k = 0; k < 3; ++k) taps[r * 3 + k] = MakeTap(nm_a[k] * means[(b + r) * 3 + k] + nm_b[k], R);
+      S->middleCols(l * C, C).setOnes();
+      for (int i = 0; i < 3; ++i) plane_pass(l, kSpatialPlaneIds[i], 0, l * SL + i, S->data() + l * C, D);
+      for (int j = 0; j < K_; ++j) {
+        std::fill(tbuf.begin(), tbuf.end(), T(1));
+        for (int i = 0; i < 3; ++i) plane_pass(l, kTimePlaneIds[i], j, l * SL + 3 + j * 3 + i, tbuf.data(), C);
+        for (int64_t r = 0; r < B; ++r) {
+          const T* sr = S->row(r).data() + l * C;
+          const T* tr = tbuf.data() + r * C;
+          T* f = Ftok->row(r).data() + static_cast<size_t>(j) * D + l * C;
+          for (int k = 0; k < C; ++k) f[k] = sr[k] * tr[k];
+        }
+      }
+    }
+  }
+
+  // Given dL/dS (rows of stride dS_stride; null = zero) and dL/dFtok [B, K*D]: turns the kept
+  // samples into dL/d(sample) in place and adds dL/d(means) through the sampling coordinates.
+  void Backward(const T* means, int64_t b, int64_t e, const T* dS, int64_t dS_stride, const T* dFtok,
+                const PlaneTaps<T>* taps, T* samples, T* d_means) const {
+    const int C = L_.channels, D = L_.feature_dim(), NS = slots_per_row(), SL = slots_per_level();
+    T Sv[kMaxSamplerChannels], dSv[kMaxSamplerChannels], Tv[kMaxSamplerChannels], dT[kMaxSamplerChannels];
+    for (int64_t r = 0; r < e - b; ++r) {
+      const T* x = means + (b + r) * 3;
+      T dp[3] = {0, 0, 0};
+      for (int l = 0; l < L_.num_levels; ++l) {
+        const int R = L_.level_resolution[l];
+        const Tap<T> txyz[3] = {MakeTap(nm_a[0] * x[0] + nm_b[0], R), MakeTap(nm_a[1] * x[1] + nm_b[1], R),
+                                MakeTap(nm_a[2] * x[2] + nm_b[2], R)};
+        T* ls = samples + (static_cast<size_t>(r) * NS + l * SL) * C;  // this level's slots
+        const T* s0 = ls;
+        const T* s1 = ls + C;
+        const T* s2 = ls + 2 * C;
+        for (int k = 0; k < C; ++k) {
+          Sv[k] = s0[k] * s1[k] * s2[k];
+          dSv[k] = dS ? dS[r * dS_stride + l * C + k] : T(0);
+        }
+        // Space-time slots first (they need S), accumulating dL/dS.
+        for (int j = 0; j < K_; ++j) {
+          T* t0 = ls + (3 + j * 3) * C;
+          T* t1 = t0 + C;
+          T* t2 = t1 + C;
+          const T* df = dFtok + r * static_cast<int64_t>(K_) * D + static_cast<int64_t>(j) * D + l * C;
+          for (int k = 0; k < C; ++k) {
+            Tv[k] = t0[k] * t1[k] * t2[k];
+            dSv[k] += df[k] * Tv[k];
+            dT[k] = df[k] * Sv[k];
+            const T a = t0[k], bb = t1[k], cc = t2[k];
+            t0[k] = dT[k] * bb * cc;
+            t1[k] = dT[k] * a * cc;
+            t2[k] = dT[k] * a * bb;
+          }
+          for (int i = 0; i < 3; ++i) {
+            const int c = kTimePlaneIds[i];
+            const int cu = kPlaneCoords[c][0];
+            const PlaneInfo& pi = L_.planes[l * kPlanesPerLevel + c];
+            T du = 0, dv = 0;
+            SampleCoordGrad(params_ + pi.offset, taps[static_cast<size_t>(r) * NS + l * SL + 3 + j * 3 + i],
+                            txyz[cu].w, time_taps_[j].w, C, ls + (3 + j * 3 + i) * C, &du, &dv);
+            dp[cu] += du * txyz[cu].dpx_dp;  // time is not a parameter
+          }
+        }
+        {
+          T* a0 = ls;
+          T* a1 = ls + C;
+          T* a2 = ls + 2 * C;
+          for (int k = 0; k < C; ++k) {
+            const T a = a0[k], bb = a1[k], cc = a2[k];
+            a0[k] = dSv[k] * bb * cc;
+            a1[k] = dSv[k] * a * cc;
+            a2[k] = dSv[k] * a * bb;
+          }
+        }
+        for (int i = 0; i < 3; ++i) {
+          const int c = kSpatialPlaneIds[i];
+          const int cu = kPlaneCoords[c][0], cv = kPlaneCoords[c][1];
+          const PlaneInfo& pi = L_.planes[l * kPlanesPerLevel + c];
+          T du = 0, dv = 0;
+          SampleCoordGrad(params_ + pi.offset, taps[static_cast<size_t>(r) * NS + l * SL + i], txyz[cu].w,
+                          txyz[cv].w, C, ls + i * C, &du, &dv);
+          dp[cu] += du * txyz[cu].dpx_dp;
+          dp[cv] += dv * txyz[cv].dpx_dp;
+        }
+      }
+      if (d_means)
+        for (int k = 0; k < 3; ++k) d_means[(b + r) * 3 + k] += dp[k] * nm_a[k];
+    }
+  }
+
+  // Splats rows [0, bn) of the block's dL/d(sample) into the planes of d_base, one plane per task.
+  void Scatter(size_t bn, const PlaneTaps<T>* taps, const T* samples, T* d_base, ThreadPool& pool) const {
+    const int C = L_.channels, NS = slots_per_row(), SL = slots_per_level();
+    const int NP = L_.num_levels * kPlanesPerLevel;
+    pool.ParallelFor(NP, 1, [&](int64_t pb, int64_t pe, int) {
+      for (int64_t p = pb; p < pe; ++p) {
+        const int l = static_cast<int>(p) / kPlanesPerLevel, c = static_cast<int>(p) % kPlanesPerLevel;
+        T* grad = d_base + L_.planes[p].offset;
+        const bool time = PlaneHasTime(c);
+        int idx = 0;
+        for (int i = 0; i < 3; ++i)
+          if ((time ? kTimePlaneIds[i] : kSpatialPlaneIds[i]) == c) idx = i;
+        for (size_t r = 0; r < bn; ++r) {
+          for (int j = 0; j < (time ? K_ : 1); ++j) {
+            const size_t slot = r * NS + l * SL + (time ? 3 + j * 3 + idx : idx);
+            ScatterPlane(grad, taps[slot], C, samples + slot * C);
+          }
+        }
+      }
+    });
+  }
+
+  T nm_a[3], nm_b[3];
+  std::vector<T> token_time;
+
+ private:
+  const FieldLayout& L_;
+  const T* params_;
+  int K_;
+  std::vector<Tap<T>> time_taps_;
+};
+
+}  // namespace streetsim::field::internal

@@ -1,0 +1,188 @@
+#include "scene/train/clip_training.h"
+
+#include <filesystem>
+
+#include "absl/strings/str_cat.h"
+#include "render/common/log.h"
+#include "scene/field/field_io.h"
+#include "scene/init/initial_scene.h"
+#include "scene/log/scene_manifest.h"
+#include "scene/train/dynamic_pixels.h"
+
+namespace streetsim::train {
+namespace {
+
+namespace fs = std::filesystem;
+
+DriveLog SubLog(const DriveLog& log, const ClipRange& r) {
+  DriveLog sub = log;
+  sub.frames.assign(log.frames.begin() + r.first_frame, log.frames.begin() + r.end_frame);
+  return sub;
+}
+
+// The same time mapping, sizes and layout: a prior of another --field-size cannot seed this field.
+bool SameFieldConfig(const field::FieldConfig& a, const field::FieldConfig& b) {
+  return a.channels == b.channels && a.base_resolution == b.base_resolution && a.multires == b.multires &&
+         a.time_resolution == b.time_resolution && a.width == b.width && a.full_time_range == b.full_time_range;
+}
+
+absl::Status SamePlan(const ClipSet& on_disk, const ClipSet& planned, const std::string& dir) {
+  bool same = on_disk.clip_frames == planned.clip_frames && on_disk.num_frames == planned.num_frames &&
+              on_disk.clips.size() == planned.clips.size();
+  for (size_t k = 0; same && k < planned.clips.size(); ++k) same = on_disk.clips[k].frames == planned.clips[k].frames;
+  if (same) return absl::OkStatus();
+  return absl::FailedPreconditionError(absl::StrCat(
+      dir, " holds clips of ", on_disk.clip_frames, " frames over a ", on_disk.num_frames,
+      "-frame log; this run plans ", planned.clip_frames, " over ", planned.num_frames,
+      " (resume with the same --clip-frames and log, or train into another directory)"));
+}
+
+}  // namespace
+
+absl::StatusOr<TrainResult> TrainClip(const DriveLog& log, const ClipRange& frames, const std::string& dir,
+                                      const TrainOptions& opt, const std::function<void(const Progress&)>& progress) {
+  if (frames.first_frame < 0 || frames.end_frame > static_cast<int>(log.frames.size()) || frames.size() < 1) {
+    return absl::InvalidArgumentError(absl::StrCat("clip frames [", frames.first_frame, ", ", frames.end_frame,
+                                                   ") are not inside the log's ", log.frames.size()));
+  }
+  const DriveLog sub = SubLog(log, frames);
+  // Every view of the clip, then the log-wide hold-out rule on the log's frame index (a clip
+  // starting at frame 50 holds out 51, 55, ... as the whole-log run does).
+  DatasetOptions dopt;
+  dopt.resolution_scale = opt.resolution_scale;
+  dopt.holdout_every = 0;
+  dopt.split = Split::kAll;
+  const bool want_test = opt.write_outputs && opt.holdout_every > 0;
+  dopt.load_depth = opt.depth_loss || want_test;
+  absl::StatusOr<std::vector<View>> all = LoadViews(sub, dopt);
+  if (!all.ok()) return all.status();
+  std::vector<View> train, test;
+  for (View& v : *all) {
+    v.frame += frames.first_frame;
+    if (!IsHeldOut(v.frame, opt.holdout_every)) {
+      if (!opt.depth_loss) v.lidar.clear();
+      train.push_back(std::move(v));
+    } else if (want_test) {
+      test.push_back(std::move(v));
+    }
+  }
+  if (train.empty()) {
+    return absl::InvalidArgumentError(absl::StrCat("clip of frames [", frames.first_frame, ", ", frames.end_frame,
+                                                   ") has no training views"));
+  }
+  // PSNR* masks read the log's scans around each held-out frame (never trained on).
+  if (absl::Status s = AttachDynamicPixels(log, &test); !s.ok()) return s;
+  TrainOptions copt = opt;
+  if (copt.lidar_log == nullptr) copt.lidar_log = &log;  // View::frame indexes the whole log
+  std::optional<GaussianStore> init;
+  if (!(opt.resume && fs::exists(fs::path(dir) / "checkpoint.bin"))) {
+    // New Gaussians from the clip's training frames only (spec 8: clip 2 from frames 50-99).
+    DriveLog train_log = log;
+    train_log.frames.clear();
+    for (int f = frames.first_frame; f < frames.end_frame; ++f)
+      if (!IsHeldOut(f, opt.holdout_every)) train_log.frames.push_back(log.frames[f]);
+    InitOptions iopt;
+    iopt.voxel_m = opt.init_voxel_m;
+    iopt.seed = static_cast<unsigned>(opt.seed + 1);
+    InitStats istats;
+    absl::StatusOr<GaussianStore> built = BuildInitialScene(train_log, iopt, &istats);
+    if (!built.ok()) return built.status();
+    init = std::move(*built);
+    LOG(INFO) << "initial scene: " << init->size() << " Gaussians (" << istats.source << ")";
+  }
+  absl::StatusOr<TrainResult> r = TrainOnViews(train, init ? &*init : nullptr, test, dir, copt, progress);
+  if (!r.ok()) return r.status();
+  if (r->iterations >= opt.iterations && opt.write_outputs) {
+    // The clip's rig, time range and trajectory: each clip is a scene `streetsim serve` can load.
+    const std::string name = absl::StrCat(fs::absolute(dir).parent_path().filename().string(), "/",
+                                          fs::path(dir).filename().string());
+    if (absl::Status s = WriteSceneManifest(sub, name, (fs::path(dir) / "scene.json").string()); !s.ok()) return s;
+  }
+  return r;
+}
+
+absl::StatusOr<ClipTrainResult> TrainClips(const DriveLog& log, const std::string& out_dir, const TrainOptions& opt,
+                                           const ClipTrainOptions& copt,
+                                           const std::function<void(const Progress&)>& progress) {
+  absl::StatusOr<std::vector<ClipRange>> plan = PlanClips(static_cast<int>(log.frames.size()), copt.clip_frames);
+  if (!plan.ok()) return plan.status();
+  ClipTrainResult out;
+  std::error_code ec;
+  const fs::path manifest = fs::path(out_dir) / kClipManifestName;
+  if (plan->size() == 1) {
+    if (fs::exists(manifest, ec)) {
+      if (opt.resume) {
+        return absl::FailedPreconditionError(absl::StrCat(out_dir, " holds a clip set (", kClipManifestName,
+                                                          "); resume it with its --clip-frames"));
+      }
+      fs::remove(manifest, ec);  // a plain scene now; consumers would otherwise read the old clips
+    }
+    absl::StatusOr<TrainResult> r = Train(log, out_dir, opt, progress);
+    if (!r.ok()) return r.status();
+    out.stopped = opt.stop_after > 0 && r->iterations < opt.iterations;
+    out.runs.push_back({0, plan->front(), out_dir, std::move(*r)});
+    return out;
+  }
+
+  ClipSet set = MakeClipSet(log, copt.clip_frames, *plan);
+  if (opt.resume) {
+    absl::StatusOr<std::optional<ClipSet>> on_disk = ReadClipSet(out_dir);
+    if (!on_disk.ok()) return on_disk.status();
+    if (*on_disk) {
+      if (absl::Status s = SamePlan(**on_disk, set, out_dir); !s.ok()) return s;
+      for (size_t k = 0; k < set.clips.size(); ++k) set.clips[k].done = (*on_disk)->clips[k].done;
+    } else if (fs::exists(fs::path(out_dir) / "checkpoint.bin", ec)) {
+      return absl::FailedPreconditionError(
+          absl::StrCat(out_dir, " holds a single-scene run; resume it without --clip-frames"));
+    }
+  }
+  fs::create_directories(out_dir, ec);
+  if (ec) return absl::InternalError(absl::StrCat("cannot create ", out_dir, ": ", ec.message()));
+  if (absl::Status s = WriteClipSet(set, out_dir); !s.ok()) return s;
+  out.set = set;
+
+  for (size_t k = 0; k < set.clips.size(); ++k) {
+    ClipEntry& clip = set.clips[k];
+    const std::string dir = (fs::path(out_dir) / clip.dir).string();
+    if (clip.done) {
+      LOG(INFO) << "clip " << k << " (" << clip.dir << ") is done; not retrained";
+      continue;
+    }
+    TrainOptions o = opt;
+    o.seed = opt.seed + k;  // each clip its own random streams (view order, init, a fresh field)
+    // The field's time axis spans the clip's frames (held-out ones included).
+    o.field.time_range = {clip.start_us, clip.end_us};
+    if (copt.stop_in_clip >= 0 && static_cast<int>(k) != copt.stop_in_clip) o.stop_after = 0;
+    if (o.field.mode == FieldMode::kS3Gaussian && k > 0) {
+      const std::string prior_path = (fs::path(out_dir) / set.clips[k - 1].dir / field::kFieldFileName).string();
+      if (!fs::exists(prior_path, ec)) {
+        return absl::FailedPreconditionError(absl::StrCat(
+            prior_path, " is missing: clip ", k - 1, " was not trained with --field s3gaussian"));
+      }
+      absl::StatusOr<field::DeformationField> prior = field::LoadField(prior_path);
+      if (!prior.ok()) return prior.status();
+      if (!SameFieldConfig(prior->config(), o.field.config)) {
+        return absl::FailedPreconditionError(
+            absl::StrCat(prior_path, ": the field has another configuration (was --field-size changed?)"));
+      }
+      o.field.prior = std::make_shared<const field::DeformationField>(std::move(*prior));
+    }
+    LOG(INFO) << "clip " << k << " of " << set.clips.size() << ": frames [" << clip.frames.first_frame << ", "
+              << clip.frames.end_frame << ") -> " << dir
+              << (o.field.prior ? " (fine stage from the previous clip's field)" : "");
+    absl::StatusOr<TrainResult> r = TrainClip(log, clip.frames, dir, o, progress);
+    if (!r.ok()) return absl::Status(r.status().code(), absl::StrCat("clip ", k, ": ", r.status().message()));
+    const bool finished = r->iterations >= opt.iterations;
+    out.runs.push_back({static_cast<int>(k), clip.frames, dir, std::move(*r)});
+    if (!finished) {
+      out.stopped = true;
+      return out;
+    }
+    clip.done = true;
+    if (absl::Status s = WriteClipSet(set, out_dir); !s.ok()) return s;
+    out.set = set;
+  }
+  return out;
+}
+
+}  // namespace streetsim::train

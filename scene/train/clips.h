@@ -1,0 +1,82 @@
+// Clip sets (S3Gaussian spec 1.2 and 8; docs/training.md "Clips"): a log longer than a clip is
+// trained as consecutive clips of N frames, each a scene directory of its own (DIR/clip_KKK/),
+// listed in DIR/clips.json. This module plans the clips, reads and writes the manifest, picks the
+// clip for a time and merges per-clip metrics; the training itself is clip_training.h.
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "scene/train/dataset.h"
+#include "scene/train/lidar_eval.h"
+#include "scene/train/trainer.h"
+
+namespace streetsim::train {
+
+inline constexpr char kClipManifestName[] = "clips.json";
+// Shorter clips are refused: with the default hold-out (every 4th frame) a clip of 4 frames is the
+// shortest that always keeps a held-out frame, and a field fitted to fewer frames has no motion
+// to learn.
+inline constexpr int kMinClipFrames = 4;
+
+// Frames [first_frame, end_frame) of the log.
+struct ClipRange {
+  int first_frame = 0;
+  int end_frame = 0;
+  int size() const { return end_frame - first_frame; }
+  bool operator==(const ClipRange& o) const { return first_frame == o.first_frame && end_frame == o.end_frame; }
+};
+
+// Clip k = frames [k N, (k + 1) N); the remainder r = num_frames mod N is a clip of its own when
+// r >= ceil(N / 2), else it joins the last full clip (so every clip has N / 2 .. 1.5 N frames, and
+// a log of at most 1.5 N frames is one clip). clip_frames = 0: one clip over the whole log.
+// Errors: clip_frames < 0, 0 < clip_frames < kMinClipFrames, num_frames < 1.
+absl::StatusOr<std::vector<ClipRange>> PlanClips(int num_frames, int clip_frames);
+
+struct ClipEntry {
+  ClipRange frames;
+  int64_t start_us = 0, end_us = 0;  // times of its first and last frame
+  std::string dir;                   // relative to the clip set: ClipDirName(index)
+  bool done = false;                 // trained to the end, outputs written
+};
+
+// DIR/clips.json.
+struct ClipSet {
+  int clip_frames = 0;  // --clip-frames
+  int num_frames = 0;   // frames of the log
+  std::vector<ClipEntry> clips;
+};
+
+std::string ClipDirName(int index);  // "clip_000"
+// The plan of a log as a manifest (done = false everywhere).
+ClipSet MakeClipSet(const DriveLog& log, int clip_frames, const std::vector<ClipRange>& plan);
+// Written to a temporary file and renamed into place.
+absl::Status WriteClipSet(const ClipSet& set, const std::string& dir);
+// nullopt when DIR has no clips.json. Anything malformed is a DataLoss error naming the file:
+// bad JSON, missing or mistyped keys, clips that are not consecutive frame ranges in time order,
+// a directory other than clip_KKK of its index (nothing that could leave DIR).
+absl::StatusOr<std::optional<ClipSet>> ReadClipSet(const std::string& dir);
+
+// The clip for a time: the one whose [start_us, end_us] holds it; between two clips the nearer
+// (a tie goes to the earlier); before the first / after the last clip, the first / last.
+int PickClip(const ClipSet& set, int64_t time_us);
+// DIR/<clip's dir>, after checking that the directory exists and resolves inside DIR (a clip
+// directory that is a link out of DIR is refused).
+absl::StatusOr<std::string> ClipPath(const std::string& dir, const ClipEntry& clip);
+
+// What `streetsim render --scene DIR` renders: DIR itself, or for a clip set the clip of
+// `time_us` (without a time: the first clip, i.e. the log's first time).
+absl::StatusOr<std::string> SceneDirForTime(const std::string& dir, std::optional<int64_t> time_us);
+
+// Views grouped by the clip of their time: result[k] = indices into `views` of clip k, in order.
+std::vector<std::vector<size_t>> GroupViewsByClip(const ClipSet& set, const std::vector<View>& views);
+
+// Per-clip metrics as one result: frames concatenated in the given order, means recomputed with
+// the rules of EvaluateViews / EvaluateLidar (over the frames where each metric is defined).
+EvalResult MergeEvalResults(const std::vector<EvalResult>& parts);
+LidarEvalResult MergeLidarEvalResults(const std::vector<LidarEvalResult>& parts);
+
+}  // namespace streetsim::train

@@ -1,0 +1,365 @@
+// Gradient checks of the extended field (scene/field/extended): the double analytic backward
+// against central differences of the double forward, every parameter group (planes, S3Gaussian's
+// MLP, each module's parameters, the canonical Gaussians the field reads), and the float analytic
+// gradients against the double ones; every module on, each module alone, all off. With every
+// module off the extended field equals FieldForward (the strict ablation).
+#include <cmath>
+#include <cstdio>
+#include <functional>
+#include <map>
+#include <random>
+#include <string>
+
+#include "gtest/gtest.h"
+#include "scene/field/extended/extended_field.h"
+#include "scene/field/field_eval.h"
+#include "tests/field/field_test_util.h"
+
+namespace streetsim::field {
+namespace {
+
+using testing::RandomMeans;
+using testing::RandomParams;
+using testing::SmallConfig;
+using testing::TestAabb;
+
+constexpr int kOut[5] = {3, kShOutputs, kDecoderScaleOutputs, kDecoderRotationOutputs, kDecoderOpacityOutputs};
+
+// Values rounded to float so that the float and double passes see the same numbers.
+template <typename T>
+struct Copy {
+  std::vector<T> base, ext, means, opacity, scales, rotations;
+};
+
+struct Problem {
+  FieldConfig bc;
+  FieldLayout BL;
+  ExtendedFieldConfig ec;
+  ExtendedLayout EL;
+  Copy<double> v;
+  std::vector<double> w[5];  // loss weights per output
+  size_t n = 0;
+  ExtPass pass;
+  double kl_weight = 0.3;
+};
+
+double R(double x) { return static_cast<double>(static_cast<float>(x)); }
+
+Problem MakeProblem(const ExtendedFieldConfig& ec, size_t n, double time_coord, uint64_t seed) {
+  Problem p;
+  p.bc = SmallConfig();
+  p.BL = FieldLayout::Make(p.bc);
+  p.ec = ec;
+  absl::StatusOr<ExtendedLayout> el = ExtendedLayout::Make(p.bc, ec);
+  EXPECT_TRUE(el.ok()) << el.status();
+  p.EL = *el;
+  p.n = n;
+  p.v.base = RandomParams<double>(p.bc, p.BL, seed);
+  InitExtendedParams(ec, p.EL, seed + 1, &p.v.ext);
+  std::mt19937_64 rng(seed + 2);
+  std::uniform_real_distribution<double> u(-0.4, 0.4);
+  std::normal_distribution<double> g;
+  for (double& x : p.v.ext) x += u(rng);  // off the init (zero decoder outputs, unit gains)
+  p.v.means = RandomMeans<double>(n, n / 4, seed + 3);
+  p.v.opacity.resize(n);
+  p.v.scales.resize(n * 3);
+  p.v.rotations.resize(n * 4);
+  for (double& x : p.v.opacity) x = g(rng);
+  for (double& x : p.v.scales) x = -1.5 + u(rng) * 2;
+  for (double& x : p.v.rotations) x = g(rng);
+  for (int o = 0; o < 5; ++o) {
+    p.w[o].resize(n * kOut[o]);
+    for (double& x : p.w[o]) x = R(g(rng));
+  }
+  for (std::vector<double>* vec : {&p.v.base, &p.v.ext, &p.v.means, &p.v.opacity, &p.v.scales, &p.v.rotations})
+    for (double& x : *vec) x = R(x);
+  p.pass.time_coord = time_coord;
+  p.pass.training = true;
+  p.pass.noise_seed = seed + 11;
+  return p;
+}
+
+template <typename T>
+ExtModel<T> Model(const Problem& p, const Copy<T>& c) {
+  ExtModel<T> m;
+  m.base_layout = &p.BL;
+  m.base_params = c.base.data();
+  m.config = &p.ec;
+  m.layout = &p.EL;
+  m.ext_params = c.ext.data();
+  m.aabb = TestAabb();
+  return m;
+}
+template <typename T>
+ExtInputs<T> Inputs(const Problem& p, const Copy<T>& c) {
+  return {p.n, c.means.data(), c.opacity.data(), c.scales.data(), c.rotations.data()};
+}
+
+// L = Σ w · outputs + kl_weight · Σ KL.
+double Loss(const Problem& p, const Copy<double>& c, ThreadPool& pool, ExtWorkspace& ws) {
+  std::vector<double> out[5];
+  for (int o = 0; o < 5; ++o) out[o].assign(p.n * kOut[o], 0.0);
+  ExtOutputs<double> eo{out[0].data(), out[1].data(), p.ec.decoder ? out[2].data() : nullptr,
+                        p.ec.decoder ? out[3].data() : nullptr, p.ec.decoder ? out[4].data() : nullptr};
+  absl::StatusOr<double> kl = ExtendedForward<double>(Model(p, c), p.pass, Inputs(p, c), eo, pool, ws);
+  EXPECT_TRUE(kl.ok()) << kl.status();
+  double l = p.kl_weight * kl.value_or(0);
+  for (int o = 0; o < 5; ++o)
+    for (size_t i = 0; i < out[o].size(); ++i) l += p.w[o][i] * out[o][i];
+  return l;
+}
+
+template <typename T>
+struct Grads {
+  std::vector<T> base, ext, means, opacity, scales, rotations;
+};
+
+template <typename T>
+Grads<double> Analytic(const Problem& p, ThreadPool& pool) {
+  Copy<T> c;
+  auto cv = [](const std::vector<double>& v) { return std::vector<T>(v.begin(), v.end()); };
+  c.base = cv(p.v.base), c.ext = cv(p.v.ext), c.means = cv(p.v.means), c.opacity = cv(p.v.opacity);
+  c.scales = cv(p.v.scales), c.rotations = cv(p.v.rotations);
+  std::vector<T> w[5];
+  for (int o = 0; o < 5; ++o) w[o] = cv(p.w[o]);
+  Grads<T> g;
+  g.base.assign(p.BL.total, T(0));
+  g.ext.assign(p.EL.total(), T(0));
+  g.means.assign(p.n * 3, T(0));
+  g.opacity.assign(p.n, T(0));
+  g.scales.assign(p.n * 3, T(0));
+  g.rotations.assign(p.n * 4, T(0));
+  ExtWorkspace ws;
+  ExtOutputGrads<T> d{w[0].data(), w[1].data(), w[2].data(), w[3].data(), w[4].data()};
+  ExtInputGrads<T> gi{g.base.data(), g.ext.data(), g.means.data(), g.opacity.data(), g.scales.data(),
+                      g.rotations.data()};
+  absl::StatusOr<double> kl = ExtendedBackward<T>(Model(p, c), p.pass, Inputs(p, c), d, p.kl_weight, gi, pool, ws);
+  EXPECT_TRUE(kl.ok()) << kl.status();
+  auto dv = [](const std::vector<T>& v) { return std::vector<double>(v.begin(), v.end()); };
+  return {dv(g.base), dv(g.ext), dv(g.means), dv(g.opacity), dv(g.scales), dv(g.rotations)};
+}
+
+// Relative L2 error against central differences; entries whose estimates at two step sizes
+// disagree (a ReLU or texel-edge kink inside the step) are left out and counted.
+double RelError(std::vector<double>& x, const std::vector<size_t>& idx, const std::vector<double>& analytic,
+                const std::function<double()>& f, int* excluded) {
+  double num = 0, den = 0;
+  *excluded = 0;
+  for (size_t i : idx) {
+    const double x0 = x[i];
+    auto cd = [&](double h) {
+      x[i] = x0 + h;
+      const double lp = f();
+      x[i] = x0 - h;
+      const double lm = f();
+      x[i] = x0;
+      return (lp - lm) / (2 * h);
+    };
+    const double h = 1e-6 * std::max(1.0, std::abs(x0));
+    const double fd1 = cd(h), fd2 = cd(2 * h);
+    if (std::abs(fd1 - fd2) > 1e-5 * std::max(1e-3, std::abs(fd1))) {
+      ++*excluded;
+      continue;
+    }
+    num += (analytic[i] - fd1) * (analytic[i] - fd1);
+    den += fd1 * fd1;
+  }
+  return den > 0 ? std::sqrt(num / den) : std::sqrt(num);
+}
+
+double RelDiff(const std::vector<double>& a, const std::vector<double>& b, const std::vector<size_t>& idx) {
+  double num = 0, den = 0;
+  for (size_t i : idx) num += (a[i] - b[i]) * (a[i] - b[i]), den += b[i] * b[i];
+  return den > 0 ? std::sqrt(num / den) : std::sqrt(num);
+}
+
+std::vector<size_t> All(size_t n) {
+  std::vector<size_t> v(n);
+  for (size_t i = 0; i < n; ++i) v[i] = i;
+  return v;
+}
+
+// Checks every group; prints a line per group. Returns the number of groups checked.
+int CheckAll(Problem& p, const char* tag) {
+  ThreadPool serial(1), pool(2);
+  ExtWorkspace ws;
+  const Grads<double> ad = Analytic<double>(p, pool);
+  const Grads<double> af = Analytic<float>(p, pool);
+  struct G {
+    std::string name;
+    std::vector<double>* x;
+    const std::vector<double>* ad;
+    const std::vector<double>* af;
+    std::vector<size_t> idx;
+  };
+  std::vector<G> groups;
+  G sp{"spatial planes", &p.v.base, &ad.base, &af.base, {}}, tp{"time planes", &p.v.base, &ad.base, &af.base, {}};
+  for (const PlaneInfo& pi : p.BL.planes)
+    for (size_t i = 0; i < pi.size(p.BL.channels); ++i) (PlaneHasTime(pi.plane) ? tp : sp).idx.push_back(pi.offset + i);
+  groups.push_back(sp);
+  groups.push_back(tp);
+  G mlp{"s3gaussian mlp", &p.v.base, &ad.base, &af.base, {}};
+  for (size_t i = p.BL.grid_size; i < p.BL.total; ++i) mlp.idx.push_back(i);
+  groups.push_back(mlp);
+  // One group per module (block name prefix up to the first dot).
+  std::map<std::string, std::vector<size_t>> by_module;
+  for (const nn::NnParamBlock& b : p.EL.params.blocks()) {
+    const std::string mod = b.name.substr(0, b.name.find('.'));
+    for (size_t i = 0; i < b.count; ++i) by_module[mod].push_back(b.offset + i);
+  }
+  for (auto& [mod, idx] : by_module) groups.push_back({mod, &p.v.ext, &ad.ext, &af.ext, idx});
+  groups.push_back({"means", &p.v.means, &ad.means, &af.means, All(p.n * 3)});
+  if (p.ec.encoder) {
+    groups.push_back({"opacity logits", &p.v.opacity, &ad.opacity, &af.opacity, All(p.n)});
+    groups.push_back({"log scales", &p.v.scales, &ad.scales, &af.scales, All(p.n * 3)});
+    groups.push_back({"rotations", &p.v.rotations, &ad.rotations, &af.rotations, All(p.n * 4)});
+  }
+  for (G& g : groups) {
+    int excluded = 0;
+    const double e = RelError(*g.x, g.idx, *g.ad, [&] { return Loss(p, p.v, serial, ws); }, &excluded);
+    const double ef = RelDiff(*g.af, *g.ad, g.idx);
+    std::printf("[%s] %-16s %5zu entries: double vs FD %.1e (%d excluded), float vs double %.1e\n", tag,
+                g.name.c_str(), g.idx.size(), e, excluded, ef);
+    EXPECT_LT(e, 1e-6) << tag << " " << g.name;
+    EXPECT_LT(ef, 1e-4) << tag << " " << g.name;
+    EXPECT_LE(excluded, static_cast<int>(g.idx.size() / 10)) << tag << " " << g.name;
+    // A gradient that is identically zero would pass vacuously.
+    double norm = 0;
+    for (size_t i : g.idx) norm += std::abs((*g.ad)[i]);
+    EXPECT_GT(norm, 0) << tag << " " << g.name << ": zero gradient";
+  }
+  return static_cast<int>(groups.size());
+}
+
+TEST(ExtendedFieldGradCheck, EveryModuleOn) {
+  Problem p = MakeProblem(ExtendedFieldConfig::AllOn(), 10, 0.37, 1);
+  EXPECT_EQ(CheckAll(p, "all on"), 13);  // planes x2, MLP, 6 module groups + gate, 4 canonical
+}
+
+TEST(ExtendedFieldGradCheck, EveryModuleOnNearTheLogEnd) {
+  // t + Δ clamps to the axis end: that token holds the last state.
+  Problem p = MakeProblem(ExtendedFieldConfig::AllOn(), 6, 0.85, 2);
+  CheckAll(p, "all on, t 0.85");
+}
+
+TEST(ExtendedFieldGradCheck, EachModuleAlone) {
+  for (const char* m : {"encoder", "vae", "temporal", "attention", "gru", "decoder"}) {
+    ExtendedFieldConfig c = ExtendedFieldConfig::AllOn();
+    absl::StatusOr<ExtendedFieldConfig> only = ExtendedFieldConfig::WithModules(m);
+    ASSERT_TRUE(only.ok());
+    c.encoder = only->encoder, c.vae = only->vae, c.temporal = only->temporal;
+    c.attention = only->attention, c.gru = only->gru, c.decoder = only->decoder;
+    Problem p = MakeProblem(c, 6, -0.2, 3);
+    CheckAll(p, m);
+  }
+}
+
+TEST(ExtendedFieldGradCheck, InferenceUsesTheMean) {
+  // z = μ: the pass is deterministic whatever the noise seed; training with ε differs.
+  Problem p = MakeProblem(ExtendedFieldConfig::AllOn(), 6, 0.1, 4);
+  ThreadPool pool(2);
+  ExtWorkspace ws;
+  p.pass.training = false;
+  const double a = Loss(p, p.v, pool, ws);
+  p.pass.noise_seed += 1;
+  EXPECT_EQ(Loss(p, p.v, pool, ws), a);
+  p.pass.training = true;
+  const double b = Loss(p, p.v, pool, ws);
+  EXPECT_NE(b, a);
+  EXPECT_EQ(Loss(p, p.v, pool, ws), b);  // same seed, same ε
+  CheckAll(p, "vae training seed 2");
+  p.pass.training = false;
+  CheckAll(p, "inference");
+}
+
+TEST(ExtendedFieldAblation, EveryModuleOffIsS3Gaussian) {
+  for (double t : {-1.3, -0.6, 0.0, 0.37, 1.0}) {
+    Problem p = MakeProblem(ExtendedFieldConfig(), 40, t, 5);
+    ASSERT_EQ(p.EL.total(), 0u);
+    ThreadPool pool(2);
+    ExtWorkspace ws;
+    FieldWorkspace fws;
+    std::vector<double> dx(p.n * 3), dsh(p.n * kShOutputs), ex(p.n * 3), esh(p.n * kShOutputs);
+    FieldQuery q = testing::TestQuery(t);
+    FieldForward<double>(p.BL, p.v.base.data(), q, p.v.means.data(), nullptr, p.n, dx.data(), dsh.data(), pool, fws);
+    ExtOutputs<double> eo{ex.data(), esh.data()};
+    ExtInputs<double> in{p.n, p.v.means.data()};
+    ASSERT_TRUE(ExtendedForward<double>(Model(p, p.v), p.pass, in, eo, pool, ws).ok());
+    double worst = 0;
+    for (size_t i = 0; i < dx.size(); ++i) worst = std::max(worst, std::abs(dx[i] - ex[i]));
+    for (size_t i = 0; i < dsh.size(); ++i) worst = std::max(worst, std::abs(dsh[i] - esh[i]));
+    EXPECT_LT(worst, 1e-12) << "t " << t;
+    // And its backward is FieldBackward's.
+    std::vector<double> gb(p.BL.total, 0.0), gm(p.n * 3, 0.0), fb(p.BL.total, 0.0), fm(p.n * 3, 0.0);
+    FieldBackward<double>(p.BL, p.v.base.data(), q, p.v.means.data(), p.n, p.w[0].data(), p.w[1].data(), fb.data(),
+                          fm.data(), pool, fws);
+    ExtOutputGrads<double> d{p.w[0].data(), p.w[1].data()};
+    ExtInputGrads<double> gi{gb.data(), nullptr, gm.data()};
+    ASSERT_TRUE(ExtendedBackward<double>(Model(p, p.v), p.pass, in, d, 0.0, gi, pool, ws).ok());
+    EXPECT_LT(RelDiff(gb, fb, All(gb.size())), 1e-12) << "t " << t;
+    EXPECT_LT(RelDiff(gm, fm, All(gm.size())), 1e-12) << "t " << t;
+  }
+}
+
+TEST(ExtendedFieldAblation, ThreadCountsAgree) {
+  Problem p = MakeProblem(ExtendedFieldConfig::AllOn(), 300, 0.2, 6);
+  ThreadPool one(1), two(2);
+  const Grads<double> a = Analytic<double>(p, one), b = Analytic<double>(p, two);
+  EXPECT_EQ(a.base.size(), b.base.size());
+  // Plane gradients are scattered in row order: identical; the MLP sums differ by rounding.
+  for (const PlaneInfo& pi : p.BL.planes)
+    for (size_t i = 0; i < pi.size(p.BL.channels); ++i) ASSERT_EQ(a.base[pi.offset + i], b.base[pi.offset + i]);
+  EXPECT_LT(RelDiff(a.ext, b.ext, All(a.ext.size())), 1e-12);
+  EXPECT_EQ(a.means, b.means);
+  // The forward is per row: identical bits for any thread count and chunking (float).
+  for (const char* modules : {"none", "all"}) {
+    ExtendedFieldConfig c = *ExtendedFieldConfig::WithModules(modules);
+    c.heads = 2, c.vae_latent = 3, c.gru_hidden = 3, c.window_k = 1, c.fourier_frequencies = 2;
+    Problem q = MakeProblem(c, 1000, 0.2, 8);
+    Copy<float> f;
+    auto cv = [](const std::vector<double>& v) { return std::vector<float>(v.begin(), v.end()); };
+    f.base = cv(q.v.base), f.ext = cv(q.v.ext), f.means = cv(q.v.means), f.opacity = cv(q.v.opacity);
+    f.scales = cv(q.v.scales), f.rotations = cv(q.v.rotations);
+    std::vector<float> dx1(q.n * 3), dsh1(q.n * kShOutputs), dx2(q.n * 3), dsh2(q.n * kShOutputs);
+    ExtWorkspace ws1, ws2;
+    ASSERT_TRUE(ExtendedForward<float>(Model(q, f), q.pass, Inputs(q, f), {dx1.data(), dsh1.data()}, one, ws1).ok());
+    ASSERT_TRUE(ExtendedForward<float>(Model(q, f), q.pass, Inputs(q, f), {dx2.data(), dsh2.data()}, two, ws2).ok());
+    EXPECT_EQ(dx1, dx2) << modules;
+    EXPECT_EQ(dsh1, dsh2) << modules;
+  }
+}
+
+TEST(ExtendedFieldConfigTest, ModulesParseAndBadValuesAreErrors) {
+  absl::StatusOr<ExtendedFieldConfig> c = ExtendedFieldConfig::WithModules("vae,gru");
+  ASSERT_TRUE(c.ok());
+  EXPECT_EQ(c->ModulesString(), "vae,gru");
+  EXPECT_EQ(ExtendedFieldConfig::WithModules("all")->ModulesString(), "encoder,vae,temporal,attention,gru,decoder");
+  EXPECT_EQ(ExtendedFieldConfig::WithModules("none")->ModulesString(), "none");
+  EXPECT_FALSE(ExtendedFieldConfig::WithModules("vae,bogus").ok());
+  EXPECT_FALSE(ExtendedFieldConfig::WithModules("").ok());
+  ExtendedFieldConfig bad = ExtendedFieldConfig::AllOn();
+  bad.heads = 3;  // width 8
+  EXPECT_FALSE(ExtendedLayout::Make(SmallConfig(), bad).ok());
+  bad = ExtendedFieldConfig::AllOn();
+  bad.window_dt = -1;
+  EXPECT_FALSE(ExtendedLayout::Make(SmallConfig(), bad).ok());
+  // Spec sizes: model dim 64, 4 x 16 heads, K = 5.
+  absl::StatusOr<ExtendedLayout> spec = ExtendedLayout::Make(FieldConfig(), *ExtendedFieldConfig::WithModules("all"));
+  ASSERT_TRUE(spec.ok()) << spec.status();
+  EXPECT_EQ(spec->tokens, 5);
+  EXPECT_EQ(spec->token_dim, 16 + 128);
+  EXPECT_EQ(spec->attention.heads, 4);
+  EXPECT_EQ(spec->attention.head_dim(), 16);
+}
+
+TEST(ExtendedFieldConfigTest, BadInputsAreErrors) {
+  Problem p = MakeProblem(ExtendedFieldConfig::AllOn(), 4, 0.0, 7);
+  ThreadPool pool(1);
+  ExtWorkspace ws;
+  std::vector<double> dx(p.n * 3);
+  ExtInputs<double> in{p.n, p.v.means.data()};  // the encoder needs opacity, scales, rotations
+  EXPECT_FALSE(ExtendedForward<double>(Model(p, p.v), p.pass, in, {dx.data()}, pool, ws).ok());
+}
+
+}  // namespace
+}  // namespace streetsim::field

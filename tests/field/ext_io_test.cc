@@ -1,0 +1,124 @@
+// field_ext.bin and the extended field's checkpoints (scene/field/extended/extended_io.h), the
+// deformed store of a loaded extended scene, and the shared-pointer bundle render / eval use.
+#include <unistd.h>
+
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+#include "gtest/gtest.h"
+#include "scene/field/extended/extended_deform.h"
+#include "scene/field/extended/extended_io.h"
+#include "tests/field/field_test_util.h"
+
+namespace streetsim::field {
+namespace {
+
+std::string TempPath(const std::string& name) {
+  return (std::filesystem::path(::testing::TempDir()) /
+          ("ext_io_" + std::to_string(getpid()) + "_" +
+           ::testing::UnitTest::GetInstance()->current_test_info()->name() + "_" + name))
+      .string();
+}
+
+ExtendedField MakeField(uint64_t seed) {
+  absl::StatusOr<DeformationField> base =
+      DeformationField::Create(testing::SmallConfig(), testing::TestAabb(), {1000, 2000000}, seed);
+  EXPECT_TRUE(base.ok());
+  absl::StatusOr<ExtendedField> f = ExtendedField::Create(std::move(*base), ExtendedFieldConfig::AllOn(), seed);
+  EXPECT_TRUE(f.ok()) << f.status();
+  for (size_t i = 0; i < f->params().size(); ++i) f->mutable_params()[i] += 0.01f * static_cast<float>(i % 7);
+  return std::move(*f);
+}
+
+TEST(ExtendedFieldIo, RoundTripsFieldAndCheckpoint) {
+  const ExtendedField f = MakeField(1);
+  const std::string path = TempPath("field_ext.bin");
+  ASSERT_TRUE(SaveExtendedField(f, path).ok());
+  absl::StatusOr<ExtendedField> g = LoadExtendedField(path, f.base());
+  ASSERT_TRUE(g.ok()) << g.status();
+  EXPECT_EQ(g->params(), f.params());
+  EXPECT_EQ(g->config().ModulesString(), f.config().ModulesString());
+  EXPECT_EQ(g->config().window_dt, f.config().window_dt);
+  ExtAdamState adam;
+  EXPECT_EQ(LoadExtendedCheckpoint(path, f.base(), &adam).status().code(), absl::StatusCode::kFailedPrecondition);
+
+  ExtAdamState a;
+  a.m.assign(f.params().size(), 0.5f);
+  a.v.assign(f.params().size(), 0.25f);
+  a.step = 17;
+  const std::string ck = TempPath("ck_ext.bin");
+  ASSERT_TRUE(SaveExtendedCheckpoint(f, a, ck).ok());
+  absl::StatusOr<ExtendedField> h = LoadExtendedCheckpoint(ck, f.base(), &adam);
+  ASSERT_TRUE(h.ok()) << h.status();
+  EXPECT_EQ(adam.step, 17);
+  EXPECT_EQ(adam.m, a.m);
+  EXPECT_EQ(adam.v, a.v);
+  EXPECT_TRUE(LoadExtendedField(ck, f.base()).ok());  // the extension alone can be read from a checkpoint
+  std::filesystem::remove(path);
+  std::filesystem::remove(ck);
+}
+
+TEST(ExtendedFieldIo, DamageAndMismatchAreDataLoss) {
+  const ExtendedField f = MakeField(2);
+  const std::string path = TempPath("field_ext.bin");
+  ASSERT_TRUE(SaveExtendedField(f, path).ok());
+  std::string bytes;
+  {
+    std::ifstream in(path, std::ios::binary);
+    bytes.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+  }
+  auto write = [&](const std::string& b) {
+    std::ofstream out(path, std::ios::binary | std::ios::trunc);
+    out.write(b.data(), static_cast<std::streamsize>(b.size()));
+  };
+  std::string flipped = bytes;
+  flipped[bytes.size() / 2] ^= 0x10;
+  write(flipped);
+  EXPECT_EQ(LoadExtendedField(path, f.base()).status().code(), absl::StatusCode::kDataLoss);
+  write(bytes.substr(0, bytes.size() - 9));
+  EXPECT_EQ(LoadExtendedField(path, f.base()).status().code(), absl::StatusCode::kDataLoss);
+  std::string magic = bytes;
+  magic[0] = 'X';
+  write(magic);
+  EXPECT_EQ(LoadExtendedField(path, f.base()).status().code(), absl::StatusCode::kDataLoss);
+  // Another run's field.bin: the base checksum differs.
+  write(bytes);
+  DeformationField other = f.base();
+  other.mutable_params()[3] += 1.0f;
+  const absl::Status s = LoadExtendedField(path, other).status();
+  EXPECT_EQ(s.code(), absl::StatusCode::kDataLoss);
+  EXPECT_NE(std::string(s.message()).find("does not belong"), std::string::npos) << s;
+  EXPECT_EQ(LoadExtendedField(TempPath("missing.bin"), f.base()).status().code(), absl::StatusCode::kNotFound);
+  std::filesystem::remove(path);
+}
+
+TEST(ExtendedFieldShared, DeformedStoreFindsTheExtensionThroughTheBase) {
+  const ExtendedField f = MakeField(3);
+  GaussianStore g;
+  g.sh_degree = 3;
+  const size_t n = 20;
+  g.means = testing::RandomMeans<float>(n, 3, 5);
+  g.log_scales.assign(n * 3, -1.0f);
+  g.rotations.assign(n * 4, 0.0f);
+  for (size_t i = 0; i < n; ++i) g.rotations[i * 4] = 1.0f;
+  g.opacity_logits.assign(n, 0.3f);
+  g.sh.assign(n * 48, 0.1f);
+  ThreadPool pool(2);
+  absl::StatusOr<GaussianStore> direct = ExtDeformedStore(f, g, 1500000, pool);
+  ASSERT_TRUE(direct.ok()) << direct.status();
+  EXPECT_NE(direct->means, g.means);
+  EXPECT_NE(direct->log_scales, g.log_scales);  // the decoder is on
+  std::shared_ptr<const DeformationField> shared = ShareWithExtension(f);
+  std::shared_ptr<const ExtendedField> found = ExtensionOf(*shared);
+  ASSERT_NE(found, nullptr);
+  EXPECT_EQ(found->params(), f.params());
+  EXPECT_EQ(ExtensionOf(f.base()), nullptr);  // a plain field (not shared with an extension)
+  const DeformationField* key = shared.get();
+  found.reset();
+  shared.reset();
+  EXPECT_EQ(ExtensionOf(*key), nullptr);  // gone with its last owner (the address is only compared)
+}
+
+}  // namespace
+}  // namespace streetsim::field

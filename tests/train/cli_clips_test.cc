@@ -1,0 +1,192 @@
+// `streetsim train --clip-frames N` end to end on a 19-frame copy of the KITTI clip (links to the
+// shared data): two clips and DIR/clips.json; `render --scene DIR --time-us T` renders the clip of
+// T; `eval --scene DIR` evaluates every held-out frame once, each by its clip; --resume of a
+// finished set trains nothing; bad --clip-frames values and mismatched resumes exit 2.
+#include <unistd.h>
+
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <set>
+#include <sstream>
+
+#include <nlohmann/json.hpp>
+
+#include "gtest/gtest.h"
+
+namespace {
+
+namespace fs = std::filesystem;
+
+const std::string kBinary = std::string(STREETSIM_BINARY_DIR) + "/bin/streetsim";
+const fs::path kDay = fs::path(STREETSIM_DATA_DIR) / "kitti_raw/2011_09_26";
+const char* kDrive = "2011_09_26_drive_sfnd_sync";
+const std::string kCamera = std::string(STREETSIM_SOURCE_DIR) + "/examples/cameras/kitti_front.json";
+
+struct Result {
+  int code;
+  std::string out, err;
+};
+
+std::string Slurp(const std::string& p) {
+  std::ifstream f(p, std::ios::binary);
+  std::stringstream s;
+  s << f.rdbuf();
+  return s.str();
+}
+
+fs::path Scratch() {
+  return fs::path(::testing::TempDir()) / ("streetsim_cli_clips_" + std::to_string(getpid()));
+}
+
+Result RunCli(const std::string& args) {
+  const std::string out = (Scratch() / "stdout.txt").string(), err = (Scratch() / "stderr.txt").string();
+  const int status = std::system((kBinary + " " + args + " >" + out + " 2>" + err).c_str());
+  return {WEXITSTATUS(status), Slurp(out), Slurp(err)};
+}
+
+// The first `frames` frames of the shared drive, as links, beside links to the day's calibration.
+std::string ShortLog(int frames) {
+  const fs::path day = Scratch() / "log/2011_09_26";
+  const fs::path drive = day / kDrive;
+  fs::create_directories(drive / "image_02/data");
+  fs::create_directories(drive / "velodyne_points/data");
+  for (const char* calib : {"calib_cam_to_cam.txt", "calib_velo_to_cam.txt", "calib_imu_to_velo.txt"}) {
+    fs::create_symlink(kDay / calib, day / calib);
+  }
+  std::ifstream poses(kDay / kDrive / "poses_velo_icp_estimated.txt");
+  std::ofstream short_poses(drive / "poses_velo_icp_estimated.txt");
+  std::string line;
+  for (int i = 0; i < frames && std::getline(poses, line);) {
+    short_poses << line << "\n";
+    i += !line.empty() && line[0] != '#';  // comments are not poses
+  }
+  for (int i = 0; i < frames; ++i) {
+    char name[32];
+    std::snprintf(name, sizeof(name), "%010d", i);
+    fs::create_symlink(kDay / kDrive / "image_02/data" / (std::string(name) + ".png"),
+                       drive / "image_02/data" / (std::string(name) + ".png"));
+    fs::create_symlink(kDay / kDrive / "velodyne_points/data" / (std::string(name) + ".bin"),
+                       drive / "velodyne_points/data" / (std::string(name) + ".bin"));
+  }
+  return drive.string();
+}
+
+class CliClips : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    fs::remove_all(Scratch());
+    fs::create_directories(Scratch());
+  }
+  void TearDown() override { fs::remove_all(Scratch()); }
+};
+
+TEST_F(CliClips, TrainRenderEvalResume) {
+  const std::string log = ShortLog(19);
+  const std::string dir = (Scratch() / "set").string();
+  const std::string train_args = "train --log " + log + " --out " + dir +
+                                 " --iterations 6 --field s3gaussian --static-iterations 3 --field-size small"
+                                 " --resolution-scale 0.12 --voxel 0.5 --seed 3 --no-lidar-loss --clip-frames 8";
+  Result r = RunCli(train_args);
+  ASSERT_EQ(r.code, 0) << r.err;
+  const nlohmann::json clips = nlohmann::json::parse(Slurp(dir + "/clips.json"));
+  EXPECT_EQ(clips["clip_frames"], 8);
+  EXPECT_EQ(clips["num_frames"], 19);
+  ASSERT_EQ(clips["clips"].size(), 2u);
+  EXPECT_EQ(clips["clips"][0]["frames"], nlohmann::json({0, 8}));
+  EXPECT_EQ(clips["clips"][1]["frames"], nlohmann::json({8, 19}));  // the 3-frame tail joined clip 1
+  EXPECT_EQ(clips["clips"][1]["dir"], "clip_001");
+  const int64_t end0 = clips["clips"][0]["time_range_us"][1], start1 = clips["clips"][1]["time_range_us"][0];
+  const int64_t end1 = clips["clips"][1]["time_range_us"][1];
+  ASSERT_LT(end0, start1);
+  for (const char* c : {"clip_000", "clip_001"}) {
+    for (const char* f : {"scene.ply", "field.bin", "train_meta.json", "checkpoint.bin", "scene.json"}) {
+      EXPECT_TRUE(fs::exists(fs::path(dir) / c / f)) << c << "/" << f;
+    }
+  }
+  const nlohmann::json meta1 = nlohmann::json::parse(Slurp(dir + "/clip_001/train_meta.json"));
+  EXPECT_EQ(meta1["time_range_us"], nlohmann::json({start1, end1}));  // the clip's own time axis
+
+  // Render: the clip set at T is the clip of T rendered on its own (a time between the clips goes
+  // to the nearer one, times outside the log to the first / last clip). A quarter-size camera.
+  nlohmann::json cam = nlohmann::json::parse(Slurp(kCamera));
+  for (const char* k : {"width", "height"}) cam[k] = cam[k].get<int>() / 4;
+  for (const char* k : {"fx", "fy", "cx", "cy"}) cam[k] = cam[k].get<double>() / 4;
+  const std::string camera = (Scratch() / "camera.json").string();
+  std::ofstream(camera) << cam.dump();
+  auto render = [&](const std::string& scene, const std::string& time) {
+    const std::string png = (Scratch() / "r.png").string();
+    const Result rr = RunCli("render --scene " + scene + " --camera " + camera + " --out-rgb " + png +
+                             (time.empty() ? "" : " --time-us " + time));
+    EXPECT_EQ(rr.code, 0) << rr.err;
+    return Slurp(png);
+  };
+  const std::string clip0 = dir + "/clip_000", clip1 = dir + "/clip_001";
+  const std::string t1 = std::to_string((start1 + end1) / 2);
+  EXPECT_EQ(render(dir, t1), render(clip1, t1));
+  EXPECT_NE(render(dir, t1), render(clip0, t1));
+  EXPECT_EQ(render(dir, ""), render(clip0, ""));
+  EXPECT_EQ(render(dir, std::to_string(end0 + (start1 - end0) / 4)), render(clip0, std::to_string(end0)));
+  EXPECT_EQ(render(dir, std::to_string(end1 + 10'000'000)), render(clip1, std::to_string(end1)));
+
+  // Eval: held-out frames 3, 7, 11, 15, each once, by its clip.
+  r = RunCli("eval --scene " + dir + " --log " + log + " --no-lidar");
+  ASSERT_EQ(r.code, 0) << r.err;
+  nlohmann::json j = nlohmann::json::parse(r.out);
+  ASSERT_EQ(j["frames"].size(), 4u);
+  std::vector<int> frames, clip_of;
+  for (const auto& f : j["frames"]) frames.push_back(f["frame"]), clip_of.push_back(f["clip"]);
+  EXPECT_EQ(frames, (std::vector<int>{3, 7, 11, 15}));
+  EXPECT_EQ(clip_of, (std::vector<int>{0, 0, 1, 1}));
+  // Frame 11 scores as clip 1 scores it on its own.
+  Result own = RunCli("eval --scene " + clip1 + " --log " + log + " --no-lidar");
+  ASSERT_EQ(own.code, 0) << own.err;
+  const nlohmann::json jo = nlohmann::json::parse(own.out);
+  for (const auto& f : jo["frames"]) {
+    if (f["frame"] == 11) EXPECT_DOUBLE_EQ(f["psnr"].get<double>(), j["frames"][2]["psnr"].get<double>());
+  }
+  // Training split: every training frame once.
+  r = RunCli("eval --scene " + dir + " --log " + log + " --no-lidar --split train");
+  ASSERT_EQ(r.code, 0) << r.err;
+  j = nlohmann::json::parse(r.out);
+  std::set<int> seen;
+  for (const auto& f : j["frames"]) EXPECT_TRUE(seen.insert(f["frame"].get<int>()).second);
+  EXPECT_EQ(seen.size(), 15u);
+
+  // Resume of a finished set: nothing retrained.
+  const auto t_ply = fs::last_write_time(fs::path(clip1) / "scene.ply");
+  r = RunCli(train_args + " --resume");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(fs::last_write_time(fs::path(clip1) / "scene.ply"), t_ply);
+  EXPECT_EQ(r.err.find("clip 0, frames"), std::string::npos) << r.err;
+  // A resume with another plan, or without --clip-frames: exit 2, nothing touched.
+  r = RunCli("train --log " + log + " --out " + dir + " --iterations 6 --clip-frames 6 --resume");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("clips of 8 frames"), std::string::npos) << r.err;
+  r = RunCli("train --log " + log + " --out " + dir + " --iterations 6 --resume");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("clip set"), std::string::npos) << r.err;
+
+  // A hostile manifest: consumers refuse it.
+  std::ofstream(dir + "/clips.json", std::ios::trunc)
+      << R"({"version": 1, "clip_frames": 8, "num_frames": 19, "clips": [{"index": 0, "dir": "../../etc",)"
+      << R"( "frames": [0, 19], "time_range_us": [0, 1800000], "done": true}]})";
+  r = RunCli("render --scene " + dir + " --camera " + kCamera + " --out-rgb " + (Scratch() / "x.png").string());
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("clips.json"), std::string::npos) << r.err;
+  r = RunCli("eval --scene " + dir + " --log " + log + " --no-lidar");
+  EXPECT_EQ(r.code, 2);
+}
+
+TEST_F(CliClips, BadClipFramesExit2) {
+  const std::string log = ShortLog(4);
+  for (const char* v : {"-3", "1", "3", "x", "2.5"}) {
+    const Result r = RunCli("train --log " + log + " --out " + (Scratch() / "bad").string() +
+                            " --iterations 2 --clip-frames " + v);
+    EXPECT_EQ(r.code, 2) << v;
+    EXPECT_NE(r.err.find("--clip-frames"), std::string::npos) << v << ": " << r.err;
+  }
+  EXPECT_FALSE(fs::exists(Scratch() / "bad"));
+}
+
+}  // namespace

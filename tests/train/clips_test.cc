@@ -1,0 +1,357 @@
+// Clip sets (scene/train/clips.h, clip_training.h; docs/training.md "Clips"): the plan and its
+// remainder rule, the manifest and what a damaged or hostile one gets, picking a clip for a time,
+// merged metrics, and training on a short KITTI log: clip 1's field starts from clip 0's, a run
+// killed in clip 1 resumes there without retraining clip 0 and ends where an uninterrupted run does.
+#include <unistd.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+
+#include <nlohmann/json.hpp>
+
+#include "gtest/gtest.h"
+#include "scene/field/field_io.h"
+#include "scene/gaussians/ply_io.h"
+#include "scene/log/open_log.h"
+#include "scene/train/clip_training.h"
+#include "scene/train/clips.h"
+
+namespace streetsim::train {
+namespace {
+
+namespace fs = std::filesystem;
+
+const char* kKitti = STREETSIM_DATA_DIR "/kitti_raw/2011_09_26/2011_09_26_drive_sfnd_sync";
+
+std::string TempDir(const std::string& name) {
+  const fs::path p = fs::path(::testing::TempDir()) / ("streetsim_clips_test_" + name + "_" + std::to_string(getpid()));
+  fs::remove_all(p);
+  fs::create_directories(p);
+  return p.string();
+}
+
+std::vector<ClipRange> Plan(int frames, int clip_frames) {
+  absl::StatusOr<std::vector<ClipRange>> p = PlanClips(frames, clip_frames);
+  EXPECT_TRUE(p.ok()) << p.status();
+  return p.ok() ? *p : std::vector<ClipRange>{};
+}
+
+TEST(ClipPlan, FullClipsAndTheRemainderRule) {
+  EXPECT_EQ(Plan(19, 8), (std::vector<ClipRange>{{0, 8}, {8, 19}}));           // tail of 3 < 4 joins
+  EXPECT_EQ(Plan(20, 8), (std::vector<ClipRange>{{0, 8}, {8, 16}, {16, 20}}));  // tail of 4 = N/2 stays
+  EXPECT_EQ(Plan(100, 50), (std::vector<ClipRange>{{0, 50}, {50, 100}}));
+  EXPECT_EQ(Plan(124, 50), (std::vector<ClipRange>{{0, 50}, {50, 124}}));       // 24 < 25
+  EXPECT_EQ(Plan(125, 50), (std::vector<ClipRange>{{0, 50}, {50, 100}, {100, 125}}));
+  EXPECT_EQ(Plan(74, 50), (std::vector<ClipRange>{{0, 74}}));  // up to 1.5 N: one clip
+  EXPECT_EQ(Plan(30, 50), (std::vector<ClipRange>{{0, 30}}));
+  EXPECT_EQ(Plan(78, 0), (std::vector<ClipRange>{{0, 78}}));   // 0: the whole log
+  EXPECT_EQ(Plan(9, 5), (std::vector<ClipRange>{{0, 5}, {5, 9}}));  // odd N: tail >= ceil(5 / 2)
+  EXPECT_EQ(Plan(7, 5), (std::vector<ClipRange>{{0, 7}}));
+}
+
+TEST(ClipPlan, AbsurdValuesAreClearErrors) {
+  for (int n : {-3, -1, 1, 2, 3}) {
+    absl::StatusOr<std::vector<ClipRange>> p = PlanClips(78, n);
+    ASSERT_FALSE(p.ok()) << n;
+    EXPECT_EQ(p.status().code(), absl::StatusCode::kInvalidArgument);
+    EXPECT_NE(p.status().message().find("--clip-frames"), std::string::npos) << p.status();
+  }
+  EXPECT_FALSE(PlanClips(0, 8).ok());
+  EXPECT_TRUE(PlanClips(78, kMinClipFrames).ok());
+}
+
+ClipSet ThreeClips() {
+  ClipSet s;
+  s.clip_frames = 8;
+  s.num_frames = 20;
+  const int64_t dt = 100'000;
+  for (auto [a, b] : std::vector<std::pair<int, int>>{{0, 8}, {8, 16}, {16, 20}}) {
+    ClipEntry e;
+    e.frames = {a, b};
+    e.start_us = a * dt;
+    e.end_us = (b - 1) * dt;
+    e.dir = ClipDirName(static_cast<int>(s.clips.size()));
+    e.done = a == 0;
+    s.clips.push_back(e);
+  }
+  return s;
+}
+
+TEST(ClipManifest, RoundTrip) {
+  const std::string dir = TempDir("roundtrip");
+  absl::StatusOr<std::optional<ClipSet>> none = ReadClipSet(dir);
+  ASSERT_TRUE(none.ok());
+  EXPECT_FALSE(none->has_value());
+  const ClipSet s = ThreeClips();
+  ASSERT_TRUE(WriteClipSet(s, dir).ok());
+  absl::StatusOr<std::optional<ClipSet>> back = ReadClipSet(dir);
+  ASSERT_TRUE(back.ok()) << back.status();
+  ASSERT_TRUE(back->has_value());
+  const ClipSet& b = **back;
+  EXPECT_EQ(b.clip_frames, 8);
+  EXPECT_EQ(b.num_frames, 20);
+  ASSERT_EQ(b.clips.size(), 3u);
+  for (size_t k = 0; k < 3; ++k) {
+    EXPECT_EQ(b.clips[k].frames, s.clips[k].frames);
+    EXPECT_EQ(b.clips[k].start_us, s.clips[k].start_us);
+    EXPECT_EQ(b.clips[k].end_us, s.clips[k].end_us);
+    EXPECT_EQ(b.clips[k].dir, s.clips[k].dir);
+    EXPECT_EQ(b.clips[k].done, s.clips[k].done);
+  }
+  EXPECT_FALSE(fs::exists(fs::path(dir) / "clips.json.tmp"));
+}
+
+// Writes `s`'s JSON after `edit`, then reads it back.
+absl::Status ReadEdited(const std::string& dir, const std::function<void(nlohmann::json&)>& edit) {
+  if (absl::Status st = WriteClipSet(ThreeClips(), dir); !st.ok()) return st;
+  const std::string path = (fs::path(dir) / kClipManifestName).string();
+  std::ifstream in(path);
+  nlohmann::json j = nlohmann::json::parse(in);
+  in.close();
+  edit(j);
+  std::ofstream(path, std::ios::trunc) << j.dump();
+  return ReadClipSet(dir).status();
+}
+
+TEST(ClipManifest, DamagedOrHostileManifestsAreRefused) {
+  const std::string dir = TempDir("hostile");
+  using J = nlohmann::json;
+  const std::vector<std::pair<std::string, std::function<void(J&)>>> cases = {
+      {"escaping dir", [](J& j) { j["clips"][1]["dir"] = "../../etc"; }},
+      {"absolute dir", [](J& j) { j["clips"][0]["dir"] = "/etc"; }},
+      {"nested dir", [](J& j) { j["clips"][0]["dir"] = "clip_000/../../x"; }},
+      {"another clip's dir", [](J& j) { j["clips"][0]["dir"] = "clip_001"; }},
+      {"dir not a string", [](J& j) { j["clips"][0]["dir"] = 3; }},
+      {"missing key", [](J& j) { j["clips"][2].erase("time_range_us"); }},
+      {"gap between clips", [](J& j) { j["clips"][1]["frames"] = {9, 16}; }},
+      {"overlap", [](J& j) { j["clips"][1]["frames"] = {7, 16}; }},
+      {"empty clip", [](J& j) { j["clips"][1]["frames"] = {8, 8}; }},
+      {"not covering the log", [](J& j) { j["num_frames"] = 30; }},
+      {"past the log", [](J& j) { j["clips"][2]["frames"] = {16, 40}; }},
+      {"time backwards", [](J& j) { j["clips"][1]["time_range_us"] = {900000, 800000}; }},
+      {"times out of order", [](J& j) { j["clips"][2]["time_range_us"] = {0, 1900000}; }},
+      {"wrong index", [](J& j) { j["clips"][1]["index"] = 5; }},
+      {"no clips", [](J& j) { j["clips"] = J::array(); }},
+      {"clips not an array", [](J& j) { j["clips"] = "clip_000"; }},
+      {"unknown version", [](J& j) { j["version"] = 2; }},
+      {"negative clip_frames", [](J& j) { j["clip_frames"] = -3; }},
+      {"huge num_frames", [](J& j) { j["num_frames"] = 2'000'000'000; }},
+      {"frames not 2 numbers", [](J& j) { j["clips"][0]["frames"] = {0}; }},
+  };
+  for (const auto& [what, edit] : cases) {
+    const absl::Status s = ReadEdited(dir, edit);
+    EXPECT_EQ(s.code(), absl::StatusCode::kDataLoss) << what << ": " << s;
+    EXPECT_NE(s.message().find("clips.json"), std::string::npos) << what << ": " << s;
+  }
+  // Not JSON at all, and truncated.
+  for (const std::string text : {"not json", "{\"version\": 1, \"clips\": [", ""}) {
+    std::ofstream(fs::path(dir) / kClipManifestName, std::ios::trunc) << text;
+    EXPECT_EQ(ReadClipSet(dir).status().code(), absl::StatusCode::kDataLoss) << text;
+  }
+}
+
+TEST(ClipManifest, ClipDirectoryLinkedOutOfTheSetIsRefused) {
+  const std::string dir = TempDir("link");
+  const std::string outside = TempDir("link_outside");
+  ClipSet s = ThreeClips();
+  fs::create_directories(fs::path(dir) / "clip_000");
+  fs::create_directory_symlink(outside, fs::path(dir) / "clip_001");
+  absl::StatusOr<std::string> ok = ClipPath(dir, s.clips[0]);
+  ASSERT_TRUE(ok.ok()) << ok.status();
+  EXPECT_EQ(*ok, (fs::path(dir) / "clip_000").string());
+  EXPECT_EQ(ClipPath(dir, s.clips[1]).status().code(), absl::StatusCode::kDataLoss);
+  EXPECT_EQ(ClipPath(dir, s.clips[2]).status().code(), absl::StatusCode::kNotFound);  // missing
+  // SceneDirForTime: a plain directory is itself; a clip set gives the clip of the time.
+  absl::StatusOr<std::string> plain = SceneDirForTime(dir, 5);
+  ASSERT_TRUE(plain.ok());
+  EXPECT_EQ(*plain, dir);
+  ASSERT_TRUE(WriteClipSet(s, dir).ok());
+  absl::StatusOr<std::string> first = SceneDirForTime(dir, std::nullopt);
+  ASSERT_TRUE(first.ok()) << first.status();
+  EXPECT_EQ(*first, (fs::path(dir) / "clip_000").string());
+  EXPECT_FALSE(SceneDirForTime(dir, 1'000'000).ok());  // clip_001 leaves the set
+}
+
+TEST(ClipPick, InsideBetweenAndOutside) {
+  const ClipSet s = ThreeClips();  // [0, 0.7 s], [0.8, 1.5 s], [1.6, 1.9 s]
+  EXPECT_EQ(PickClip(s, 0), 0);
+  EXPECT_EQ(PickClip(s, 700'000), 0);
+  EXPECT_EQ(PickClip(s, 800'000), 1);
+  EXPECT_EQ(PickClip(s, 1'500'000), 1);
+  EXPECT_EQ(PickClip(s, 1'700'000), 2);
+  EXPECT_EQ(PickClip(s, 740'000), 0);    // between: nearer clip
+  EXPECT_EQ(PickClip(s, 760'000), 1);
+  EXPECT_EQ(PickClip(s, 750'000), 0);    // tie: the earlier
+  EXPECT_EQ(PickClip(s, -5'000'000), 0);  // before the log
+  EXPECT_EQ(PickClip(s, 9'000'000), 2);   // after it
+  EXPECT_EQ(PickClip(s, INT64_MIN), 0);
+  EXPECT_EQ(PickClip(s, INT64_MAX), 2);
+}
+
+TEST(ClipMerge, MeansOverTheFramesWhereDefined) {
+  EvalResult a, b;
+  FrameMetrics f;
+  f.psnr = 20, f.ssim = 0.5, f.depth_median_abs_m = 1.0, f.depth_within_5pct = 0.2, f.psnr_dynamic = 15;
+  a.frames.push_back(f);
+  f.psnr = 30, f.ssim = 0.7, f.depth_median_abs_m = -1, f.depth_within_5pct = -1, f.psnr_dynamic = -1;
+  f.psnr_static = 31;
+  b.frames.push_back(f);
+  const EvalResult m = MergeEvalResults({a, b});
+  ASSERT_EQ(m.frames.size(), 2u);
+  EXPECT_DOUBLE_EQ(m.mean.psnr, 25);
+  EXPECT_DOUBLE_EQ(m.mean.ssim, 0.6);
+  EXPECT_DOUBLE_EQ(m.mean.depth_median_abs_m, 1.0);
+  EXPECT_DOUBLE_EQ(m.mean.psnr_dynamic, 15);
+  EXPECT_DOUBLE_EQ(m.mean.psnr_static, 31);
+  LidarEvalResult la, lb;
+  LidarFrameMetrics l;
+  l.frame = 3, l.chamfer_m = 2, l.range_median_abs_m = -1, l.rays = 10;
+  la.frames.push_back(l);
+  l.frame = 11, l.chamfer_m = 4, l.range_median_abs_m = 0.5, l.rays = 5;
+  lb.frames.push_back(l);
+  const LidarEvalResult lm = MergeLidarEvalResults({la, lb});
+  EXPECT_DOUBLE_EQ(lm.mean.chamfer_m, 3);
+  EXPECT_DOUBLE_EQ(lm.mean.range_median_abs_m, 0.5);
+  EXPECT_EQ(lm.mean.rays, 15u);
+  EXPECT_DOUBLE_EQ(lm.mean.drop_accuracy, -1);
+}
+
+// 19 frames of the KITTI clip, two clips of 8 + 11 frames, a tiny field whose learning rates are
+// ~0 so that a field's parameters show where they started.
+TrainOptions TinyOptions() {
+  TrainOptions o;
+  o.iterations = 6;
+  o.resolution_scale = 0.12;
+  o.holdout_every = 4;
+  o.seed = 3;
+  o.deterministic = true;
+  o.checkpoint_every = 2;
+  o.init_voxel_m = 0.5;
+  o.lidar_weight = 0;
+  o.field.mode = FieldMode::kS3Gaussian;
+  o.field.static_iterations = 3;
+  o.field.config.channels = 4;
+  o.field.config.base_resolution = 8;
+  o.field.config.multires = {1, 2};
+  o.field.config.time_resolution = 6;
+  o.field.config.width = 16;
+  o.field.hyper.grid_lr_init = o.field.hyper.grid_lr_final = 1e-30;
+  o.field.hyper.deformation_lr_init = o.field.hyper.deformation_lr_final = 1e-30;
+  return o;
+}
+
+DriveLog ShortLog() {
+  absl::StatusOr<DriveLog> log = OpenLog(kKitti);
+  EXPECT_TRUE(log.ok()) << log.status();
+  log->frames.resize(19);
+  return *log;
+}
+
+double MaxAbsDiff(const std::vector<float>& a, const std::vector<float>& b) {
+  EXPECT_EQ(a.size(), b.size());
+  double d = 0;
+  for (size_t i = 0; i < std::min(a.size(), b.size()); ++i) d = std::max(d, std::abs(double(a[i]) - b[i]));
+  return d;
+}
+
+TEST(ClipTraining, PriorFieldAndResumeInTheClipItWasKilledIn) {
+  const DriveLog log = ShortLog();
+  const TrainOptions opt = TinyOptions();
+  ClipTrainOptions copt;
+  copt.clip_frames = 8;
+
+  // Uninterrupted.
+  const std::string a = TempDir("train_a");
+  absl::StatusOr<ClipTrainResult> ra = TrainClips(log, a, opt, copt);
+  ASSERT_TRUE(ra.ok()) << ra.status();
+  ASSERT_TRUE(ra->set.has_value());
+  ASSERT_EQ(ra->runs.size(), 2u);
+  EXPECT_FALSE(ra->stopped);
+  absl::StatusOr<std::optional<ClipSet>> set = ReadClipSet(a);
+  ASSERT_TRUE(set.ok() && set->has_value());
+  ASSERT_EQ((*set)->clips.size(), 2u);
+  EXPECT_TRUE((*set)->clips[0].done && (*set)->clips[1].done);
+  EXPECT_EQ((*set)->clips[1].frames, (ClipRange{8, 19}));
+  EXPECT_EQ((*set)->clips[1].start_us, log.frames[8].time_us);
+  EXPECT_EQ((*set)->clips[1].end_us, log.frames[18].time_us);
+  for (const char* f : {"scene.ply", "field.bin", "train_meta.json", "checkpoint.bin", "scene.json"}) {
+    EXPECT_TRUE(fs::exists(fs::path(a) / "clip_001" / f)) << f;
+  }
+  // Held-out views by the log's frame index: clip 1 holds out 11 and 15 (not 8 + 3 = 11, 8 + 7).
+  ASSERT_EQ(ra->runs[1].result.heldout.frames.size(), 2u);
+  EXPECT_EQ(ra->runs[1].result.heldout.frames[0].frame, 11);
+  EXPECT_EQ(ra->runs[1].result.heldout.frames[1].frame, 15);
+  ASSERT_EQ(ra->runs[0].result.heldout.frames.size(), 2u);
+  EXPECT_EQ(ra->runs[0].result.heldout.frames[0].frame, 3);
+
+  // Clip 1's field: clip 0's parameters (learning rates ~0), over its own AABB and times.
+  absl::StatusOr<field::DeformationField> f0 = field::LoadField((fs::path(a) / "clip_000/field.bin").string());
+  absl::StatusOr<field::DeformationField> f1 = field::LoadField((fs::path(a) / "clip_001/field.bin").string());
+  ASSERT_TRUE(f0.ok() && f1.ok());
+  EXPECT_LT(MaxAbsDiff(f0->params(), f1->params()), 1e-12);
+  EXPECT_EQ(f1->time_range().start_us, log.frames[8].time_us);
+  EXPECT_EQ(f1->time_range().end_us, log.frames[18].time_us);
+  EXPECT_EQ(f0->time_range().end_us, log.frames[7].time_us);
+  EXPECT_NE(f0->aabb().min[0], f1->aabb().min[0]);
+  // What a fresh field of clip 1 would have been (its seed is seed + 1): far from clip 0's.
+  absl::StatusOr<field::DeformationField> fresh =
+      field::DeformationField::Create(opt.field.config, f1->aabb(), f1->time_range(), opt.seed + 1);
+  ASSERT_TRUE(fresh.ok());
+  EXPECT_GT(MaxAbsDiff(fresh->params(), f1->params()), 1e-3);
+
+  // Killed in clip 1 after its checkpoint at 4 (one fine iteration in), then resumed.
+  const std::string b = TempDir("train_b");
+  TrainOptions killed = opt;
+  killed.stop_after = 5;
+  ClipTrainOptions kcopt = copt;
+  kcopt.stop_in_clip = 1;
+  absl::StatusOr<ClipTrainResult> rb = TrainClips(log, b, killed, kcopt);
+  ASSERT_TRUE(rb.ok()) << rb.status();
+  EXPECT_TRUE(rb->stopped);
+  ASSERT_EQ(rb->runs.size(), 2u);
+  EXPECT_EQ(rb->runs[1].result.iterations, 5);
+  set = ReadClipSet(b);
+  ASSERT_TRUE(set.ok() && set->has_value());
+  EXPECT_TRUE((*set)->clips[0].done);
+  EXPECT_FALSE((*set)->clips[1].done);
+  const fs::path clip0_ply = fs::path(b) / "clip_000/scene.ply";
+  const auto clip0_time = fs::last_write_time(clip0_ply);
+
+  TrainOptions resumed = opt;
+  resumed.resume = true;
+  int64_t first_iteration = -1;
+  absl::StatusOr<ClipTrainResult> rc = TrainClips(log, b, resumed, copt, [&](const Progress& p) {
+    if (first_iteration < 0) first_iteration = p.iteration;
+  });
+  ASSERT_TRUE(rc.ok()) << rc.status();
+  EXPECT_EQ(first_iteration, 5);  // continued from clip 1's checkpoint at 4
+  ASSERT_EQ(rc->runs.size(), 1u);  // clip 0 is done: not retrained
+  EXPECT_EQ(rc->runs[0].clip, 1);
+  EXPECT_EQ(rc->runs[0].result.iterations, 6);
+  EXPECT_EQ(fs::last_write_time(clip0_ply), clip0_time);
+  set = ReadClipSet(b);
+  ASSERT_TRUE(set.ok() && set->has_value());
+  EXPECT_TRUE((*set)->clips[1].done);
+  // The resumed clip 1 ends where the uninterrupted one did (fine stage: to float noise,
+  // docs/training.md "Dynamic field").
+  absl::StatusOr<GaussianStore> ga = ReadGaussianPly((fs::path(a) / "clip_001/scene.ply").string());
+  absl::StatusOr<GaussianStore> gb = ReadGaussianPly((fs::path(b) / "clip_001/scene.ply").string());
+  ASSERT_TRUE(ga.ok() && gb.ok());
+  ASSERT_EQ(ga->size(), gb->size());
+  EXPECT_LT(MaxAbsDiff(ga->means, gb->means), 1e-5);
+  EXPECT_LT(MaxAbsDiff(ga->sh, gb->sh), 1e-5);
+
+  // Everything done: a resume trains nothing; another plan or a plain resume is refused.
+  absl::StatusOr<ClipTrainResult> rd = TrainClips(log, b, resumed, copt);
+  ASSERT_TRUE(rd.ok()) << rd.status();
+  EXPECT_TRUE(rd->runs.empty());
+  ClipTrainOptions other = copt;
+  other.clip_frames = 6;
+  EXPECT_EQ(TrainClips(log, b, resumed, other).status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(TrainClips(log, b, resumed, ClipTrainOptions{}).status().code(), absl::StatusCode::kFailedPrecondition);
+}
+
+}  // namespace
+}  // namespace streetsim::train
