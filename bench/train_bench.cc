@@ -144,10 +144,13 @@ int main(int argc, char **argv) {
                   s.c_str(), t_up * k, t_fwd * k, t_loss * k, t_bwd * k,
                   t_adam * k, t_tot * k, out.stats.num_visible,
                   out.stats.num_tile_instances);
-      std::printf("%-18s forward: projection %.1f, sort+bin %.1f, blend %.1f; "
-                  "backward: blend %.1f, projection %.1f\n",
-                  "", t_proj * k, t_sort * k, t_blend * k, t_bblend * k,
-                  (t_bwd - t_bblend) * k);
+      std::printf("%-18s forward: projection %.1f, sort+bin %.1f, blend %.1f", "", t_proj * k, t_sort * k,
+                  t_blend * k);
+      // Only the cpu backend times its backward's stages (GaussianGrads::blend_backward_ms).
+      if (t_bblend > 0) {
+        std::printf("; backward: blend %.1f, projection %.1f", t_bblend * k, (t_bwd - t_bblend) * k);
+      }
+      std::printf("\n");
     }
   }
   return 0;
