@@ -176,6 +176,25 @@ class PythonClientTest(unittest.TestCase):
                                      options=streetsim.LidarOptions(min_range_m=float("nan")))
         self.assertEqual(e.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
 
+    def test_render_trajectory_streams_frames_and_sweeps(self):
+        pose = np.eye(4)
+        pose[1, 3] = 0.5
+        out = list(self.client.render_trajectory("wall", [(0, np.eye(4)), (0, pose)], sensors=["cam_front"],
+                                                 width=64, height=32, lidar=streetsim.LidarOptions(columns=128)))
+        self.assertEqual([i for i, _, _ in out], [0, 1])
+        for _, frames, lidar in out:
+            self.assertEqual(frames["cam_front"].rgb.shape, (32, 64, 3))
+            self.assertEqual(lidar.range.shape, (64, 128))
+        # The same as single renders; the two poses differ.
+        single = self.client.render("wall", ego_pose=pose, sensors=["cam_front"], width=64, height=32,
+                                    lidar=streetsim.LidarOptions(columns=128))
+        np.testing.assert_array_equal(out[1][1]["cam_front"].rgb, single["cam_front"].rgb)
+        np.testing.assert_array_equal(out[1][2].range, self.client.last_lidar.range)
+        self.assertFalse(np.array_equal(out[0][2].range, out[1][2].range))
+        with self.assertRaises(streetsim.StreetsimError) as e:
+            list(self.client.render_trajectory("wall", [(0, np.eye(4))], lidar=streetsim.LidarOptions(columns=-1)))
+        self.assertEqual(e.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
+
     def test_training_helper_streams_progress(self):
         job = self.client.train("logs/fake", scene_name="py_trained", request_id="py-1")
         updates = list(self.client.watch_job(job.job_id))

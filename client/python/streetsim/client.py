@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Dict, Iterable, Iterator, List, Optional, Sequence
+from typing import Dict, Iterable, Iterator, List, Optional, Sequence, Tuple
 
 import grpc
 import numpy as np
@@ -305,6 +305,31 @@ class Client:
         self.render(scene, time_us, ego_pose=ego_pose, sensor_pose=lidar_pose, rgb=False,
                     timeout_s=timeout_s, lidar=options or LidarOptions(), no_cameras=True)
         return self.last_lidar
+
+    def render_trajectory(self, scene: str, points: Sequence, sensors: Optional[Sequence] = None,
+                          width: int = 0, height: int = 0, rgb: bool = True, depth: bool = False,
+                          alpha: bool = False, encoding: str = "raw", depth_encoding: str = "f32",
+                          lidar: Optional[LidarOptions] = None,
+                          timeout_s: Optional[float] = None) -> Iterator[Tuple[int, Dict[str, Frame], Optional[Lidar]]]:
+        """Renders a list of instants in one call, streamed in order: points are (time_us, 4x4
+        T_world_from_ego or None for the log's pose). Yields (index, frames, lidar); with
+        ``lidar`` every point also gets a sweep from its time (the server validates every point
+        before rendering any)."""
+        req = render_pb2.RenderTrajectoryRequest(scene=scene, sensors=_sensors(sensors, width, height),
+                                                 outputs=_outputs(rgb, depth, alpha, encoding, depth_encoding))
+        for time_us, ego_pose in points:
+            p = req.points.add(time_us=int(time_us))
+            if ego_pose is not None:
+                p.T_world_from_ego.CopyFrom(pose_from_matrix(ego_pose))
+        if lidar is not None:
+            req.lidar.CopyFrom(lidar.to_proto())
+        try:
+            for f in self.render_stub.RenderTrajectory(req, timeout=timeout_s or self.timeout_s,
+                                                       metadata=self._metadata):
+                r = f.response
+                yield f.index, _frames(r.frames), (_lidar(r.lidar) if r.HasField("lidar") else None)
+        except grpc.RpcError as e:
+            raise StreetsimError(e.code(), e.details()) from None
 
     # -- sessions -------------------------------------------------------------------------------
     def session(self, scene: str, step_dt_us: int = 100000, start_time_us: int = 0, seed: int = 0,
