@@ -12,6 +12,7 @@
 #include <nlohmann/json.hpp>
 
 #include "gtest/gtest.h"
+#include "tests/common/scratch_dir.h"
 #include "scene/field/field_io.h"
 #include "scene/gaussians/ply_io.h"
 #include "scene/log/open_log.h"
@@ -25,27 +26,7 @@ namespace fs = std::filesystem;
 
 const char* kKitti = STREETSIM_DATA_DIR "/kitti_raw/2011_09_26/2011_09_26_drive_sfnd_sync";
 
-// Scratch directories of this process, removed when its tests end (pass or fail).
-std::vector<std::string>& ScratchDirs() {
-  static std::vector<std::string> dirs;
-  return dirs;
-}
-struct RemoveScratchDirs : ::testing::Environment {
-  void TearDown() override {
-    std::error_code ec;
-    for (const std::string& d : ScratchDirs()) fs::remove_all(d, ec);
-  }
-};
-[[maybe_unused]] ::testing::Environment* const kRemoveScratchDirs =
-    ::testing::AddGlobalTestEnvironment(new RemoveScratchDirs);
-
-std::string TempDir(const std::string& name) {
-  const fs::path p = fs::path(::testing::TempDir()) / ("streetsim_clips_test_" + name + "_" + std::to_string(getpid()));
-  fs::remove_all(p);
-  fs::create_directories(p);
-  ScratchDirs().push_back(p.string());
-  return p.string();
-}
+std::string TempDir(const std::string& name) { return testing::ScratchDir("streetsim_clips_test", name); }
 
 std::vector<ClipRange> Plan(int frames, int clip_frames) {
   absl::StatusOr<std::vector<ClipRange>> p = PlanClips(frames, clip_frames);

@@ -4,6 +4,7 @@
 #include <filesystem>
 
 #include "gtest/gtest.h"
+#include "tests/common/scratch_dir.h"
 #include "scene/log/open_log.h"
 #include "scene/field/field_io.h"
 #include "scene/train/trainer.h"
@@ -40,10 +41,11 @@ TrainOptions ShortOptions() {
   return o;
 }
 
+// Empty and absent: the trainer creates its output directory (removed at the end of the run).
 std::string TempDir(const std::string& name) {
-  const auto p = std::filesystem::temp_directory_path() / ("streetsim_trainer_test_" + name);
+  const std::string p = testing::ScratchDir("streetsim_trainer_test", name);
   std::filesystem::remove_all(p);
-  return p.string();
+  return p;
 }
 
 TEST(Trainer, ResumeAfterKillReachesTheSameBits) {
