@@ -113,6 +113,8 @@ absl::StatusOr<RenderResult> RenderCore::Render(const SceneField& field, int64_t
   if (outputs.has_background_rgb()) {
     options.background = Eigen::Vector3f(outputs.background_rgb().x(), outputs.background_rgb().y(),
                                          outputs.background_rgb().z());
+  } else if (std::optional<Eigen::Vector3f> bg = field.BackgroundAt(time_us)) {
+    options.background = *bg;
   } else if (extras.default_background) {
     options.background = *extras.default_background;
   }

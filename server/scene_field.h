@@ -8,6 +8,8 @@
 #include <optional>
 #include <vector>
 
+#include <Eigen/Core>
+
 #include "absl/status/statusor.h"
 #include "render/engine.h"
 #include "scene/gaussians/gaussian_store.h"
@@ -42,6 +44,10 @@ class SceneField {
   virtual absl::StatusOr<std::shared_ptr<const HostScene>> HostAt(int64_t time_us) const = 0;
   virtual size_t num_gaussians() const = 0;
   virtual FieldStats stats() const { return {}; }
+  // The learned background at `time_us` when it depends on the time (a clip set: each clip's
+  // own); nullopt: the manifest's (RenderExtras::default_background). A request's background_rgb
+  // wins over both.
+  virtual std::optional<Eigen::Vector3f> BackgroundAt(int64_t /*time_us*/) const { return std::nullopt; }
 };
 
 class StaticSceneField : public SceneField {

@@ -6,13 +6,8 @@
 
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
-#include "scene/field/extended/extended_io.h"
-#include "scene/field/field_io.h"
-#include "scene/gaussians/ply_io.h"
 #include "scene/train/clips.h"
-#include "scene/train/lidar_eval.h"
-#include "scene/train/trainer.h"
-#include "server/dynamic_scene_field.h"
+#include "server/clip_set_scene_field.h"
 #include "server/path_confinement.h"
 
 namespace streetsim::server {
@@ -54,24 +49,7 @@ void SceneRegistry::RescanLocked() {
     e.name = name;
     e.ply_path = ply;
     e.source = source;
-    absl::StatusOr<SceneManifest> m = SceneManifest{};
-    if (!manifest_path.empty() && fs::exists(manifest_path)) {
-      m = ReadSceneManifest(manifest_path);
-    } else {
-      m->cameras = DefaultRig();
-    }
-    // A trained scene's learned sky colour (train_meta.json beside scene.ply).
-    if (m.ok() && !manifest_path.empty()) {
-      const fs::path dir = fs::path(manifest_path).parent_path();
-      if (fs::exists(dir / "train_meta.json")) {
-        absl::StatusOr<train::SceneMeta> meta = train::ReadSceneMeta(dir.string());
-        if (meta.ok()) {
-          m->background = meta->background;
-        } else {
-          m = meta.status();
-        }
-      }
-    }
+    absl::StatusOr<SceneManifest> m = ReadSceneDirManifest(manifest_path);
     if (m.ok()) {
       e.manifest = std::make_shared<SceneManifest>(std::move(*m));
     } else {
@@ -79,17 +57,21 @@ void SceneRegistry::RescanLocked() {
     }
     found.emplace(name, std::move(e));
   };
-  // A clip set (DIR/clips.json, docs/training.md "Clips") is not served as one scene: it is listed
-  // with an error naming its clips, each of which is a scene directory of its own.
-  auto add_clip_set = [&](const std::string& name, const std::string& manifest, const std::string& source) {
+  // A clip set (DIR/clips.json, docs/training.md "Clips") is one scene over its clips' time
+  // ranges (clip_set_scene_field.h); each clip directory is also a scene of its own.
+  auto add_clip_set = [&](const std::string& name, const std::string& clips_json, const std::string& source) {
     if (found.count(name)) return;
     Entry e;
     e.name = name;
-    e.ply_path = manifest;
+    e.ply_path = clips_json;
+    e.clip_set = true;
     e.source = source;
-    e.manifest_error = absl::StrCat("a clip set (", train::kClipManifestName,
-                                    "), which the server does not serve as one scene; its clips (", name,
-                                    "/clip_000, ...) are scenes of their own");
+    absl::StatusOr<SceneManifest> m = ReadClipSetManifest(fs::path(clips_json).parent_path().string());
+    if (m.ok()) {
+      e.manifest = std::make_shared<SceneManifest>(std::move(*m));
+    } else {
+      e.manifest_error = absl::StrCat("clip set: ", m.status().message());
+    }
     found.emplace(name, std::move(e));
   };
   auto scan = [&](const std::string& root, const std::string& source, bool bare_ply) {
@@ -251,53 +233,12 @@ void SceneRegistry::StartLoadLocked(Entry* e) {
   const uint64_t generation = ++e->generation;
   const std::string name = e->name;
   const std::string path = e->ply_path;
-  loaders_.emplace_back([this, name, path, generation] {
+  const bool clip_set = e->clip_set;
+  loaders_.emplace_back([this, name, path, clip_set, generation] {
     const auto t0 = std::chrono::steady_clock::now();
-    absl::StatusOr<std::shared_ptr<LoadedScene>> result = [&]() -> absl::StatusOr<std::shared_ptr<LoadedScene>> {
-      absl::StatusOr<GaussianStore> store = ReadGaussianPly(path);
-      if (!store.ok()) return store.status();
-      auto loaded = std::make_shared<LoadedScene>();
-      loaded->num_gaussians = store->size();
-      if (store->size() > 0) {
-        Eigen::Map<const Eigen::Matrix<float, 3, Eigen::Dynamic>> m(store->means.data(), 3, store->size());
-        loaded->min_m = m.rowwise().minCoeff().cast<double>();
-        loaded->max_m = m.rowwise().maxCoeff().cast<double>();
-      }
-      absl::StatusOr<std::optional<std::vector<float>>> reflectance = train::ReadPlyReflectance(path, store->size());
-      if (!reflectance.ok()) return reflectance.status();
-      // A trained dynamic scene: DIR/field.bin beside DIR/scene.ply (bare .ply files are static).
-      const fs::path field_path = fs::path(path).parent_path() / field::kFieldFileName;
-      std::error_code ec;
-      if (fs::path(path).filename() == "scene.ply" && fs::exists(field_path, ec)) {
-        // --field extended scenes need the extended field at every timestamp; serving them with
-        // field.bin alone would silently drop the seed paper's modules.
-        const fs::path ext_path = fs::path(path).parent_path() / field::kExtendedFieldFileName;
-        if (fs::exists(ext_path, ec)) {
-          return absl::FailedPreconditionError(absl::StrCat(
-              ext_path.string(), ": a scene trained with --field extended, which the server does not serve yet "
-                                 "(render or eval it with the streetsim CLI)"));
-        }
-        absl::StatusOr<field::DeformationField> f = field::LoadField(field_path.string());
-        if (!f.ok()) return f.status();  // DATA_LOSS naming the file
-        absl::StatusOr<std::unique_ptr<DynamicSceneField>> dynamic = DynamicSceneField::Create(
-            std::move(*f), std::move(*store), std::move(*reflectance), field::StaticSkipOptions{},
-            [this](const GaussianStore& g) { return core_->Upload(g); });
-        if (!dynamic.ok()) {
-          return absl::Status(dynamic.status().code(),
-                              absl::StrCat(field_path.string(), ": ", dynamic.status().message()));
-        }
-        loaded->field = std::move(*dynamic);
-        return loaded;
-      }
-      absl::StatusOr<std::unique_ptr<DeviceScene>> device = core_->Upload(*store);
-      if (!device.ok()) return device.status();
-      // The host copy serves LiDAR sweeps (render/lidar takes a GaussianStore).
-      auto host = std::make_shared<HostScene>();
-      host->store = std::move(*store);
-      host->reflectance = std::move(*reflectance);
-      loaded->field = std::make_unique<StaticSceneField>(std::move(*device), std::move(host));
-      return loaded;
-    }();
+    const SceneUploader upload = [this](const GaussianStore& g) { return core_->Upload(g); };
+    absl::StatusOr<std::shared_ptr<LoadedScene>> result =
+        clip_set ? LoadClipSet(fs::path(path).parent_path().string(), upload) : LoadSceneFile(path, upload);
     std::lock_guard<std::mutex> lock(mu_);
     auto it = entries_.find(name);
     if (it == entries_.end() || it->second.generation != generation) return;  // unloaded meanwhile

@@ -5,9 +5,10 @@
 //    scene_manifest.h): named by its path relative to the data root, e.g. "kitti/0001";
 //  - a bare .ply file under the data root: named by its relative path without ".ply"; a static
 //    scene (any time accepted) with the default rig;
-//  - a finished training job's output, <state_dir>/scenes/<name>/.
-// A clip set (a directory with clips.json, docs/training.md "Clips") is listed with an error and
-// never loaded; its clip directories are scenes of their own.
+//  - a finished training job's output, <state_dir>/scenes/<name>/;
+//  - a clip set (a directory with clips.json, docs/training.md "Clips"), served as one scene by
+//    ClipSetSceneField (clip_set_scene_field.h) and named like a directory; its clip directories
+//    are scenes of their own too.
 // Names are looked up in the catalogue only; request strings never become paths.
 // Loading (PLY read, field.bin and its static analysis when present, Engine::Upload) runs on its
 // own thread; other calls never wait for it.
@@ -26,17 +27,11 @@
 #include "absl/status/statusor.h"
 #include "server/render_core.h"
 #include "server/scene_field.h"
+#include "server/scene_loading.h"
 #include "server/scene_manifest.h"
 #include "streetsim/v1/scene.pb.h"
 
 namespace streetsim::server {
-
-struct LoadedScene {
-  std::unique_ptr<SceneField> field;
-  size_t num_gaussians = 0;
-  Eigen::Vector3d min_m = Eigen::Vector3d::Zero(), max_m = Eigen::Vector3d::Zero();
-  double load_time_s = 0;  // PLY, field.bin, static analysis and upload
-};
 
 struct SceneHandle {
   std::string name;
@@ -64,7 +59,8 @@ class SceneRegistry {
  private:
   struct Entry {
     std::string name;
-    std::string ply_path;
+    std::string ply_path;  // a clip set: its clips.json
+    bool clip_set = false;
     std::string source;  // "data_root" | "job"
     std::shared_ptr<const SceneManifest> manifest;
     std::string manifest_error;

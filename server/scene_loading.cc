@@ -1,0 +1,83 @@
+#include "server/scene_loading.h"
+
+#include <filesystem>
+#include <optional>
+#include <system_error>
+#include <vector>
+
+#include "absl/strings/str_cat.h"
+#include "scene/field/extended/extended_io.h"
+#include "scene/field/field_io.h"
+#include "scene/gaussians/ply_io.h"
+#include "scene/train/lidar_eval.h"
+#include "scene/train/trainer.h"
+#include "server/dynamic_scene_field.h"
+
+namespace streetsim::server {
+namespace fs = std::filesystem;
+
+absl::StatusOr<SceneManifest> ReadSceneDirManifest(const std::string& manifest_path) {
+  absl::StatusOr<SceneManifest> m = SceneManifest{};
+  if (!manifest_path.empty() && fs::exists(manifest_path)) {
+    m = ReadSceneManifest(manifest_path);
+  } else {
+    m->cameras = DefaultRig();
+  }
+  // A trained scene's learned sky colour (train_meta.json beside scene.ply).
+  if (m.ok() && !manifest_path.empty()) {
+    const fs::path dir = fs::path(manifest_path).parent_path();
+    if (fs::exists(dir / "train_meta.json")) {
+      absl::StatusOr<train::SceneMeta> meta = train::ReadSceneMeta(dir.string());
+      if (!meta.ok()) return meta.status();
+      m->background = meta->background;
+    }
+  }
+  return m;
+}
+
+absl::StatusOr<std::shared_ptr<LoadedScene>> LoadSceneFile(const std::string& path, const SceneUploader& upload) {
+  absl::StatusOr<GaussianStore> store = ReadGaussianPly(path);
+  if (!store.ok()) return store.status();
+  auto loaded = std::make_shared<LoadedScene>();
+  loaded->num_gaussians = store->size();
+  if (store->size() > 0) {
+    Eigen::Map<const Eigen::Matrix<float, 3, Eigen::Dynamic>> m(store->means.data(), 3, store->size());
+    loaded->min_m = m.rowwise().minCoeff().cast<double>();
+    loaded->max_m = m.rowwise().maxCoeff().cast<double>();
+  }
+  absl::StatusOr<std::optional<std::vector<float>>> reflectance = train::ReadPlyReflectance(path, store->size());
+  if (!reflectance.ok()) return reflectance.status();
+  // A trained dynamic scene: DIR/field.bin beside DIR/scene.ply (bare .ply files are static).
+  const fs::path field_path = fs::path(path).parent_path() / field::kFieldFileName;
+  std::error_code ec;
+  if (fs::path(path).filename() == "scene.ply" && fs::exists(field_path, ec)) {
+    // --field extended scenes need the extended field at every timestamp; serving them with
+    // field.bin alone would silently drop the seed paper's modules.
+    const fs::path ext_path = fs::path(path).parent_path() / field::kExtendedFieldFileName;
+    if (fs::exists(ext_path, ec)) {
+      return absl::FailedPreconditionError(absl::StrCat(
+          ext_path.string(), ": a scene trained with --field extended, which the server does not serve yet "
+                             "(render or eval it with the streetsim CLI)"));
+    }
+    absl::StatusOr<field::DeformationField> f = field::LoadField(field_path.string());
+    if (!f.ok()) return f.status();  // DATA_LOSS naming the file
+    absl::StatusOr<std::unique_ptr<DynamicSceneField>> dynamic = DynamicSceneField::Create(
+        std::move(*f), std::move(*store), std::move(*reflectance), field::StaticSkipOptions{}, upload);
+    if (!dynamic.ok()) {
+      return absl::Status(dynamic.status().code(),
+                          absl::StrCat(field_path.string(), ": ", dynamic.status().message()));
+    }
+    loaded->field = std::move(*dynamic);
+    return loaded;
+  }
+  absl::StatusOr<std::unique_ptr<DeviceScene>> device = upload(*store);
+  if (!device.ok()) return device.status();
+  // The host copy serves LiDAR sweeps (render/lidar takes a GaussianStore).
+  auto host = std::make_shared<HostScene>();
+  host->store = std::move(*store);
+  host->reflectance = std::move(*reflectance);
+  loaded->field = std::make_unique<StaticSceneField>(std::move(*device), std::move(host));
+  return loaded;
+}
+
+}  // namespace streetsim::server

@@ -1,0 +1,35 @@
+// How one scene directory (or bare .ply) becomes a manifest and a resident SceneField: shared by
+// the registry's single scenes and by each clip of a clip set (clip_set_scene_field.h), so a clip
+// served inside its set is loaded exactly as the clip directory served alone.
+#pragma once
+
+#include <memory>
+#include <string>
+
+#include <Eigen/Core>
+
+#include "absl/status/statusor.h"
+#include "server/scene_field.h"
+#include "server/scene_manifest.h"
+
+namespace streetsim::server {
+
+struct LoadedScene {
+  std::unique_ptr<SceneField> field;
+  size_t num_gaussians = 0;
+  Eigen::Vector3d min_m = Eigen::Vector3d::Zero(), max_m = Eigen::Vector3d::Zero();
+  double load_time_s = 0;  // PLY, field.bin, static analysis and upload
+};
+
+// The manifest of a scene: `manifest_path` (DIR/scene.json; absent: the default rig; empty: a bare
+// .ply, the default rig) plus the learned background of DIR/train_meta.json when present.
+// Errors: a malformed scene.json (InvalidArgument) or train_meta.json (DataLoss), naming the file.
+absl::StatusOr<SceneManifest> ReadSceneDirManifest(const std::string& manifest_path);
+
+// Reads `ply_path` (with its LiDAR reflectance), and for DIR/scene.ply with DIR/field.bin the
+// field (a DynamicSceneField), else a StaticSceneField; uploads through `upload`.
+// Errors: a PLY or field.bin that cannot be read (DataLoss naming the file), a --field extended
+// scene (FailedPrecondition), upload failures.
+absl::StatusOr<std::shared_ptr<LoadedScene>> LoadSceneFile(const std::string& ply_path, const SceneUploader& upload);
+
+}  // namespace streetsim::server
