@@ -1,7 +1,5 @@
 #include "client/cli/image_io.h"
 
-#include <unistd.h>
-
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -12,6 +10,7 @@
 
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
+#include "scene/train/image_file.h"
 
 namespace streetsim {
 namespace {
@@ -28,30 +27,7 @@ absl::Status WriteAtomically(const std::string& path, const cv::Mat& image,
   if (std::filesystem::is_directory(target, ec)) {
     return absl::InvalidArgumentError(absl::StrCat(path, ": is a directory"));
   }
-  const std::filesystem::path dir = target.has_parent_path() ? target.parent_path() : ".";
-  if (!std::filesystem::is_directory(dir, ec)) {
-    return absl::NotFoundError(absl::StrCat(path, ": directory ", dir.string(), " does not exist"));
-  }
-  // Same directory (rename stays atomic), same extension (OpenCV picks the encoder by it).
-  const std::filesystem::path tmp =
-      dir / absl::StrCat(".", target.stem().string(), ".tmp", getpid(), target.extension().string());
-  bool ok = false;
-  try {
-    ok = cv::imwrite(tmp.string(), image, params);
-  } catch (const cv::Exception& e) {
-    std::filesystem::remove(tmp, ec);
-    return absl::InternalError(absl::StrCat(path, ": ", e.what()));
-  }
-  if (!ok) {
-    std::filesystem::remove(tmp, ec);
-    return absl::PermissionDeniedError(absl::StrCat(path, ": cannot write"));
-  }
-  std::filesystem::rename(tmp, target, ec);
-  if (ec) {
-    std::filesystem::remove(tmp, ec);
-    return absl::PermissionDeniedError(absl::StrCat(path, ": cannot rename into place: ", ec.message()));
-  }
-  return absl::OkStatus();
+  return train::WriteImageAtomic(path, image, params);
 }
 
 }  // namespace

@@ -34,16 +34,7 @@ constexpr int kPlanes = 5;                        // lidar_blend.comp's output p
 constexpr size_t kMaxGaussians = size_t{1} << 26;  // as the camera path (2^27 entries)
 constexpr float kNearM = 0.2f;                     // render/lidar: lidar::kNearM
 
-absl::Status EnsureBuffer(const vk::Context& ctx, vk::Buffer* buffer, VkDeviceSize bytes,
-                          vk::Buffer::Kind kind, const char* name) {
-  if (!buffer->valid()) {
-    auto created = vk::Buffer::Create(ctx, bytes, kind, name);
-    if (!created.ok()) return created.status();
-    *buffer = *std::move(created);
-    return absl::OkStatus();
-  }
-  return buffer->EnsureSize(ctx, bytes);
-}
+using vk::EnsureBufferCapacity;
 
 double MsSince(std::chrono::steady_clock::time_point start) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
@@ -171,7 +162,7 @@ absl::StatusOr<std::unique_ptr<VulkanLidarRenderer>> VulkanLidarRenderer::Create
   for (auto [buffer, bytes, name] :
        {std::tuple{&impl->counts, kCountsBytes, "lidar_counts"},
         std::tuple{&impl->args, VkDeviceSize{vk::kNumArgs * vk::kArgsSlotBytes}, "lidar_args"}}) {
-    if (absl::Status s = EnsureBuffer(c, buffer, bytes, vk::Buffer::Kind::kDevice, name); !s.ok()) {
+    if (absl::Status s = EnsureBufferCapacity(c, buffer, bytes, vk::Buffer::Kind::kDevice, name); !s.ok()) {
       return s;
     }
   }
@@ -221,7 +212,7 @@ absl::Status VulkanLidarRenderer::Upload(const GaussianStore& store) {
                          Alloc{&w.keys[1], entries * 4, "lidar_keys1"},
                          Alloc{&w.ids[0], entries * 4, "lidar_ids0"},
                          Alloc{&w.ids[1], entries * 4, "lidar_ids1"}}) {
-    if (absl::Status s = EnsureBuffer(c, a.buffer, a.bytes, vk::Buffer::Kind::kDevice, a.name); !s.ok()) {
+    if (absl::Status s = EnsureBufferCapacity(c, a.buffer, a.bytes, vk::Buffer::Kind::kDevice, a.name); !s.ok()) {
       return s;
     }
   }
@@ -245,7 +236,7 @@ absl::Status VulkanLidarRenderer::Impl::EnsureSweepResources(const LidarModel& m
   for (int i = 0; i < 2; ++i) {
     for (vk::Buffer* b : {&inst_keys[i], &inst_vals[i]}) {
       if (b == &inst_vals[i] && !pairs) continue;
-      if (absl::Status s = EnsureBuffer(c, b, want_instances * 4, vk::Buffer::Kind::kDevice, "lidar_instances");
+      if (absl::Status s = EnsureBufferCapacity(c, b, want_instances * 4, vk::Buffer::Kind::kDevice, "lidar_instances");
           !s.ok()) {
         return s;
       }
@@ -253,7 +244,7 @@ absl::Status VulkanLidarRenderer::Impl::EnsureSweepResources(const LidarModel& m
     }
   }
   instance_capacity = std::min(capacity_bytes / 4, max_elements);
-  if (absl::Status s = EnsureBuffer(c, &sorted_splats, VkDeviceSize{want_splats} * 48,
+  if (absl::Status s = EnsureBufferCapacity(c, &sorted_splats, VkDeviceSize{want_splats} * 48,
                                     vk::Buffer::Kind::kDevice, "lidar_sorted_splats");
       !s.ok()) {
     return s;
@@ -262,7 +253,7 @@ absl::Status VulkanLidarRenderer::Impl::EnsureSweepResources(const LidarModel& m
   splat_capacity = std::max<uint32_t>(splat_capacity, 1);
   const uint64_t sort_max = std::max<uint64_t>(2 * uint64_t{n}, instance_capacity);
   const uint64_t hist_elements = vk::kRadix * vk::DivUp(sort_max, vk::kSortBlock);
-  if (absl::Status s = EnsureBuffer(c, &hist, hist_elements * 4, vk::Buffer::Kind::kDevice, "lidar_hist");
+  if (absl::Status s = EnsureBufferCapacity(c, &hist, hist_elements * 4, vk::Buffer::Kind::kDevice, "lidar_hist");
       !s.ok()) {
     return s;
   }
@@ -282,7 +273,7 @@ absl::Status VulkanLidarRenderer::Impl::EnsureSweepResources(const LidarModel& m
         std::tuple{&refl, refl_bytes, vk::Buffer::Kind::kDevice, "lidar_reflectance"},
         std::tuple{&refl_staging, refl_bytes, vk::Buffer::Kind::kStaging, "lidar_reflectance_staging"}}) {
     if (bytes == 0 && (buffer == &refl || buffer == &refl_staging)) continue;
-    if (absl::Status s = EnsureBuffer(c, buffer, bytes, kind, name); !s.ok()) return s;
+    if (absl::Status s = EnsureBufferCapacity(c, buffer, bytes, kind, name); !s.ok()) return s;
   }
   return absl::OkStatus();
 }
@@ -503,7 +494,7 @@ absl::Status VulkanLidarRenderer::Impl::Backward(const LidarUpstreamGrads& upstr
                    vk::Buffer::Kind::kDevice, "lidar_param_grads"},
         std::tuple{&bwd_readback, VkDeviceSize{std::max<uint32_t>(n, 1)} * vk::kLidarParamGradFloats * 4,
                    vk::Buffer::Kind::kReadback, "lidar_bwd_readback"}}) {
-    if (absl::Status s = EnsureBuffer(c, buffer, bytes, kind, name); !s.ok()) return s;
+    if (absl::Status s = EnsureBufferCapacity(c, buffer, bytes, kind, name); !s.ok()) return s;
   }
   // Deterministic mode: one slot of kLidarSplatGradFloats per tile instance of the kept sweep.
   uint64_t det_slot_capacity = 0;
@@ -520,7 +511,7 @@ absl::Status VulkanLidarRenderer::Impl::Backward(const LidarUpstreamGrads& upstr
     for (auto [buffer, bytes, name] :
          {std::tuple{&det_slots, VkDeviceSize{slot_bytes}, "lidar_det_slots"},
           std::tuple{&det_rank_of, VkDeviceSize{std::max<uint32_t>(n, 1)} * 8, "lidar_det_rank_of"}}) {
-      if (absl::Status s = EnsureBuffer(c, buffer, bytes, vk::Buffer::Kind::kDevice, name); !s.ok()) {
+      if (absl::Status s = EnsureBufferCapacity(c, buffer, bytes, vk::Buffer::Kind::kDevice, name); !s.ok()) {
         return s;
       }
     }

@@ -12,6 +12,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
+#include "render/vulkan/buffer.h"
 #include "render/vulkan/engine_impl.h"
 #include "streetsim_spirv.h"
 
@@ -24,17 +25,6 @@ constexpr uint32_t kNumTimestamps = 4;
 constexpr VkDeviceSize kCountsBytes = kNumCounts * sizeof(uint32_t);
 
 std::atomic<uint64_t> next_engine_id{1};
-
-absl::Status EnsureBuffer(const Context& ctx, Buffer* buffer, VkDeviceSize bytes, Buffer::Kind kind,
-                          const char* name) {
-  if (!buffer->valid()) {
-    auto created = Buffer::Create(ctx, bytes, kind, name);
-    if (!created.ok()) return created.status();
-    *buffer = *std::move(created);
-    return absl::OkStatus();
-  }
-  return buffer->EnsureSize(ctx, bytes);
-}
 
 double MsSince(std::chrono::steady_clock::time_point start) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
@@ -120,7 +110,7 @@ absl::StatusOr<std::unique_ptr<VulkanEngine>> VulkanEngine::Create(
   for (auto [buffer, bytes, name] :
        {std::tuple{&engine->counts_, kCountsBytes, "counts"},
         std::tuple{&engine->args_, VkDeviceSize{kNumArgs * kArgsSlotBytes}, "args"}}) {
-    if (absl::Status s = EnsureBuffer(c, buffer, bytes, Buffer::Kind::kDevice, name); !s.ok()) {
+    if (absl::Status s = EnsureBufferCapacity(c, buffer, bytes, Buffer::Kind::kDevice, name); !s.ok()) {
       return s;
     }
   }
@@ -167,7 +157,7 @@ absl::StatusOr<std::unique_ptr<DeviceScene>> VulkanEngine::Upload(const Gaussian
         Alloc{&scene->depth_keys[0], n64 * 4, "depth_keys0"},
         Alloc{&scene->depth_keys[1], n64 * 4, "depth_keys1"},
         Alloc{&scene->ids[0], n64 * 4, "ids0"}, Alloc{&scene->ids[1], n64 * 4, "ids1"}}) {
-    if (absl::Status s = EnsureBuffer(c, a.buffer, a.bytes, Buffer::Kind::kDevice, a.name);
+    if (absl::Status s = EnsureBufferCapacity(c, a.buffer, a.bytes, Buffer::Kind::kDevice, a.name);
         !s.ok()) {
       return s;
     }
@@ -186,7 +176,7 @@ absl::Status VulkanEngine::UploadParams(const GaussianStore& store, VulkanScene*
   for (int g = 0; g < kMaxShGroups && ShGroupFloats(K, g) > 0; ++g) {
     const size_t floats = ShGroupFloats(K, g);
     if (g > 0) {
-      s = EnsureBuffer(c, &scene->sh[g], n64 * floats * 4, Buffer::Kind::kDevice, "sh");
+      s = EnsureBufferCapacity(c, &scene->sh[g], n64 * floats * 4, Buffer::Kind::kDevice, "sh");
       if (!s.ok()) return s;
     }
     s = UploadWith(c, scene->sh[g], n * floats * 4, floats * 4,
@@ -217,7 +207,7 @@ absl::Status VulkanEngine::EnsureFrameResources(uint32_t n, uint32_t width, uint
   for (int i = 0; i < 2; ++i) {
     for (Buffer* b : {&inst_keys_[i], &inst_vals_[i]}) {
       if (b == &inst_vals_[i] && !pairs) continue;
-      if (absl::Status s = EnsureBuffer(c, b, capacity * 4, Buffer::Kind::kDevice, "instances");
+      if (absl::Status s = EnsureBufferCapacity(c, b, capacity * 4, Buffer::Kind::kDevice, "instances");
           !s.ok()) {
         return s;
       }
@@ -227,7 +217,7 @@ absl::Status VulkanEngine::EnsureFrameResources(uint32_t n, uint32_t width, uint
   instance_capacity_ = std::min(capacity_bytes / 4, max_elements);
   const uint64_t sort_max = std::max<uint64_t>(n, instance_capacity_);
   const uint64_t hist_elements = kRadix * DivUp(sort_max, kSortBlock);
-  if (absl::Status s = EnsureBuffer(c, &hist_, hist_elements * 4, Buffer::Kind::kDevice, "hist");
+  if (absl::Status s = EnsureBufferCapacity(c, &hist_, hist_elements * 4, Buffer::Kind::kDevice, "hist");
       !s.ok()) {
     return s;
   }
@@ -240,11 +230,11 @@ absl::Status VulkanEngine::EnsureFrameResources(uint32_t n, uint32_t width, uint
         std::tuple{&depth_, pixels * 4, "depth"}, std::tuple{&alpha_, pixels * 4, "alpha"},
         std::tuple{&final_t_, pixels * 4, "final_t"},
         std::tuple{&n_contrib_, pixels * 4, "n_contrib"}}) {
-    if (absl::Status s = EnsureBuffer(c, buffer, bytes, Buffer::Kind::kDevice, name); !s.ok()) {
+    if (absl::Status s = EnsureBufferCapacity(c, buffer, bytes, Buffer::Kind::kDevice, name); !s.ok()) {
       return s;
     }
   }
-  return EnsureBuffer(c, &readback_, kCountsBytes + pixels * 20, Buffer::Kind::kReadback,
+  return EnsureBufferCapacity(c, &readback_, kCountsBytes + pixels * 20, Buffer::Kind::kReadback,
                       "readback");
 }
 
@@ -427,7 +417,7 @@ absl::Status VulkanEngine::EnsureBackwardResources(const VulkanScene& scene, uin
     const VkDeviceSize bytes = n * ShGroupFloats(K, g) * 4;
     sh_bytes += bytes;
     if (g == 0 || bytes > 0) {
-      if (absl::Status s = EnsureBuffer(c, &sh_grads_[g], bytes, Buffer::Kind::kDevice, "sh_grads");
+      if (absl::Status s = EnsureBufferCapacity(c, &sh_grads_[g], bytes, Buffer::Kind::kDevice, "sh_grads");
           !s.ok()) {
         return s;
       }
@@ -441,7 +431,7 @@ absl::Status VulkanEngine::EnsureBackwardResources(const VulkanScene& scene, uin
         std::tuple{&param_grads_, n * kParamGradFloats * 4, Buffer::Kind::kDevice, "param_grads"},
         std::tuple{&bwd_readback_, n * kParamGradFloats * 4 + sh_bytes, Buffer::Kind::kReadback,
                    "bwd_readback"}}) {
-    if (absl::Status s = EnsureBuffer(c, buffer, bytes, kind, name); !s.ok()) return s;
+    if (absl::Status s = EnsureBufferCapacity(c, buffer, bytes, kind, name); !s.ok()) return s;
   }
   return absl::OkStatus();
 }
@@ -484,7 +474,7 @@ absl::Status VulkanEngine::RenderBackward(const DeviceScene& scene, const Render
           kept_.instances, " tile instances, more than the storage buffer range of ", limit,
           " bytes; render fewer tile instances or use the default (atomic) backward"));
     }
-    if (absl::Status s = EnsureBuffer(c, &det_slots_, slot_bytes, Buffer::Kind::kDevice,
+    if (absl::Status s = EnsureBufferCapacity(c, &det_slots_, slot_bytes, Buffer::Kind::kDevice,
                                       "det_slots");
         !s.ok()) {
       return s;

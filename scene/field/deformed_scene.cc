@@ -14,15 +14,20 @@ absl::Status DeformScene(const DeformationField& field, double time_coord, const
   out->time_coord = time_coord;
   out->dx.resize(n * 3);
   out->dsh.resize(n * kShOutputs);
-  out->means.resize(n * 3);
-  out->sh.resize(n * kShOutputs);
   FieldForward<float>(field.layout(), field.params().data(), field.QueryAtCoordinate(time_coord), c.means, nullptr,
                       n, out->dx.data(), out->dsh.data(), pool, ws);
+  ApplyDeformation(c, pool, out);
+  return absl::OkStatus();
+}
+
+void ApplyDeformation(const CanonicalView& c, ThreadPool& pool, DeformedScene* out) {
+  const size_t n = c.n;
+  out->means.resize(n * 3);
+  out->sh.resize(n * kShOutputs);
   pool.ParallelFor(static_cast<int64_t>(n), 8192, [&](int64_t b, int64_t e, int) {
     for (int64_t i = b * 3; i < e * 3; ++i) out->means[i] = c.means[i] + out->dx[i];
     for (int64_t i = b * kShOutputs; i < e * kShOutputs; ++i) out->sh[i] = c.sh[i] + out->dsh[i];
   });
-  return absl::OkStatus();
 }
 
 GaussianParamsView DeformedParamsView(const GaussianParamsView& canonical, const DeformedScene& deformed) {
@@ -31,6 +36,42 @@ GaussianParamsView DeformedParamsView(const GaussianParamsView& canonical, const
   v.sh = deformed.sh.data();
   v.sh_stride = kShCoeffs;
   return v;
+}
+
+DeformLosses SparsityGradients(const DeformedScene& d, int ka3, const FieldHyper& h, const GaussianGrads& grads,
+                               ThreadPool& pool, float* g_dx, float* g_dsh) {
+  const size_t n = d.dx.size() / 3;
+  DeformLosses losses;
+  if (n == 0) return losses;
+  const float cdx = static_cast<float>(h.lambda_dx / (3.0 * n));
+  const float cdsh = static_cast<float>(h.lambda_dsh / (double(kShOutputs) * n));
+  const int nt = pool.num_threads();
+  std::vector<double> sum_dx(nt, 0.0), sum_dsh(nt, 0.0);
+  auto sign = [](float x) { return static_cast<float>((x > 0) - (x < 0)); };
+  pool.ParallelFor(static_cast<int64_t>(n), 8192, [&](int64_t b, int64_t e, int tid) {
+    double sx = 0, ss = 0;
+    for (int64_t i = b * 3; i < e * 3; ++i) {
+      sx += std::abs(d.dx[i]);
+      g_dx[i] = grads.means[i] + cdx * sign(d.dx[i]);
+    }
+    for (int64_t i = b; i < e; ++i) {
+      for (int k = 0; k < kShOutputs; ++k) {
+        const float v = d.dsh[i * kShOutputs + k];
+        ss += std::abs(v);
+        g_dsh[i * kShOutputs + k] = (k < ka3 ? grads.sh[i * ka3 + k] : 0.0f) + cdsh * sign(v);
+      }
+    }
+    sum_dx[tid] += sx;
+    sum_dsh[tid] += ss;
+  });
+  for (int t = 0; t < nt; ++t) {
+    losses.dx_l1 += sum_dx[t];
+    losses.dsh_l1 += sum_dsh[t];
+  }
+  losses.dx_l1 /= 3.0 * n;
+  losses.dsh_l1 /= double(kShOutputs) * n;
+  losses.weighted = h.lambda_dx * losses.dx_l1 + h.lambda_dsh * losses.dsh_l1;
+  return losses;
 }
 
 absl::StatusOr<DeformLosses> DeformBackward(const DeformationField& field, const CanonicalView& c,
@@ -48,41 +89,12 @@ absl::StatusOr<DeformLosses> DeformBackward(const DeformationField& field, const
                                                    grads->means.size() / 3, ", deformed ", d.dx.size() / 3, ")"));
   }
   if (d_field->size() != field.layout().total) AssignOnHugePages(d_field, field.layout().total, 0.0f);
-  DeformLosses losses;
-  if (n == 0) return losses;
-  // dL/dΔx = dL/dxyz_t + sparsity; dL/dΔSH = dL/dsh_t (active coefficients) + sparsity.
+  if (n == 0) return DeformLosses{};
   std::vector<float>& g_dx = ws.d_dx;
   std::vector<float>& g_dsh = ws.d_dsh;
   g_dx.resize(n * 3);
   g_dsh.resize(n * kShOutputs);
-  const float cdx = static_cast<float>(h.lambda_dx / (3.0 * n));
-  const float cdsh = static_cast<float>(h.lambda_dsh / (double(kShOutputs) * n));
-  const int nt = pool.num_threads();
-  std::vector<double> sum_dx(nt, 0.0), sum_dsh(nt, 0.0);
-  auto sign = [](float x) { return static_cast<float>((x > 0) - (x < 0)); };
-  pool.ParallelFor(static_cast<int64_t>(n), 8192, [&](int64_t b, int64_t e, int tid) {
-    double sx = 0, ss = 0;
-    for (int64_t i = b * 3; i < e * 3; ++i) {
-      sx += std::abs(d.dx[i]);
-      g_dx[i] = grads->means[i] + cdx * sign(d.dx[i]);
-    }
-    for (int64_t i = b; i < e; ++i) {
-      for (int k = 0; k < kShOutputs; ++k) {
-        const float v = d.dsh[i * kShOutputs + k];
-        ss += std::abs(v);
-        g_dsh[i * kShOutputs + k] = (k < ka3 ? grads->sh[i * ka3 + k] : 0.0f) + cdsh * sign(v);
-      }
-    }
-    sum_dx[tid] += sx;
-    sum_dsh[tid] += ss;
-  });
-  for (int t = 0; t < nt; ++t) {
-    losses.dx_l1 += sum_dx[t];
-    losses.dsh_l1 += sum_dsh[t];
-  }
-  losses.dx_l1 /= 3.0 * n;
-  losses.dsh_l1 /= double(kShOutputs) * n;
-  losses.weighted = h.lambda_dx * losses.dx_l1 + h.lambda_dsh * losses.dsh_l1;
+  DeformLosses losses = SparsityGradients(d, ka3, h, *grads, pool, g_dx.data(), g_dsh.data());
   // grads->means already holds the identity path; the field adds the sampling-position path.
   FieldBackward<float>(field.layout(), field.params().data(), field.QueryAtCoordinate(d.time_coord), c.means, n,
                        g_dx.data(), g_dsh.data(), d_field->data(), grads->means.data(), pool, ws);

@@ -37,6 +37,10 @@ struct DeformedScene {
 absl::Status DeformScene(const DeformationField& field, double time_coord, const CanonicalView& canonical,
                          ThreadPool& pool, FieldWorkspace& ws, DeformedScene* out);
 
+// The second half of DeformScene (and of VulkanDeformScene), once out->dx and out->dsh hold the
+// field's output for the n Gaussians of `canonical`: out->means and out->sh = canonical + Δ.
+void ApplyDeformation(const CanonicalView& canonical, ThreadPool& pool, DeformedScene* out);
+
 // `canonical` (the trainer's ParamsView at the active degree, sh_stride 16) with the deformed
 // means and SH of `deformed` in place of the canonical ones, for Engine::UpdateSceneParams.
 GaussianParamsView DeformedParamsView(const GaussianParamsView& canonical, const DeformedScene& deformed);
@@ -46,6 +50,12 @@ struct DeformLosses {
   double dsh_l1 = 0;  // mean |ΔSH|
   double weighted = 0;
 };
+
+// The Δ sparsity terms of DeformBackward (and of VulkanDeformBackward; keep the two in step):
+// dL/dΔx = dL/dxyz_t + sparsity into g_dx [n*3], dL/dΔSH = dL/dsh_t (the ka3 = active SH
+// coefficients x 3 of `grads`) + sparsity into g_dsh [n*48]; returns the mean |Δ| losses.
+DeformLosses SparsityGradients(const DeformedScene& deformed, int ka3, const FieldHyper& hyper,
+                               const GaussianGrads& grads, ThreadPool& pool, float* g_dx, float* g_dsh);
 
 // Given `grads` of the rendered deformed scene (means [n*3], sh [n*Ka*3] at `active_degree`),
 // adds dL/d(field parameters) (including the Δ sparsity terms) to d_field [layout.total] (a

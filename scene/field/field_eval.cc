@@ -207,37 +207,49 @@ void MlpForward(const FieldLayout& L, const T* params, ThreadScratch<T>& sc, boo
   }
 }
 
+// dst[j] += sum of column j of the row-major rows x cols matrix m, rows in order. Not
+// `Map(dst) += m.colwise().sum()`: Eigen assigns into an unaligned Map by peeling up to the
+// destination's runtime alignment, and the peeled columns are summed in another order than the
+// vectorised ones, so a bias gradient's last bit depended on where malloc had put mlp_grad
+// (mod 32 bytes), which differs between processes (docs/training.md "Reproducibility").
+template <typename T>
+inline void AddColumnSums(const T* __restrict m, Eigen::Index rows, Eigen::Index cols, T* __restrict dst) {
+  for (Eigen::Index r = 0; r < rows; ++r) {
+    const T* __restrict row = m + r * cols;
+    for (Eigen::Index j = 0; j < cols; ++j) dst[j] += row[j];
+  }
+}
+
 // Accumulates the MLP parameter gradients into sc.mlp_grad and leaves dL/dF in sc.dF.
 template <typename T>
 void MlpBackward(const FieldLayout& L, const T* params, ThreadScratch<T>& sc, const T* g_dx, const T* g_dsh) {
   const Eigen::Index B = sc.F.rows();
   T* G = sc.mlp_grad.data() - L.grid_size;  // indexable by the layout's offsets
   auto dW = [&](const DenseInfo& d) { return Eigen::Map<Mat<T>>(G + d.w_offset, d.out, d.in); };
-  auto db = [&](const DenseInfo& d) { return Eigen::Map<RowVec<T>>(G + d.b_offset, d.out); };
   sc.dA.setZero(B, L.width);
   if (g_dx) {
     Eigen::Map<const Mat<T>> gdx(g_dx, B, 3);
     dW(L.pos2).noalias() += gdx.transpose() * sc.P;
-    db(L.pos2) += gdx.colwise().sum();
+    AddColumnSums(g_dx, B, 3, G + L.pos2.b_offset);
     sc.dP.noalias() = gdx * Weight(L, params, L.pos2);
     sc.dP.array() *= (sc.P.array() > T(0)).template cast<T>();
     dW(L.pos1).noalias() += sc.dP.transpose() * sc.A;
-    db(L.pos1) += sc.dP.colwise().sum();
+    AddColumnSums(sc.dP.data(), B, sc.dP.cols(), G + L.pos1.b_offset);
     sc.dA.noalias() += sc.dP * Weight(L, params, L.pos1);
   }
   if (g_dsh) {
     Eigen::Map<const Mat<T>> gdsh(g_dsh, B, kShOutputs);
     dW(L.sh2).noalias() += gdsh.transpose() * sc.S;
-    db(L.sh2) += gdsh.colwise().sum();
+    AddColumnSums(g_dsh, B, Eigen::Index{kShOutputs}, G + L.sh2.b_offset);
     sc.dS.noalias() = gdsh * Weight(L, params, L.sh2);
     sc.dS.array() *= (sc.S.array() > T(0)).template cast<T>();
     dW(L.sh1).noalias() += sc.dS.transpose() * sc.A;
-    db(L.sh1) += sc.dS.colwise().sum();
+    AddColumnSums(sc.dS.data(), B, sc.dS.cols(), G + L.sh1.b_offset);
     sc.dA.noalias() += sc.dS * Weight(L, params, L.sh1);
   }
   sc.dA.array() *= (sc.H.array() > T(0)).template cast<T>();  // now dL/dH
   dW(L.trunk).noalias() += sc.dA.transpose() * sc.F;
-  db(L.trunk) += sc.dA.colwise().sum();
+  AddColumnSums(sc.dA.data(), B, sc.dA.cols(), G + L.trunk.b_offset);
   sc.dF.noalias() = sc.dA * Weight(L, params, L.trunk);
 }
 

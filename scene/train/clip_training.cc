@@ -5,7 +5,6 @@
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
 #include "scene/field/field_io.h"
-#include "scene/init/initial_scene.h"
 #include "scene/log/scene_manifest.h"
 #include "scene/train/dynamic_pixels.h"
 
@@ -77,18 +76,9 @@ absl::StatusOr<TrainResult> TrainClip(const DriveLog& log, const ClipRange& fram
   std::optional<GaussianStore> init;
   if (!(opt.resume && fs::exists(fs::path(dir) / "checkpoint.bin"))) {
     // New Gaussians from the clip's training frames only (spec 8: clip 2 from frames 50-99).
-    DriveLog train_log = log;
-    train_log.frames.clear();
-    for (int f = frames.first_frame; f < frames.end_frame; ++f)
-      if (!IsHeldOut(f, opt.holdout_every)) train_log.frames.push_back(log.frames[f]);
-    InitOptions iopt;
-    iopt.voxel_m = opt.init_voxel_m;
-    iopt.seed = static_cast<unsigned>(opt.seed + 1);
-    InitStats istats;
-    absl::StatusOr<GaussianStore> built = BuildInitialScene(train_log, iopt, &istats);
+    absl::StatusOr<GaussianStore> built = BuildTrainingInitialScene(log, frames.first_frame, frames.end_frame, opt);
     if (!built.ok()) return built.status();
     init = std::move(*built);
-    LOG(INFO) << "initial scene: " << init->size() << " Gaussians (" << istats.source << ")";
   }
   absl::StatusOr<TrainResult> r = TrainOnViews(train, init ? &*init : nullptr, test, dir, copt, progress);
   if (!r.ok()) return r.status();

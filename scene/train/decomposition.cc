@@ -1,7 +1,5 @@
 #include "scene/train/decomposition.h"
 
-#include <unistd.h>
-
 #include <algorithm>
 #include <cctype>
 #include <chrono>
@@ -14,6 +12,7 @@
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
 #include "scene/train/dynamic_stage.h"
+#include "scene/train/image_file.h"
 
 namespace streetsim::train {
 
@@ -160,34 +159,9 @@ std::string DecompositionStem(const View& view) {
 }
 
 absl::Status WriteRgbMatAtomic(const std::string& path, const cv::Mat& rgb8) {
-  const std::filesystem::path target(path);
-  const std::filesystem::path dir = target.has_parent_path() ? target.parent_path() : ".";
-  std::error_code ec;
-  if (!std::filesystem::is_directory(dir, ec)) {
-    return absl::NotFoundError(absl::StrCat(path, ": directory ", dir.string(), " does not exist"));
-  }
-  // Same directory (the rename stays atomic), same extension (OpenCV picks the encoder by it).
-  const std::filesystem::path tmp =
-      dir / absl::StrCat(".", target.stem().string(), ".tmp", getpid(), target.extension().string());
   cv::Mat bgr;
   cv::cvtColor(rgb8, bgr, cv::COLOR_RGB2BGR);
-  bool ok = false;
-  try {
-    ok = cv::imwrite(tmp.string(), bgr);
-  } catch (const cv::Exception& e) {
-    std::filesystem::remove(tmp, ec);
-    return absl::InternalError(absl::StrCat(path, ": ", e.what()));
-  }
-  if (!ok) {
-    std::filesystem::remove(tmp, ec);
-    return absl::PermissionDeniedError(absl::StrCat(path, ": cannot write"));
-  }
-  std::filesystem::rename(tmp, target, ec);
-  if (ec) {
-    std::filesystem::remove(tmp, ec);
-    return absl::PermissionDeniedError(absl::StrCat(path, ": cannot rename into place: ", ec.message()));
-  }
-  return absl::OkStatus();
+  return WriteImageAtomic(path, bgr);
 }
 
 absl::Status WriteDecompositionPngs(const std::string& dir, const View& view, const DecompositionRenders& r) {

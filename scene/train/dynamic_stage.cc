@@ -12,6 +12,26 @@
 
 namespace streetsim::train {
 
+namespace {
+
+// The base field's plane regularizers (their gradient added into d_field) and its Adam step, as
+// both the S3Gaussian and the extended stage take them; returns the regularizers' weighted loss.
+double RegularizeAndStepBaseField(const field::FieldHyper& hyper, int64_t fine_iteration, double extent,
+                                  ThreadPool& pool, field::DeformationField& base, std::vector<float>& d_field,
+                                  field::FieldAdamState* adam) {
+  field::RegularizerWeights w;
+  w.plane_tv = hyper.plane_tv_weight;
+  w.time_smoothness = hyper.time_smoothness_weight;
+  w.l1_time_planes = hyper.l1_time_planes;
+  const field::RegularizerLosses reg =
+      field::PlaneRegularizers<float>(base.layout(), base.params().data(), w, d_field.data(), pool);
+  field::FieldAdamStep(base.layout(), base.mutable_params().data(), d_field.data(), adam,
+                       field::FieldLearningRates(hyper, fine_iteration, extent), pool);
+  return reg.weighted;
+}
+
+}  // namespace
+
 const char* FieldModeName(FieldMode mode) { return mode == FieldMode::kS3Gaussian ? "s3gaussian" : "static"; }
 
 absl::StatusOr<FieldMode> ParseFieldMode(const std::string& text) {
@@ -181,15 +201,9 @@ absl::StatusOr<double> DynamicStage::Backward(const TrainState& st, int active_d
   absl::StatusOr<field::DeformLosses> dl =
       field::DeformBackward(field_, c, deformed_, active_degree, hyper_, pool, *ws_, grads, &d_field_);
   if (!dl.ok()) return dl.status();
-  field::RegularizerWeights w;
-  w.plane_tv = hyper_.plane_tv_weight;
-  w.time_smoothness = hyper_.time_smoothness_weight;
-  w.l1_time_planes = hyper_.l1_time_planes;
-  const field::RegularizerLosses reg =
-      field::PlaneRegularizers<float>(field_.layout(), field_.params().data(), w, d_field_.data(), pool);
-  field::FieldAdamStep(field_.layout(), field_.mutable_params().data(), d_field_.data(), &adam_,
-                       field::FieldLearningRates(hyper_, fine_iteration, st.extent), pool);
-  return dl->weighted + reg.weighted;
+  const double reg =
+      RegularizeAndStepBaseField(hyper_, fine_iteration, st.extent, pool, field_, d_field_, &adam_);
+  return dl->weighted + reg;
 }
 
 std::string FieldCheckpointPath(const std::string& out_dir, int64_t iteration) {
@@ -314,17 +328,10 @@ absl::StatusOr<double> DynamicStage::BackwardExtended(const TrainState& st, int 
                                field::ExtKlBeta(ext_->config(), fine_iteration), pool, *ext_ws_, grads, &d_field_,
                                &d_ext_);
   if (!dl.ok()) return dl.status();
-  field::RegularizerWeights w;
-  w.plane_tv = hyper_.plane_tv_weight;
-  w.time_smoothness = hyper_.time_smoothness_weight;
-  w.l1_time_planes = hyper_.l1_time_planes;
-  const field::RegularizerLosses reg =
-      field::PlaneRegularizers<float>(base.layout(), base.params().data(), w, d_field_.data(), pool);
-  field::FieldAdamStep(base.layout(), base.mutable_params().data(), d_field_.data(), &adam_,
-                       field::FieldLearningRates(hyper_, fine_iteration, st.extent), pool);
+  const double reg = RegularizeAndStepBaseField(hyper_, fine_iteration, st.extent, pool, base, d_field_, &adam_);
   field::ExtAdamStep(ext_->mutable_params().data(), d_ext_.data(), d_ext_.size(), &ext_adam_,
                      field::ExtNetworkLr(ext_hyper_, fine_iteration));
-  return dl->weighted + reg.weighted;
+  return dl->weighted + reg;
 }
 
 }  // namespace streetsim::train

@@ -4,11 +4,11 @@
 #include <cmath>
 #include <cstdio>
 #include <cstring>
-#include <filesystem>
 #include <fstream>
 #include <sstream>
 
 #include "absl/strings/str_cat.h"
+#include "scene/common/checked_file.h"
 #include "scene/optim/adam_kernel.h"
 
 namespace streetsim::train {
@@ -387,21 +387,7 @@ absl::Status SaveCheckpoint(const TrainState& s, const std::string& path) {
     w.Vec(s.reflectance_v);
     w.Pod<int64_t>(s.reflectance_step);
   }
-  const std::string tmp = path + ".tmp";
-  {
-    std::ofstream f(tmp, std::ios::binary | std::ios::trunc);
-    f.write(w.buf_.data(), static_cast<std::streamsize>(w.buf_.size()));
-    f.flush();
-    if (!f) {
-      std::error_code ec;
-      std::filesystem::remove(tmp, ec);
-      return absl::InternalError(absl::StrCat("cannot write ", tmp));
-    }
-  }
-  std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  if (ec) return absl::InternalError(absl::StrCat("cannot rename ", tmp, " to ", path, ": ", ec.message()));
-  return absl::OkStatus();
+  return checked_file::WriteAtomically(path, w.buf_);
 }
 
 absl::StatusOr<TrainState> LoadCheckpoint(const std::string& path) {

@@ -158,6 +158,22 @@ absl::StatusOr<SceneMeta> ReadSceneMeta(const std::string& dir) {
   return meta;
 }
 
+absl::StatusOr<GaussianStore> BuildTrainingInitialScene(const DriveLog& log, int first_frame, int end_frame,
+                                                        const TrainOptions& opt) {
+  DriveLog train_log = log;
+  train_log.frames.clear();
+  for (int f = first_frame; f < end_frame; ++f)
+    if (!IsHeldOut(f, opt.holdout_every)) train_log.frames.push_back(log.frames[f]);
+  InitOptions iopt;
+  iopt.voxel_m = opt.init_voxel_m;
+  iopt.seed = static_cast<unsigned>(opt.seed + 1);
+  InitStats istats;
+  absl::StatusOr<GaussianStore> built = BuildInitialScene(train_log, iopt, &istats);
+  if (!built.ok()) return built.status();
+  LOG(INFO) << "initial scene: " << built->size() << " Gaussians (" << istats.source << ")";
+  return built;
+}
+
 absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_dir, const TrainOptions& opt,
                                   const std::function<void(const Progress&)>& progress) {
   if (opt.iterations < 1) return absl::InvalidArgumentError("iterations must be >= 1");
@@ -190,18 +206,10 @@ absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_di
   std::optional<GaussianStore> init;
   if (!(opt.resume && std::filesystem::exists(ckpt_path))) {
     // The initial scene sees the training frames only: held-out frames are never used.
-    DriveLog train_log = log;
-    train_log.frames.clear();
-    for (int f = 0; f < static_cast<int>(log.frames.size()); ++f)
-      if (!IsHeldOut(f, opt.holdout_every)) train_log.frames.push_back(log.frames[f]);
-    InitOptions iopt;
-    iopt.voxel_m = opt.init_voxel_m;
-    iopt.seed = static_cast<unsigned>(opt.seed + 1);
-    InitStats istats;
-    absl::StatusOr<GaussianStore> built = BuildInitialScene(train_log, iopt, &istats);
+    absl::StatusOr<GaussianStore> built =
+        BuildTrainingInitialScene(log, 0, static_cast<int>(log.frames.size()), opt);
     if (!built.ok()) return built.status();
     init = std::move(*built);
-    LOG(INFO) << "initial scene: " << init->size() << " Gaussians (" << istats.source << ")";
   }
   if (topt.lidar_log == nullptr) topt.lidar_log = &log;
   return TrainOnViews(*views, init ? &*init : nullptr, test, out_dir, topt, progress);
@@ -275,8 +283,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
   }
   std::unique_ptr<DynamicStage> stage;
   // The field's backward sums MLP gradients per thread in scheduling order: one thread when the
-  // run should be reproducible (it still is not to the last bit across processes, see
-  // docs/training.md "Dynamic field").
+  // run should be reproducible (docs/training.md "Reproducibility").
   std::unique_ptr<ThreadPool> serial_pool;
   ThreadPool* field_pool = &pool;
   if (dynamic && opt.deterministic) {

@@ -79,6 +79,12 @@ struct TrainResult {
 absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_dir, const TrainOptions& options,
                                   const std::function<void(const Progress&)>& progress = nullptr);
 
+// The initial Gaussians built from the training frames of log.frames[first_frame, end_frame) only
+// (held-out frames are never used), with options.init_voxel_m and seed + 1; logs their count.
+// Train takes the whole log, a clip of a clip set (clip_training.h) its own frames.
+absl::StatusOr<GaussianStore> BuildTrainingInitialScene(const DriveLog& log, int first_frame, int end_frame,
+                                                        const TrainOptions& options);
+
 // The same loop on given views and initial Gaussians (what Train does after loading the log and
 // building the initial scene; tests use it on rendered images of a known scene). `init` is used
 // unless a checkpoint is resumed (may then be null); `heldout` is evaluated at the end (when

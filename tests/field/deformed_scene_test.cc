@@ -12,6 +12,8 @@
 namespace streetsim::field {
 namespace {
 
+using testing::CentralDifference;
+
 constexpr int kDegree = 1;  // active SH degree of the render: 4 coefficients per channel
 
 struct GlueCase {
@@ -67,16 +69,7 @@ double RelErrorFd(std::vector<double>& x, size_t begin, size_t end, const std::v
                   const std::function<double()>& f) {
   double num = 0, den = 0;
   for (size_t i = begin; i < end; ++i) {
-    const double x0 = x[i];
-    auto cd = [&](double h) {
-      x[i] = x0 + h;
-      const double lp = f();
-      x[i] = x0 - h;
-      const double lm = f();
-      x[i] = x0;
-      return (lp - lm) / (2 * h);
-    };
-    const double a = cd(1e-6), b = cd(2e-6);
+    const double a = CentralDifference(x, i, 1e-6, f), b = CentralDifference(x, i, 2e-6, f);
     if (std::abs(a - b) > 1e-5 * std::max(1e-3, std::abs(a))) continue;  // a kink (ReLU, |.|) inside the step
     num += (analytic[i - begin] - a) * (analytic[i - begin] - a);
     den += a * a;

@@ -15,24 +15,15 @@
 
 #include "gtest/gtest.h"
 #include "scene/field/field_io.h"
+#include "tests/common/cli_runner.h"
 
 namespace {
 
-const std::string kBinary = std::string(STREETSIM_BINARY_DIR) + "/bin/streetsim";
-const std::string kKitti = std::string(STREETSIM_DATA_DIR) + "/kitti_raw/2011_09_26/2011_09_26_drive_sfnd_sync";
-const std::string kCamera = std::string(STREETSIM_SOURCE_DIR) + "/examples/cameras/kitti_front.json";
-
-struct Result {
-  int code;
-  std::string out, err;
-};
-
-std::string Slurp(const std::string& p) {
-  std::ifstream f(p, std::ios::binary);
-  std::stringstream s;
-  s << f.rdbuf();
-  return s.str();
-}
+using streetsim::cli_test::kKitti;
+using streetsim::cli_test::kKittiCamera;
+using streetsim::cli_test::Result;
+using streetsim::cli_test::RunStreetsim;
+using streetsim::cli_test::Slurp;
 
 std::string Dir(const std::string& name) {
   return (std::filesystem::temp_directory_path() /
@@ -41,8 +32,7 @@ std::string Dir(const std::string& name) {
 
 Result RunCli(const std::string& args) {
   const std::string out = Dir("out.txt"), err = Dir("err.txt");
-  const int status = std::system((kBinary + " " + args + " >" + out + " 2>" + err).c_str());
-  Result r{WEXITSTATUS(status), Slurp(out), Slurp(err)};
+  Result r = RunStreetsim(args, out, err);
   std::filesystem::remove(out);
   std::filesystem::remove(err);
   return r;
@@ -70,7 +60,7 @@ TEST(CliExtendedField, TrainEvalRenderResume) {
   EXPECT_TRUE(j["mean"]["psnr_dynamic"].is_number());
 
   const std::string png = dir + "/r.png";
-  r = RunCli("render --scene " + dir + " --camera " + kCamera + " --out-rgb " + png);
+  r = RunCli("render --scene " + dir + " --camera " + kKittiCamera + " --out-rgb " + png);
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_FALSE(Slurp(png).empty());
 

@@ -20,6 +20,7 @@ namespace {
 
 using testing::RandomMeans;
 using testing::RandomParams;
+using testing::RelError;
 using testing::SmallConfig;
 using testing::TestAabb;
 
@@ -137,34 +138,6 @@ Grads<double> Analytic(const Problem& p, ThreadPool& pool) {
   EXPECT_TRUE(kl.ok()) << kl.status();
   auto dv = [](const std::vector<T>& v) { return std::vector<double>(v.begin(), v.end()); };
   return {dv(g.base), dv(g.ext), dv(g.means), dv(g.opacity), dv(g.scales), dv(g.rotations)};
-}
-
-// Relative L2 error against central differences; entries whose estimates at two step sizes
-// disagree (a ReLU or texel-edge kink inside the step) are left out and counted.
-double RelError(std::vector<double>& x, const std::vector<size_t>& idx, const std::vector<double>& analytic,
-                const std::function<double()>& f, int* excluded) {
-  double num = 0, den = 0;
-  *excluded = 0;
-  for (size_t i : idx) {
-    const double x0 = x[i];
-    auto cd = [&](double h) {
-      x[i] = x0 + h;
-      const double lp = f();
-      x[i] = x0 - h;
-      const double lm = f();
-      x[i] = x0;
-      return (lp - lm) / (2 * h);
-    };
-    const double h = 1e-6 * std::max(1.0, std::abs(x0));
-    const double fd1 = cd(h), fd2 = cd(2 * h);
-    if (std::abs(fd1 - fd2) > 1e-5 * std::max(1e-3, std::abs(fd1))) {
-      ++*excluded;
-      continue;
-    }
-    num += (analytic[i] - fd1) * (analytic[i] - fd1);
-    den += fd1 * fd1;
-  }
-  return den > 0 ? std::sqrt(num / den) : std::sqrt(num);
 }
 
 double RelDiff(const std::vector<double>& a, const std::vector<double>& b, const std::vector<size_t>& idx) {

@@ -14,8 +14,11 @@
 namespace streetsim::field {
 namespace {
 
+using testing::Group;
+using testing::ParamGroups;
 using testing::RandomMeans;
 using testing::RandomParams;
+using testing::RelError;
 using testing::SmallConfig;
 using testing::TestQuery;
 
@@ -51,56 +54,6 @@ double Loss(const Problem& p, const std::vector<double>& params, const std::vect
   for (size_t i = 0; i < dx.size(); ++i) l += p.w_dx[i] * dx[i];
   for (size_t i = 0; i < dsh.size(); ++i) l += p.w_dsh[i] * dsh[i];
   return l;
-}
-
-struct Group {
-  std::string name;
-  std::vector<size_t> index;
-};
-
-std::vector<Group> ParamGroups(const FieldLayout& L) {
-  std::vector<Group> g = {{"spatial planes", {}}, {"time planes", {}}, {"trunk", {}}, {"pos head", {}},
-                          {"sh head", {}}};
-  for (const PlaneInfo& p : L.planes)
-    for (size_t i = 0; i < p.size(L.channels); ++i) g[PlaneHasTime(p.plane) ? 1 : 0].index.push_back(p.offset + i);
-  auto dense = [&](const DenseInfo& d, int gi) {
-    for (size_t i = d.w_offset; i < d.b_offset + d.out; ++i) g[gi].index.push_back(i);
-  };
-  dense(L.trunk, 2);
-  dense(L.pos1, 3);
-  dense(L.pos2, 3);
-  dense(L.sh1, 4);
-  dense(L.sh2, 4);
-  return g;
-}
-
-// Relative L2 error of `analytic` against central differences of f over the given entries of x.
-// An entry whose estimates at two step sizes disagree (a ReLU or texel-edge kink inside the step)
-// is left out; *excluded counts them.
-double RelError(std::vector<double>& x, const std::vector<size_t>& idx, const std::vector<double>& analytic,
-                const std::function<double()>& f, int* excluded) {
-  double num = 0, den = 0;
-  *excluded = 0;
-  for (size_t i : idx) {
-    const double x0 = x[i];
-    auto cd = [&](double h) {
-      x[i] = x0 + h;
-      const double lp = f();
-      x[i] = x0 - h;
-      const double lm = f();
-      x[i] = x0;
-      return (lp - lm) / (2 * h);
-    };
-    const double h = 1e-6 * std::max(1.0, std::abs(x0));
-    const double fd1 = cd(h), fd2 = cd(2 * h);
-    if (std::abs(fd1 - fd2) > 1e-5 * std::max(1e-3, std::abs(fd1))) {
-      ++*excluded;
-      continue;
-    }
-    num += (analytic[i] - fd1) * (analytic[i] - fd1);
-    den += fd1 * fd1;
-  }
-  return den > 0 ? std::sqrt(num / den) : std::sqrt(num);
 }
 
 struct Analytic {

@@ -1,7 +1,11 @@
 // Small fields and Gaussians for the field tests.
 #pragma once
 
+#include <algorithm>
+#include <cmath>
+#include <functional>
 #include <random>
+#include <string>
 #include <vector>
 
 #include "scene/field/deformation_field.h"
@@ -68,6 +72,62 @@ std::vector<T> RandomMeans(size_t n, size_t outside, uint64_t seed) {
     if (i < outside) m[i * 3 + i % 3] = static_cast<T>(a.max[i % 3] + 0.7);
   }
   return m;
+}
+
+// The field's parameters by group (planes with / without time, trunk, position head, SH head), for
+// per-group gradient errors.
+struct Group {
+  std::string name;
+  std::vector<size_t> index;
+};
+
+inline std::vector<Group> ParamGroups(const FieldLayout& L) {
+  std::vector<Group> g = {{"spatial planes", {}}, {"time planes", {}}, {"trunk", {}}, {"pos head", {}},
+                          {"sh head", {}}};
+  for (const PlaneInfo& pi : L.planes) {
+    for (size_t i = 0; i < pi.size(L.channels); ++i) g[PlaneHasTime(pi.plane) ? 1 : 0].index.push_back(pi.offset + i);
+  }
+  auto dense = [&](const DenseInfo& d, int k) {
+    for (size_t i = 0; i < static_cast<size_t>(d.out) * d.in; ++i) g[k].index.push_back(d.w_offset + i);
+    for (int i = 0; i < d.out; ++i) g[k].index.push_back(d.b_offset + i);
+  };
+  dense(L.trunk, 2);
+  dense(L.pos1, 3);
+  dense(L.pos2, 3);
+  dense(L.sh1, 4);
+  dense(L.sh2, 4);
+  return g;
+}
+
+// Central difference of f in x[i] with step h; x[i] is restored.
+inline double CentralDifference(std::vector<double>& x, size_t i, double h, const std::function<double()>& f) {
+  const double x0 = x[i];
+  x[i] = x0 + h;
+  const double lp = f();
+  x[i] = x0 - h;
+  const double lm = f();
+  x[i] = x0;
+  return (lp - lm) / (2 * h);
+}
+
+// Relative L2 error of `analytic` against central differences of f over the given entries of x.
+// An entry whose estimates at two step sizes disagree (a ReLU or texel-edge kink inside the step)
+// is left out; *excluded counts them.
+inline double RelError(std::vector<double>& x, const std::vector<size_t>& idx, const std::vector<double>& analytic,
+                       const std::function<double()>& f, int* excluded) {
+  double num = 0, den = 0;
+  *excluded = 0;
+  for (size_t i : idx) {
+    const double h = 1e-6 * std::max(1.0, std::abs(x[i]));
+    const double fd1 = CentralDifference(x, i, h, f), fd2 = CentralDifference(x, i, 2 * h, f);
+    if (std::abs(fd1 - fd2) > 1e-5 * std::max(1e-3, std::abs(fd1))) {
+      ++*excluded;
+      continue;
+    }
+    num += (analytic[i] - fd1) * (analytic[i] - fd1);
+    den += fd1 * fd1;
+  }
+  return den > 0 ? std::sqrt(num / den) : std::sqrt(num);
 }
 
 }  // namespace streetsim::field::testing

@@ -21,6 +21,8 @@
 namespace streetsim::field {
 namespace {
 
+using testing::Group;
+using testing::ParamGroups;
 using testing::RandomMeans;
 using testing::RandomParams;
 using testing::SmallConfig;
@@ -46,28 +48,6 @@ double RelError(const A& ref, const B& x) {
   std::vector<size_t> all(ref.size());
   for (size_t i = 0; i < all.size(); ++i) all[i] = i;
   return RelError(ref, x, all);
-}
-
-struct Group {
-  std::string name;
-  std::vector<size_t> index;
-};
-std::vector<Group> ParamGroups(const FieldLayout& L) {
-  std::vector<Group> g = {{"spatial planes", {}}, {"time planes", {}}, {"trunk", {}}, {"pos head", {}},
-                          {"sh head", {}}};
-  for (const PlaneInfo& pi : L.planes) {
-    for (size_t i = 0; i < pi.size(L.channels); ++i) g[PlaneHasTime(pi.plane) ? 1 : 0].index.push_back(pi.offset + i);
-  }
-  auto dense = [&](const DenseInfo& d, int k) {
-    for (size_t i = 0; i < static_cast<size_t>(d.out) * d.in; ++i) g[k].index.push_back(d.w_offset + i);
-    for (int i = 0; i < d.out; ++i) g[k].index.push_back(d.b_offset + i);
-  };
-  dense(L.trunk, 2);
-  dense(L.pos1, 3);
-  dense(L.pos2, 3);
-  dense(L.sh1, 4);
-  dense(L.sh2, 4);
-  return g;
 }
 
 // A small field whose float and double parameters are the same numbers, Gaussians (some outside

@@ -17,6 +17,7 @@
 #include "render/cpu/simd_dispatch.h"
 #include "scene/gaussians/synthetic_street.h"
 #include "tests/common/grad_check_scene.h"
+#include "tests/common/params_view.h"
 
 namespace streetsim {
 namespace {
@@ -283,24 +284,11 @@ TEST(CpuBackward, UpdateSceneParamsRendersLikeUpload) {
   camera.T_world_from_cam = StreetCameraPose(4.0);
   auto engine = CreateCpuEngine({.num_threads = 2});
   for (int degree : {1, 3}) {
-    GaussianParamsView v;
-    v.n = full.size();
-    v.sh_degree = degree;
-    v.sh_stride = 16;
-    v.means = full.means.data();
-    v.log_scales = full.log_scales.data();
-    v.rotations = full.rotations.data();
-    v.opacity_logits = full.opacity_logits.data();
-    v.sh = full.sh.data();
+    GaussianParamsView v = testing::FullDegreeParamsView(full, degree);
     std::unique_ptr<DeviceScene> updated;
     ASSERT_TRUE(engine->UpdateSceneParams(v, &updated).ok());
     ASSERT_TRUE(engine->UpdateSceneParams(v, &updated).ok());  // in place the second time
-    GaussianStore store = full;
-    store.sh_degree = degree;
-    const int K = store.sh_coeffs();
-    store.sh.resize(full.size() * K * 3);
-    for (size_t i = 0; i < full.size(); ++i)
-      for (int kc = 0; kc < K * 3; ++kc) store.sh[i * K * 3 + kc] = full.sh[i * 48 + kc];
+    const GaussianStore store = testing::TruncatedToDegree(full, degree);
     auto uploaded = engine->Upload(store);
     ASSERT_TRUE(uploaded.ok());
     RenderOutput a, b;

@@ -15,6 +15,7 @@
 #include "render/vulkan/testing.h"
 #include "render/vulkan/vulkan_engine.h"
 #include "scene/gaussians/synthetic_street.h"
+#include "tests/common/params_view.h"
 #include "tests/render/vulkan_reference.h"
 
 namespace streetsim {
@@ -498,26 +499,14 @@ TEST_F(VulkanTest, UpdateSceneParamsRendersLikeUpload) {
   camera.T_world_from_cam = StreetCameraPose(4.0);
   Engine& engine = SharedEngine();
   for (int degree : {0, 1, 3}) {
-    GaussianParamsView v;
-    v.n = full.size();
-    v.sh_degree = degree;
-    v.sh_stride = 16;
-    v.means = full.means.data();
-    v.log_scales = full.log_scales.data();
-    v.rotations = full.rotations.data();
-    v.opacity_logits = full.opacity_logits.data();
-    v.sh = full.sh.data();
+    GaussianParamsView v = testing::FullDegreeParamsView(full, degree);
     std::unique_ptr<DeviceScene> updated;
     ASSERT_TRUE(engine.UpdateSceneParams(v, &updated).ok());  // creates the scene
     const DeviceScene* first = updated.get();
     ASSERT_TRUE(engine.UpdateSceneParams(v, &updated).ok());  // in place
     EXPECT_EQ(updated.get(), first);
-    GaussianStore store = full;
-    store.sh_degree = degree;
+    const GaussianStore store = testing::TruncatedToDegree(full, degree);
     const int K = store.sh_coeffs();
-    store.sh.resize(full.size() * K * 3);
-    for (size_t i = 0; i < full.size(); ++i)
-      for (int kc = 0; kc < K * 3; ++kc) store.sh[i * K * 3 + kc] = full.sh[i * 48 + kc];
     auto uploaded = engine.Upload(store);
     ASSERT_TRUE(uploaded.ok());
     RenderOutput a, b;

@@ -13,27 +13,19 @@
 #include <nlohmann/json.hpp>
 
 #include "gtest/gtest.h"
+#include "tests/common/cli_runner.h"
 
 namespace {
 
 namespace fs = std::filesystem;
 
-const std::string kBinary = std::string(STREETSIM_BINARY_DIR) + "/bin/streetsim";
 const fs::path kDay = fs::path(STREETSIM_DATA_DIR) / "kitti_raw/2011_09_26";
 const char* kDrive = "2011_09_26_drive_sfnd_sync";
-const std::string kCamera = std::string(STREETSIM_SOURCE_DIR) + "/examples/cameras/kitti_front.json";
 
-struct Result {
-  int code;
-  std::string out, err;
-};
-
-std::string Slurp(const std::string& p) {
-  std::ifstream f(p, std::ios::binary);
-  std::stringstream s;
-  s << f.rdbuf();
-  return s.str();
-}
+using streetsim::cli_test::kKittiCamera;
+using streetsim::cli_test::Result;
+using streetsim::cli_test::RunStreetsim;
+using streetsim::cli_test::Slurp;
 
 fs::path Scratch() {
   return fs::path(::testing::TempDir()) / ("streetsim_cli_clips_" + std::to_string(getpid()));
@@ -41,8 +33,7 @@ fs::path Scratch() {
 
 Result RunCli(const std::string& args) {
   const std::string out = (Scratch() / "stdout.txt").string(), err = (Scratch() / "stderr.txt").string();
-  const int status = std::system((kBinary + " " + args + " >" + out + " 2>" + err).c_str());
-  return {WEXITSTATUS(status), Slurp(out), Slurp(err)};
+  return RunStreetsim(args, out, err);
 }
 
 // The first `frames` frames of the shared drive, as links, beside links to the day's calibration.
@@ -109,7 +100,7 @@ TEST_F(CliClips, TrainRenderEvalResume) {
 
   // Render: the clip set at T is the clip of T rendered on its own (a time between the clips goes
   // to the nearer one, times outside the log to the first / last clip). A quarter-size camera.
-  nlohmann::json cam = nlohmann::json::parse(Slurp(kCamera));
+  nlohmann::json cam = nlohmann::json::parse(Slurp(kKittiCamera));
   for (const char* k : {"width", "height"}) cam[k] = cam[k].get<int>() / 4;
   for (const char* k : {"fx", "fy", "cx", "cy"}) cam[k] = cam[k].get<double>() / 4;
   const std::string camera = (Scratch() / "camera.json").string();
@@ -171,7 +162,7 @@ TEST_F(CliClips, TrainRenderEvalResume) {
   std::ofstream(dir + "/clips.json", std::ios::trunc)
       << R"({"version": 1, "clip_frames": 8, "num_frames": 19, "clips": [{"index": 0, "dir": "../../etc",)"
       << R"( "frames": [0, 19], "time_range_us": [0, 1800000], "done": true}]})";
-  r = RunCli("render --scene " + dir + " --camera " + kCamera + " --out-rgb " + (Scratch() / "x.png").string());
+  r = RunCli("render --scene " + dir + " --camera " + kKittiCamera + " --out-rgb " + (Scratch() / "x.png").string());
   EXPECT_EQ(r.code, 2);
   EXPECT_NE(r.err.find("clips.json"), std::string::npos) << r.err;
   r = RunCli("eval --scene " + dir + " --log " + log + " --no-lidar");

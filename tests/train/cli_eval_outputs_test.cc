@@ -18,27 +18,19 @@
 #include "scene/field/field_io.h"
 #include "scene/field/static_skip.h"
 #include "scene/gaussians/ply_io.h"
+#include "tests/common/cli_runner.h"
 
 namespace {
 
 namespace fs = std::filesystem;
 using namespace streetsim;
 
-const std::string kBinary = std::string(STREETSIM_BINARY_DIR) + "/bin/streetsim";
-const std::string kKitti = std::string(STREETSIM_DATA_DIR) + "/kitti_raw/2011_09_26/2011_09_26_drive_sfnd_sync";
+using streetsim::cli_test::kKitti;
+using streetsim::cli_test::Result;
+using streetsim::cli_test::RunStreetsim;
+using streetsim::cli_test::Slurp;
+
 const std::string kEvalArgs = " --log " + kKitti + " --no-lidar --resolution-scale 0.12 --holdout-every 10";
-
-struct Result {
-  int code;
-  std::string out, err;
-};
-
-std::string Slurp(const std::string& p) {
-  std::ifstream f(p, std::ios::binary);
-  std::stringstream s;
-  s << f.rdbuf();
-  return s.str();
-}
 
 std::string TestDir(const std::string& name) {
   const fs::path d = fs::temp_directory_path() / ("streetsim_cli_eval_outputs_" + std::to_string(getpid()) + "_" + name);
@@ -49,8 +41,7 @@ std::string TestDir(const std::string& name) {
 
 Result RunCli(const std::string& args, const std::string& dir) {
   const std::string out = dir + "/stdout.txt", err = dir + "/stderr.txt";
-  const int status = std::system((kBinary + " " + args + " >" + out + " 2>" + err).c_str());
-  return Result{WEXITSTATUS(status), Slurp(out), Slurp(err)};
+  return RunStreetsim(args, out, err);
 }
 
 // The trained field's finest xt plane made to vary in time over its middle columns: the

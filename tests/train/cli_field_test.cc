@@ -12,31 +12,21 @@
 #include <nlohmann/json.hpp>
 
 #include "gtest/gtest.h"
+#include "tests/common/cli_runner.h"
 
 namespace {
 
-const std::string kBinary = std::string(STREETSIM_BINARY_DIR) + "/bin/streetsim";
-const std::string kKitti = std::string(STREETSIM_DATA_DIR) + "/kitti_raw/2011_09_26/2011_09_26_drive_sfnd_sync";
-const std::string kCamera = std::string(STREETSIM_SOURCE_DIR) + "/examples/cameras/kitti_front.json";
-
-struct Result {
-  int code;
-  std::string out, err;
-};
-
-std::string Slurp(const std::string& p) {
-  std::ifstream f(p, std::ios::binary);
-  std::stringstream s;
-  s << f.rdbuf();
-  return s.str();
-}
+using streetsim::cli_test::kKitti;
+using streetsim::cli_test::kKittiCamera;
+using streetsim::cli_test::Result;
+using streetsim::cli_test::RunStreetsim;
+using streetsim::cli_test::Slurp;
 
 Result RunCli(const std::string& args) {
   const auto dir = std::filesystem::temp_directory_path();
   const std::string out = (dir / ("streetsim_cli_field_out." + std::to_string(getpid()) + ".txt")).string();
   const std::string err = (dir / ("streetsim_cli_field_err." + std::to_string(getpid()) + ".txt")).string();
-  const int status = std::system((kBinary + " " + args + " >" + out + " 2>" + err).c_str());
-  Result r{WEXITSTATUS(status), Slurp(out), Slurp(err)};
+  Result r = RunStreetsim(args, out, err);
   std::filesystem::remove(out);
   std::filesystem::remove(err);
   return r;
@@ -63,7 +53,7 @@ TEST(CliField, TrainWritesAFieldThatRenderAndEvalUse) {
   // Render: no --time-us = the log's first time; times outside the log clamp to its ends.
   const std::string png = dir + "/r.png";
   auto render = [&](const std::string& extra) {
-    const Result rr = RunCli("render --scene " + dir + " --camera " + kCamera + " --out-rgb " + png + extra);
+    const Result rr = RunCli("render --scene " + dir + " --camera " + kKittiCamera + " --out-rgb " + png + extra);
     EXPECT_EQ(rr.code, 0) << extra << ": " << rr.err;
     return Slurp(png);
   };
@@ -94,7 +84,7 @@ TEST(CliField, TrainWritesAFieldThatRenderAndEvalUse) {
 
 TEST(CliField, BadValuesExitTwoWithOneLine) {
   const std::string train = "train --log " + kKitti + " --out /tmp/streetsim_cli_field_bad";
-  const std::string render = "render --camera " + kCamera + " --out-rgb /tmp/streetsim_cli_field_bad.png";
+  const std::string render = "render --camera " + kKittiCamera + " --out-rgb /tmp/streetsim_cli_field_bad.png";
   for (const std::string& args : {
            train + " --field bogus",
            train + " --iterations 20 --field s3gaussian --static-iterations 20",

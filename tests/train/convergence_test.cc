@@ -14,11 +14,14 @@
 #include "gtest/gtest.h"
 #include "render/engine.h"
 #include "scene/train/trainer.h"
+#include "tests/train/synthetic_scene.h"
 
 namespace streetsim::train {
 namespace {
 
-constexpr float kC0 = 0.28209479177387814f;
+using synthetic::kC0;
+using synthetic::LookAtOrigin;
+using synthetic::ToRgb8;
 
 // A random scene in [-1, 1]^3: anisotropic, rotated, mostly opaque, coloured Gaussians (SH degree
 // 0: the trainer's SH schedule only reaches degree 1 at iteration 1000).
@@ -40,27 +43,6 @@ GaussianStore RandomScene(int n, uint64_t seed) {
     for (int c = 0; c < 3; ++c) g.sh[i * 3 + c] = (u(rng) - 0.5f) / kC0;
   }
   return g;
-}
-
-// OpenCV camera (x right, y down, z forward) at `eye` looking at the origin, world z up.
-PinholeCamera LookAtOrigin(const Eigen::Vector3d& eye, int w, int h) {
-  PinholeCamera c;
-  c.width = w;
-  c.height = h;
-  c.fx = c.fy = 0.9 * w;
-  c.cx = (w - 1) / 2.0;
-  c.cy = (h - 1) / 2.0;
-  const Eigen::Vector3d z = (-eye).normalized();
-  const Eigen::Vector3d x = z.cross(Eigen::Vector3d::UnitZ()).normalized();
-  const Eigen::Vector3d y = z.cross(x);
-  Eigen::Matrix3d R;
-  R.col(0) = x;
-  R.col(1) = y;
-  R.col(2) = z;
-  c.T_world_from_cam = Eigen::Isometry3d::Identity();
-  c.T_world_from_cam.linear() = R;
-  c.T_world_from_cam.translation() = eye;
-  return c;
 }
 
 // Cameras on a band around the scene: azimuth evenly spaced (offset by `phase` of a step),
@@ -93,11 +75,7 @@ std::vector<View> RenderViews(const GaussianStore& scene, const std::vector<Pinh
     v.frame = static_cast<int>(i);
     v.name = "synthetic" + std::to_string(i);
     v.camera = cams[i];
-    v.rgb8 = cv::Mat(cams[i].height, cams[i].width, CV_8UC3);
-    for (int y = 0; y < cams[i].height; ++y)
-      for (int x = 0; x < cams[i].width * 3; ++x)
-        v.rgb8.ptr<uint8_t>(y)[x] = static_cast<uint8_t>(
-            std::lround(std::clamp(out.rgb[static_cast<size_t>(y) * cams[i].width * 3 + x], 0.0f, 1.0f) * 255));
+    v.rgb8 = ToRgb8(out.rgb, cams[i].width, cams[i].height);
     views.push_back(std::move(v));
   }
   return views;

@@ -262,7 +262,7 @@ absl::Status NetBackward(const Ctx<T>& x, const ExtPass& pass, const ExtInputs<T
   // dL/dr_raw = gate ⊙ dL/dH; dL/dgate = Σ_rows r_raw ⊙ dL/dH.
   if (L.has_gate) {
     const Eigen::Map<const nn::RowVec<T>> gate(ep + L.gate_offset, M);
-    Eigen::Map<nn::RowVec<T>>(ge + L.gate_offset, M) += (sc.r.array() * sc.dH.array()).colwise().sum().matrix();
+    nn::AddColumnSums((sc.r.array() * sc.dH.array()).matrix(), ge + L.gate_offset);
     sc.dr = (sc.dH.array().rowwise() * gate.array()).matrix();
   } else {
     sc.dr = sc.dH;

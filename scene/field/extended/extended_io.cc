@@ -2,11 +2,11 @@
 
 #include <cmath>
 #include <cstring>
-#include <filesystem>
 #include <fstream>
 #include <iterator>
 
 #include "absl/strings/str_cat.h"
+#include "scene/common/checked_file.h"
 
 namespace streetsim::field {
 
@@ -16,43 +16,9 @@ constexpr char kMagic[8] = {'S', 'S', 'F', 'L', 'D', 'E', 'X', 'T'};
 constexpr uint32_t kVersion = 1;
 constexpr uint32_t kFlagAdam = 1;
 
-uint64_t Fnv(const char* data, size_t n) {
-  uint64_t h = 1469598103934665603ull;
-  constexpr uint64_t kPrime = 1099511628211ull;
-  size_t i = 0;
-  for (; i + 8 <= n; i += 8) {
-    uint64_t w;
-    std::memcpy(&w, data + i, 8);
-    h = (h ^ w) * kPrime;
-  }
-  for (; i < n; ++i) h = (h ^ static_cast<unsigned char>(data[i])) * kPrime;
-  return h;
-}
-
-struct Writer {
-  template <typename T>
-  void Pod(const T& v) { buf.append(reinterpret_cast<const char*>(&v), sizeof(T)); }
-  void Raw(const void* p, size_t n) { buf.append(static_cast<const char*>(p), n); }
-  std::string buf;
-};
-
-struct Reader {
-  const char* data;
-  size_t n, pos = 0;
-  template <typename T>
-  bool Pod(T* v) { return Raw(v, sizeof(T)); }
-  bool Raw(void* p, size_t k) {
-    if (k > n - pos) return false;
-    std::memcpy(p, data + pos, k);
-    pos += k;
-    return true;
-  }
-  bool Floats(std::vector<float>* v, uint64_t count) {
-    if (count > (n - pos) / sizeof(float)) return false;
-    v->resize(count);
-    return Raw(v->data(), count * sizeof(float));
-  }
-};
+using checked_file::Reader;
+using checked_file::Writer;
+using checked_file::Checksum;
 
 absl::Status Save(const ExtendedField& f, const ExtAdamState* adam, const std::string& path) {
   const ExtendedFieldConfig& c = f.config();
@@ -83,22 +49,8 @@ absl::Status Save(const ExtendedField& f, const ExtAdamState* adam, const std::s
     w.Raw(adam->m.data(), total * sizeof(float));
     w.Raw(adam->v.data(), total * sizeof(float));
   }
-  w.Pod<uint64_t>(Fnv(w.buf.data(), w.buf.size()));
-  const std::string tmp = path + ".tmp";
-  {
-    std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
-    out.write(w.buf.data(), static_cast<std::streamsize>(w.buf.size()));
-    out.flush();
-    if (!out) {
-      std::error_code ec;
-      std::filesystem::remove(tmp, ec);
-      return absl::InternalError(absl::StrCat("cannot write ", tmp));
-    }
-  }
-  std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  if (ec) return absl::InternalError(absl::StrCat("cannot rename ", tmp, " to ", path, ": ", ec.message()));
-  return absl::OkStatus();
+  w.Pod<uint64_t>(Checksum(w.buf.data(), w.buf.size()));
+  return checked_file::WriteAtomically(path, w.buf);
 }
 
 absl::StatusOr<ExtendedField> Load(const std::string& path, DeformationField base, ExtAdamState* adam) {
@@ -110,12 +62,13 @@ absl::StatusOr<ExtendedField> Load(const std::string& path, DeformationField bas
   const size_t body = bytes.size() - 8;
   uint64_t stored = 0;
   std::memcpy(&stored, bytes.data() + body, 8);
-  Reader r{bytes.data(), body};
-  r.pos = 8;
+  Reader r(bytes.data(), body);
+  char magic[8];
+  r.Raw(magic, 8);
   uint32_t version = 0, flags = 0;
   if (!r.Pod(&version) || !r.Pod(&flags)) return corrupt("truncated header");
   if (version != kVersion) return corrupt(absl::StrCat("unsupported extended field version ", version, " (want 1)"));
-  if (stored != Fnv(bytes.data(), body)) return corrupt("checksum mismatch (truncated or corrupt file)");
+  if (stored != Checksum(bytes.data(), body)) return corrupt("checksum mismatch (truncated or corrupt file)");
   if (flags & ~kFlagAdam) return corrupt(absl::StrCat("unknown flags ", flags));
   ExtendedFieldConfig c;
   uint8_t sw[6];
@@ -155,7 +108,7 @@ absl::StatusOr<ExtendedField> Load(const std::string& path, DeformationField bas
   } else if (adam) {
     return absl::FailedPreconditionError(absl::StrCat(path, ": an extension without Adam moments, not a checkpoint"));
   }
-  if (r.pos != body) return corrupt("trailing bytes");
+  if (r.pos() != body) return corrupt("trailing bytes");
   if (adam) *adam = std::move(moments);
   return ExtendedField::FromParams(std::move(base), c, std::move(params));
 }
@@ -163,7 +116,7 @@ absl::StatusOr<ExtendedField> Load(const std::string& path, DeformationField bas
 }  // namespace
 
 uint64_t BaseParamsChecksum(const std::vector<float>& params) {
-  return Fnv(reinterpret_cast<const char*>(params.data()), params.size() * sizeof(float));
+  return Checksum(reinterpret_cast<const char*>(params.data()), params.size() * sizeof(float));
 }
 
 absl::Status SaveExtendedField(const ExtendedField& field, const std::string& path) {

@@ -28,7 +28,7 @@ template <typename T>
 void InputGatesGrad(const GruCellSpec& cell, const T* params, const Mat<T>& x, const Mat<T>& dgi, Mat<T>* dx,
                     bool accumulate, T* d_params) {
   MatMap<T>(d_params + cell.w_ih, 3 * cell.hidden, cell.input_dim).noalias() += dgi.transpose() * x;
-  Eigen::Map<RowVec<T>>(d_params + cell.b_ih, 3 * cell.hidden) += dgi.colwise().sum();
+  AddColumnSums(dgi, d_params + cell.b_ih);
   if (dx == nullptr) return;
   const ConstMatMap<T> w_ih(params + cell.w_ih, 3 * cell.hidden, cell.input_dim);
   if (accumulate) {

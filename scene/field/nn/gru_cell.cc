@@ -74,7 +74,7 @@ absl::Status GruStepBackward(const GruCellSpec& s, const T* params, GruStepCache
   dgh.leftCols(2 * nh) = dgi.leftCols(2 * nh);
   dgh.rightCols(nh).array() = dn_pre * r;
   MatMap<T>(d_params + s.w_hh, 3 * nh, nh).noalias() += dgh.transpose() * c.h_prev;
-  Eigen::Map<RowVec<T>>(d_params + s.b_hh, 3 * nh) += dgh.colwise().sum();
+  AddColumnSums(dgh, d_params + s.b_hh);
   if (dh_prev != nullptr) {
     const ConstMatMap<T> w_hh(params + s.w_hh, 3 * nh, nh);
     dh_prev->resize(rows, nh);
@@ -102,7 +102,7 @@ absl::Status GruCellBackward(const GruCellSpec& s, const T* params, GruCellCache
   c.dgi.resize(c.x.rows(), 3 * s.hidden);
   STREETSIM_NN_RETURN_IF_ERROR(GruStepBackward<T>(s, params, c.step, dh, c.dgi, dh_prev, d_params));
   MatMap<T>(d_params + s.w_ih, 3 * s.hidden, s.input_dim).noalias() += c.dgi.transpose() * c.x;
-  Eigen::Map<RowVec<T>>(d_params + s.b_ih, 3 * s.hidden) += c.dgi.colwise().sum();
+  AddColumnSums(c.dgi, d_params + s.b_ih);
   if (dx != nullptr) {
     dx->resize(c.x.rows(), s.input_dim);
     dx->noalias() = c.dgi * ConstMatMap<T>(params + s.w_ih, 3 * s.hidden, s.input_dim);

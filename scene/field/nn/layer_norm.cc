@@ -50,8 +50,8 @@ absl::Status LayerNormBackward(const LayerNormSpec& s, const T* params, const La
                                const ConstRef<T>& dy, Mat<T>* dx, T* d_params) {
   const Eigen::Index rows = cache.xhat.rows();
   STREETSIM_NN_RETURN_IF_ERROR(CheckShape("layer_norm backward", "dy", dy.rows(), dy.cols(), rows, s.dim));
-  Eigen::Map<RowVec<T>>(d_params + s.gain_offset, s.dim) += dy.cwiseProduct(cache.xhat).colwise().sum();
-  Eigen::Map<RowVec<T>>(d_params + s.bias_offset, s.dim) += dy.colwise().sum();
+  AddColumnSums(dy.cwiseProduct(cache.xhat), d_params + s.gain_offset);
+  AddColumnSums(dy, d_params + s.bias_offset);
   if (dx == nullptr) return absl::OkStatus();
   const Eigen::Map<const RowVec<T>> gain(params + s.gain_offset, s.dim);
   dx->resize(rows, s.dim);

@@ -43,7 +43,7 @@ absl::Status LinearGrad(const LinearSpec& s, const T* params, const ConstRef<T>&
   STREETSIM_NN_RETURN_IF_ERROR(CheckShape("linear backward", "x", x.rows(), x.cols(), -1, s.in));
   STREETSIM_NN_RETURN_IF_ERROR(CheckShape("linear backward", "dy", dy.rows(), dy.cols(), x.rows(), s.out));
   MatMap<T>(d_params + s.w_offset, s.out, s.in).noalias() += dy.transpose() * x;
-  if (s.bias) Eigen::Map<RowVec<T>>(d_params + s.b_offset, s.out) += dy.colwise().sum();
+  if (s.bias) AddColumnSums(dy, d_params + s.b_offset);
   if (dx != nullptr) {
     const ConstMatMap<T> w(params + s.w_offset, s.out, s.in);
     if (accumulate) {

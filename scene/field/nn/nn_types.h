@@ -41,6 +41,16 @@ using MatMap = Eigen::Map<Mat<T>>;
 template <typename T>
 using ConstMatMap = Eigen::Map<const Mat<T>>;
 
+// d_params[0, cols) += the column sums of m (a bias gradient). Through an Eigen-allocated (so
+// aligned) temporary: `Map(d_params) += m.colwise().sum()` peels columns up to the Map's runtime
+// alignment and sums them in another order than the vectorised ones, so the last bits would
+// follow where malloc put the gradient array (docs/training.md "Reproducibility").
+template <typename T, typename Derived>
+void AddColumnSums(const Eigen::DenseBase<Derived>& m, T* d_params) {
+  const RowVec<T> sums = m.colwise().sum();
+  Eigen::Map<RowVec<T>>(d_params, sums.size()) += sums;
+}
+
 #define STREETSIM_NN_RETURN_IF_ERROR(expr)   \
   do {                                       \
     absl::Status _nn_status = (expr);        \

@@ -1,6 +1,5 @@
 #include "scene/field/vulkan/vulkan_deformed_scene.h"
 
-#include <cmath>
 #include <span>
 
 #include "absl/strings/str_cat.h"
@@ -20,12 +19,7 @@ absl::Status VulkanDeformScene(VulkanField& vf, const DeformationField& field, d
       !s.ok()) {
     return s;
   }
-  out->means.resize(n * 3);
-  out->sh.resize(n * kShOutputs);
-  pool.ParallelFor(static_cast<int64_t>(n), 8192, [&](int64_t b, int64_t e, int) {
-    for (int64_t i = b * 3; i < e * 3; ++i) out->means[i] = c.means[i] + out->dx[i];
-    for (int64_t i = b * kShOutputs; i < e * kShOutputs; ++i) out->sh[i] = c.sh[i] + out->dsh[i];
-  });
+  ApplyDeformation(c, pool, out);
   return absl::OkStatus();
 }
 
@@ -45,41 +39,11 @@ absl::StatusOr<DeformLosses> VulkanDeformBackward(VulkanField& vf, const Deforma
                                                    d.dx.size() / 3, ")"));
   }
   if (d_field->size() != field.layout().total) d_field->assign(field.layout().total, 0.0f);
-  DeformLosses losses;
-  if (n == 0) return losses;
-  // As DeformBackward: dL/dΔx = dL/dxyz_t + sparsity; dL/dΔSH = dL/dsh_t (active coefficients) +
-  // sparsity (keep the two in step).
+  if (n == 0) return DeformLosses{};
   scratch->resize(n * (3 + kShOutputs));
   float* g_dx = scratch->data();
   float* g_dsh = g_dx + n * 3;
-  const float cdx = static_cast<float>(h.lambda_dx / (3.0 * n));
-  const float cdsh = static_cast<float>(h.lambda_dsh / (double(kShOutputs) * n));
-  const int nt = pool.num_threads();
-  std::vector<double> sum_dx(nt, 0.0), sum_dsh(nt, 0.0);
-  auto sign = [](float x) { return static_cast<float>((x > 0) - (x < 0)); };
-  pool.ParallelFor(static_cast<int64_t>(n), 8192, [&](int64_t b, int64_t e, int tid) {
-    double sx = 0, ss = 0;
-    for (int64_t i = b * 3; i < e * 3; ++i) {
-      sx += std::abs(d.dx[i]);
-      g_dx[i] = grads->means[i] + cdx * sign(d.dx[i]);
-    }
-    for (int64_t i = b; i < e; ++i) {
-      for (int k = 0; k < kShOutputs; ++k) {
-        const float v = d.dsh[i * kShOutputs + k];
-        ss += std::abs(v);
-        g_dsh[i * kShOutputs + k] = (k < ka3 ? grads->sh[i * ka3 + k] : 0.0f) + cdsh * sign(v);
-      }
-    }
-    sum_dx[tid] += sx;
-    sum_dsh[tid] += ss;
-  });
-  for (int t = 0; t < nt; ++t) {
-    losses.dx_l1 += sum_dx[t];
-    losses.dsh_l1 += sum_dsh[t];
-  }
-  losses.dx_l1 /= 3.0 * n;
-  losses.dsh_l1 /= double(kShOutputs) * n;
-  losses.weighted = h.lambda_dx * losses.dx_l1 + h.lambda_dsh * losses.dsh_l1;
+  DeformLosses losses = SparsityGradients(d, ka3, h, *grads, pool, g_dx, g_dsh);
   // grads->means already holds the identity path; the field adds the sampling-position path.
   if (absl::Status s = vf.Backward(field.QueryAtCoordinate(d.time_coord), std::span<const float>(c.means, n * 3),
                                    std::span<const float>(g_dx, n * 3), std::span<const float>(g_dsh, n * kShOutputs),

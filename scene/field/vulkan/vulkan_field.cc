@@ -154,6 +154,17 @@ struct VulkanField::Impl {
     rec.Dispatch(*sample, {PlaneBuf(0), PlaneBuf(1), PlaneBuf(2), PlaneBuf(3), &plane_table, &means, &features},
                  push, vk::GridFor(DivUp(uint64_t{push.rows} * layout.feature_dim(), kWg)));
   }
+  // The forward up to the heads' hidden layers (Forward, and Backward's recomputation): sample the
+  // planes at the `rows` means, the trunk, then the first layer of the heads asked for.
+  void RecordHidden(vk::Recorder& rec, const FieldQuery& query, size_t rows, bool pos_head, bool sh_head) const {
+    const uint32_t r = static_cast<uint32_t>(rows), D = layout.feature_dim(), W = layout.width;
+    Sample(rec, MakeSamplePush(query, rows));
+    rec.Barrier();
+    Linear(rec, features, act, nullptr, r, D, W, layout.trunk, kBias | kReluOut);
+    rec.Barrier();
+    if (pos_head) Linear(rec, act, pos_hidden, nullptr, r, W, W, layout.pos1, kBias | kReluOut);
+    if (sh_head) Linear(rec, act, sh_hidden, nullptr, r, W, W, layout.sh1, kBias | kReluOut);
+  }
 };
 
 absl::Status VulkanField::Impl::Init(std::span<const float> params) {
@@ -381,7 +392,7 @@ absl::Status VulkanField::Forward(const FieldQuery& query, std::span<const float
   dx_out->resize(n * 3);
   if (dsh_out) dsh_out->resize(n * kShOutputs);
   const FieldLayout& L = m.layout;
-  const uint32_t D = L.feature_dim(), W = L.width;
+  const uint32_t W = L.width;
   VulkanFieldTimings timings;
   for (size_t b0 = 0; b0 < n; b0 += m.batch) {
     const size_t bn = std::min(m.batch, n - b0);
@@ -394,12 +405,7 @@ absl::Status VulkanField::Forward(const FieldQuery& query, std::span<const float
     rec.Copy(m.staging, 0, m.means, 0, bn * 3 * sizeof(float));
     rec.Barrier();
     m.TimestampStart();
-    m.Sample(rec, m.MakeSamplePush(query, bn));
-    rec.Barrier();
-    m.Linear(rec, m.features, m.act, nullptr, rows, D, W, L.trunk, kBias | kReluOut);
-    rec.Barrier();
-    m.Linear(rec, m.act, m.pos_hidden, nullptr, rows, W, W, L.pos1, kBias | kReluOut);
-    if (dsh_out) m.Linear(rec, m.act, m.sh_hidden, nullptr, rows, W, W, L.sh1, kBias | kReluOut);
+    m.RecordHidden(rec, query, bn, true, dsh_out != nullptr);
     rec.Barrier();
     m.Linear(rec, m.pos_hidden, m.dx, nullptr, rows, W, 3, L.pos2, kBias);
     if (dsh_out) m.Linear(rec, m.sh_hidden, m.dsh, nullptr, rows, W, kShOutputs, L.sh2, kBias);
@@ -480,12 +486,7 @@ absl::Status VulkanField::Backward(const FieldQuery& query, std::span<const floa
     rec.Barrier();
     m.TimestampStart();
     // The forward again (the activations are not kept between calls).
-    m.Sample(rec, m.MakeSamplePush(query, bn));
-    rec.Barrier();
-    m.Linear(rec, m.features, m.act, nullptr, rows, D, W, L.trunk, kBias | kReluOut);
-    rec.Barrier();
-    if (has_dx) m.Linear(rec, m.act, m.pos_hidden, nullptr, rows, W, W, L.pos1, kBias | kReluOut);
-    if (has_dsh) m.Linear(rec, m.act, m.sh_hidden, nullptr, rows, W, W, L.sh1, kBias | kReluOut);
+    m.RecordHidden(rec, query, bn, has_dx, has_dsh);
     rec.Barrier();
     // Heads: second layers' gradients, then dL/d(hidden) masked by the ReLU.
     if (has_dx) {
