@@ -14,47 +14,13 @@
 #include "scene/field/static_skip.h"
 #include "scene/train/dynamic_stage.h"
 #include "server/image_encoding.h"
+#include "tests/server/moving_field.h"
 #include "tests/server/server_fixture.h"
 
 namespace streetsim::testing {
 namespace {
 
 constexpr int64_t kLogEndUs = 2'000'000;  // the field's time range is [0, kLogEndUs]
-
-// A small field over the street's Gaussians whose time planes and output heads are scaled so that
-// Gaussians move by up to ~2 m and change colour over the log.
-field::DeformationField MovingField(const GaussianStore& g) {
-  field::FieldConfig c;
-  c.channels = 4;
-  c.base_resolution = 8;
-  c.multires = {1, 2};
-  c.time_resolution = 5;
-  c.width = 16;
-  absl::StatusOr<field::DeformationField> f =
-      field::DeformationField::Create(c, train::AabbOfMeans(g.means), {0, kLogEndUs}, 11);
-  EXPECT_TRUE(f.ok()) << f.status();
-  const field::FieldLayout& L = f->layout();
-  std::vector<float>& p = f->mutable_params();
-  std::mt19937_64 rng(5);
-  std::uniform_real_distribution<float> u(-0.6f, 0.6f);
-  for (const field::PlaneInfo& pi : L.planes) {
-    if (!field::PlaneHasTime(pi.plane)) continue;
-    for (size_t i = 0; i < pi.size(L.channels); ++i) p[pi.offset + i] += u(rng);
-  }
-  auto scale = [&](const field::DenseInfo& d, float s) {
-    for (size_t i = 0; i < size_t(d.out) * d.in; ++i) p[d.w_offset + i] *= s;
-    for (int i = 0; i < d.out; ++i) p[d.b_offset + i] *= s;
-  };
-  scale(L.pos2, 4.0f);
-  scale(L.sh2, 3.0f);
-  return std::move(*f);
-}
-
-Eigen::Isometry3d EgoAt(double x_m) {
-  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
-  T.translation() = Eigen::Vector3d(x_m, 0.0, 0.0);
-  return T;
-}
 
 Eigen::Isometry3d EgoFromLidar() {
   Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
@@ -78,7 +44,7 @@ class FieldSceneTest : public ServerTest {
     o.sh_degree = 3;
     o.street_length_m = 60;
     store_ = MakeSyntheticStreet(o);
-    field_ = std::make_unique<field::DeformationField>(MovingField(store_));
+    field_ = std::make_unique<field::DeformationField>(MovingField(store_, 0, kLogEndUs));
     WriteScene("dyn", store_, *field_);
     StartServer();
   }
