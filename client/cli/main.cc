@@ -36,7 +36,9 @@ void PrintUsage(FILE* out) {
                "  train     static 3DGS training (docs/training.md): streetsim train --log PATH --out DIR\n"
                "              [--iterations N] [--resolution-scale S] [--holdout-every K] [--seed K] [--resume]\n"
                "              [--checkpoint-every N] [--no-sky] [--exposure] [--no-depth] [--deterministic]\n"
-               "              [--lidar-weight W] [--lidar-every K] [--no-lidar-loss]\n"
+               "              [--lidar-weight W] [--lidar-every K] [--no-lidar-loss] [--backend cpu|vulkan|auto]\n"
+               "              [--field static|s3gaussian|extended] [--static-iterations N] [--field-modules LIST]\n"
+               "              [--field-device auto|cpu|vulkan] [--clip-frames N]\n"
                "  eval      metrics of a trained scene: streetsim eval --scene DIR --log PATH [--split test|train] [--no-lidar]\n"
                "              [--decomposition DIR] [--video OUT.avi|OUT.mp4] [--video-fps F]\n"
                "              [--holdout-every K]   (JSON on stdout, a table on stderr)\n");

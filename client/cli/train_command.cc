@@ -34,7 +34,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
       argv, {{"log"}, {"out"}, {"iterations"}, {"resolution-scale"}, {"holdout-every"}, {"seed"}, {"resume", false},
              {"checkpoint-every"}, {"no-sky", false}, {"exposure", false}, {"no-depth", false},
              {"deterministic", false}, {"backend"}, {"voxel"}, {"field"}, {"static-iterations"}, {"field-size"},
-             {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"field-modules"}});
+             {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"field-modules"}, {"field-device"}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
@@ -116,6 +116,12 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     } else if (*v != "spec") {
       return Fail(2, absl::InvalidArgumentError("--field-size must be spec or small"));
     }
+  }
+  // Where S3Gaussian's field runs (auto: Vulkan with --backend vulkan on a GPU, else the cpu).
+  if (auto v = args->Get("field-device")) {
+    absl::StatusOr<train::FieldDevice> d = train::ParseFieldDevice(*v);
+    if (!d.ok()) return Fail(2, d.status());
+    opt.field.device = *d;
   }
   opt.resume = args->Has("resume");
   opt.sky = !args->Has("no-sky");

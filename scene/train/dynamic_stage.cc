@@ -7,8 +7,11 @@
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "render/common/log.h"
+#include "render/vulkan/vulkan_engine.h"
 #include "scene/field/field_io.h"
 #include "scene/field/field_regularizers.h"
+#include "scene/field/vulkan/vulkan_deformed_scene.h"
 
 namespace streetsim::train {
 
@@ -33,6 +36,18 @@ double RegularizeAndStepBaseField(const field::FieldHyper& hyper, int64_t fine_i
 }  // namespace
 
 const char* FieldModeName(FieldMode mode) { return mode == FieldMode::kS3Gaussian ? "s3gaussian" : "static"; }
+
+absl::StatusOr<FieldDevice> ParseFieldDevice(const std::string& text) {
+  if (text == "auto") return FieldDevice::kAuto;
+  if (text == "cpu") return FieldDevice::kCpu;
+  if (text == "vulkan") return FieldDevice::kVulkan;
+  return absl::InvalidArgumentError(absl::StrCat("--field-device must be auto, cpu or vulkan, not '", text, "'"));
+}
+
+FieldDevice ResolveFieldDevice(FieldDevice device, Backend backend) {
+  if (device != FieldDevice::kAuto) return device;
+  return backend == Backend::kVulkan && HasVulkanGpu() ? FieldDevice::kVulkan : FieldDevice::kCpu;
+}
 
 absl::StatusOr<FieldMode> ParseFieldMode(const std::string& text) {
   if (text == "static") return FieldMode::kStatic;
@@ -67,7 +82,10 @@ field::FieldAabb AabbOfMeans(const std::vector<float>& means) {
 
 DynamicStage::DynamicStage(field::DeformationField f, field::FieldAdamState adam, const FieldOptions& options)
     : field_(std::move(f)), adam_(std::move(adam)), hyper_(options.hyper),
-      ws_(std::make_unique<field::FieldWorkspace>()), ext_hyper_(options.ext_hyper), ext_noise_seed_(options.seed) {}
+      ws_(std::make_unique<field::FieldWorkspace>()),
+      use_vulkan_(options.device == FieldDevice::kVulkan && !options.extended),
+      ext_hyper_(options.ext_hyper),
+      ext_noise_seed_(options.seed) {}
 
 absl::StatusOr<std::unique_ptr<DynamicStage>> DynamicStage::Begin(TrainState* st, const FieldOptions& options,
                                                                    const field::FieldTimeRange& time_range) {
@@ -180,9 +198,16 @@ absl::StatusOr<GaussianParamsView> DynamicStage::Deform(const TrainState& st, in
                                                         ThreadPool& pool) {
   if (ext_) return DeformExtended(st, active_degree, time_us, pool);
   field::CanonicalView c{st.size(), st.params.means.data(), st.params.sh.data()};
-  if (absl::Status s = field::DeformScene(field_, field_.TimeCoordinate(time_us), c, pool, *ws_, &deformed_); !s.ok()) {
-    return s;
+  if (use_vulkan_ && !vk_) {  // here, after Begin/Resume/prior have set the parameters
+    absl::StatusOr<std::unique_ptr<field::VulkanField>> vk = field::VulkanField::Create(field_);
+    if (!vk.ok()) return vk.status();
+    vk_ = std::move(*vk);
+    LOG(INFO) << "fine stage: the field runs on Vulkan (" << vk_->device_description() << ")";
   }
+  const absl::Status deformed =
+      vk_ ? field::VulkanDeformScene(*vk_, field_, field_.TimeCoordinate(time_us), c, pool, &deformed_)
+          : field::DeformScene(field_, field_.TimeCoordinate(time_us), c, pool, *ws_, &deformed_);
+  if (!deformed.ok()) return deformed;
   // Colour direction: the engine takes it from the means it renders, i.e. the deformed ones
   // (S3Gaussian uses the canonical xyz, spec quirk 4).
   return field::DeformedParamsView(ParamsView(st, active_degree), deformed_);
@@ -199,10 +224,15 @@ absl::StatusOr<double> DynamicStage::Backward(const TrainState& st, int active_d
     d_field_.assign(field_.layout().total, 0.0f);
   }
   absl::StatusOr<field::DeformLosses> dl =
-      field::DeformBackward(field_, c, deformed_, active_degree, hyper_, pool, *ws_, grads, &d_field_);
+      vk_ ? field::VulkanDeformBackward(*vk_, field_, c, deformed_, active_degree, hyper_, pool, grads, &d_field_,
+                                        &vk_scratch_)
+          : field::DeformBackward(field_, c, deformed_, active_degree, hyper_, pool, *ws_, grads, &d_field_);
   if (!dl.ok()) return dl.status();
   const double reg =
       RegularizeAndStepBaseField(hyper_, fine_iteration, st.extent, pool, field_, d_field_, &adam_);
+  if (vk_) {
+    if (absl::Status s = vk_->UpdateParams(field_.params()); !s.ok()) return s;
+  }
   return dl->weighted + reg;
 }
 

@@ -21,6 +21,7 @@
 #include "scene/field/deformed_scene.h"
 #include "scene/field/extended/extended_deform.h"
 #include "scene/field/field_adam.h"
+#include "scene/field/vulkan/vulkan_field.h"
 #include "scene/gaussians/gaussian_store.h"
 #include "scene/train/dataset.h"
 #include "scene/train/train_state.h"
@@ -28,6 +29,10 @@
 namespace streetsim::train {
 
 enum class FieldMode { kStatic, kS3Gaussian };
+enum class FieldDevice { kAuto, kCpu, kVulkan };
+absl::StatusOr<FieldDevice> ParseFieldDevice(const std::string& text);
+// kAuto -> kVulkan when `backend` is vulkan and a Vulkan GPU exists, else kCpu.
+FieldDevice ResolveFieldDevice(FieldDevice device, Backend backend);
 const char* FieldModeName(FieldMode mode);
 absl::StatusOr<FieldMode> ParseFieldMode(const std::string& text);
 
@@ -53,6 +58,11 @@ struct FieldOptions {
   // The log's frame interval: the token window's Δ is one frame on the time axis (0: keep
   // extended->window_dt as given).
   int64_t frame_interval_us = 0;
+  // Where S3Gaussian's field runs in the fine stage (docs/field.md "Vulkan field"): kAuto takes
+  // the Vulkan field when the trainer's backend is vulkan and a Vulkan GPU exists (on lavapipe it
+  // is 20-40x slower than the cpu field; ResolveFieldDevice); kVulkan forces it (any Vulkan
+  // device). The extended field is cpu only.
+  FieldDevice device = FieldDevice::kAuto;
 };
 
 // The field's AABB from the canonical Gaussians at the start of the fine stage: their bounding
@@ -100,6 +110,11 @@ class DynamicStage {
   std::unique_ptr<field::FieldWorkspace> ws_;
   field::DeformedScene deformed_;
   std::vector<float> d_field_;
+  // The Vulkan field (FieldOptions::device), created at the first Deform from field_'s
+  // parameters and re-uploaded after every Adam step.
+  bool use_vulkan_ = false;
+  std::unique_ptr<field::VulkanField> vk_;
+  std::vector<float> vk_scratch_;
   // --field extended (field_ is moved into ext_).
   absl::StatusOr<GaussianParamsView> DeformExtended(const TrainState& st, int active_degree, int64_t time_us,
                                                     ThreadPool& pool);

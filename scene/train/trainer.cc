@@ -278,6 +278,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
   const int64_t static_its = dynamic ? opt.field.static_iterations : opt.iterations;
   FieldOptions fopt = opt.field;
   fopt.seed += opt.seed;
+  fopt.device = ResolveFieldDevice(opt.field.device, opt.backend);
   if (dynamic && fopt.time_range.start_us == 0 && fopt.time_range.end_us == 0) {
     fopt.time_range = ViewsTimeRange(train_views, heldout);
   }

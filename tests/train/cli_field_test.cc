@@ -93,6 +93,7 @@ TEST(CliField, BadValuesExitTwoWithOneLine) {
            train + " --iterations 20 --static-iterations 5",  // needs --field s3gaussian
            train + " --iterations 100 --field s3gaussian",     // the default 5000 static iterations
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-size huge",
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-device gpu",
            render + " --scene /tmp --ply /tmp/x.ply",
            render + " --ply /tmp/x.ply --time-us 5",
            render + " --scene /tmp --time-us soon",
