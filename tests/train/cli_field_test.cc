@@ -12,6 +12,7 @@
 #include <nlohmann/json.hpp>
 
 #include "gtest/gtest.h"
+#include "tests/common/scratch_dir.h"
 #include "tests/common/cli_runner.h"
 
 namespace {
@@ -33,8 +34,7 @@ Result RunCli(const std::string& args) {
 }
 
 TEST(CliField, TrainWritesAFieldThatRenderAndEvalUse) {
-  const std::string dir = (std::filesystem::temp_directory_path() / "streetsim_cli_field_scene").string();
-  std::filesystem::remove_all(dir);
+  const std::string dir = streetsim::testing::ScratchDir("streetsim_cli_field_scene", "run");
   Result r = RunCli("train --log " + kKitti + " --out " + dir +
                     " --iterations 16 --field s3gaussian --static-iterations 8 --field-size small"
                     " --resolution-scale 0.12 --holdout-every 10 --voxel 0.5 --seed 3 --checkpoint-every 10");

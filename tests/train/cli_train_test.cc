@@ -11,6 +11,7 @@
 #include <nlohmann/json.hpp>
 
 #include "gtest/gtest.h"
+#include "tests/common/scratch_dir.h"
 
 namespace {
 
@@ -40,8 +41,7 @@ Result RunCli(const std::string& args) {
 }
 
 TEST(CliTrain, TrainThenEvalGivesTheJsonContract) {
-  const std::string dir = (std::filesystem::temp_directory_path() / "streetsim_cli_train_scene").string();
-  std::filesystem::remove_all(dir);
+  const std::string dir = streetsim::testing::ScratchDir("streetsim_cli_train_scene", "run");
   Result r = RunCli("train --log " + kKitti + " --out " + dir +
                  " --iterations 20 --resolution-scale 0.12 --holdout-every 4 --seed 3 --checkpoint-every 10");
   ASSERT_EQ(r.code, 0) << r.err;
