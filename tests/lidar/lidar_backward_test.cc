@@ -178,27 +178,12 @@ TEST(LidarBackward, DoubleReferenceMatchesTheFloatForward) {
 // rounding (threshold flips on a few rays), so per group the relative difference of the whole
 // gradient vector is bounded, not each value.
 TEST(LidarBackward, VectorisedBackwardMatchesTheScalarReference) {
-  SyntheticStreetOptions so;
-  so.num_gaussians = 60'000;
-  so.sh_degree = 0;
-  const GaussianStore store = MakeSyntheticStreet(so);
-  std::vector<float> refl(store.size());
-  for (size_t i = 0; i < refl.size(); ++i) refl[i] = static_cast<float>((i * 37) % 101) / 100.0f;
-  const LidarModel m = KittiHdl64e(1024);
-  LidarSweepPose sweep;
-  sweep.T_world_from_lidar_start.translate(Eigen::Vector3d(20, 0.5, 1.73));
-  sweep.T_world_from_lidar_end = sweep.T_world_from_lidar_start;
-  sweep.T_world_from_lidar_end.translate(Eigen::Vector3d(1.5, 0, 0));
-  sweep.T_world_from_lidar_end.rotate(Eigen::AngleAxisd(0.05, Eigen::Vector3d::UnitZ()));
-  const size_t P = static_cast<size_t>(m.beams()) * m.columns;
-  std::mt19937 rng(4);
-  std::uniform_real_distribution<float> u(-0.5f, 0.5f);
-  std::vector<float> dr(P), da(P), di(P);
-  for (size_t p = 0; p < P; ++p) {
-    dr[p] = 0.1f * u(rng);
-    da[p] = u(rng);
-    di[p] = u(rng);
-  }
+  const lidar_test::StreetBackwardCase& t = lidar_test::StreetBackward();
+  const GaussianStore& store = t.store;
+  const std::vector<float>& refl = t.refl;
+  const LidarModel& m = t.model;
+  const LidarSweepPose& sweep = t.sweep;
+  const size_t P = t.dr.size();
   LidarRenderer renderer(2);
   ASSERT_TRUE(renderer.Upload(store).ok());
   auto grads = [&](LidarRenderOptions::Kernel kernel, size_t* saturated) {
@@ -211,7 +196,7 @@ TEST(LidarBackward, VectorisedBackwardMatchesTheScalarReference) {
     *saturated = 0;
     for (float a : out.alpha) *saturated += a > 0.999f;
     LidarGaussianGrads g;
-    EXPECT_TRUE(renderer.Backward({dr.data(), da.data(), di.data()}, &g).ok());
+    EXPECT_TRUE(renderer.Backward(t.up(), &g).ok());
     return g;
   };
   size_t sat_ref = 0, sat = 0;

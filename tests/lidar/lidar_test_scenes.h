@@ -8,9 +8,11 @@
 
 #include <Eigen/Geometry>
 
+#include "render/lidar/lidar_gradients.h"
 #include "render/lidar/lidar_model.h"
 #include "render/lidar/lidar_sweep.h"
 #include "scene/gaussians/gaussian_store.h"
+#include "scene/gaussians/synthetic_street.h"
 
 namespace streetsim::lidar_test {
 
@@ -99,6 +101,45 @@ inline GradScene RandomGradScene(unsigned seed, int n, bool rolling) {
     s.w_intensity.push_back(u(rng) - 0.3);
   }
   return s;
+}
+
+// A street for the backward comparisons (60k Gaussians of the procedural street: rays that
+// saturate, the T < 1e-4 stop that the small gradient-check scenes avoid), a rolling sweep of the
+// 1024-column HDL-64E, per-Gaussian reflectance and all three upstream gradients. Built once per
+// process.
+struct StreetBackwardCase {
+  GaussianStore store;
+  std::vector<float> refl;
+  LidarModel model = KittiHdl64e(1024);
+  LidarSweepPose sweep;
+  std::vector<float> dr, da, di;
+  LidarUpstreamGrads up() const { return {dr.data(), da.data(), di.data()}; }
+};
+
+inline const StreetBackwardCase& StreetBackward() {
+  static const StreetBackwardCase* street = [] {
+    auto* t = new StreetBackwardCase;
+    SyntheticStreetOptions so;
+    so.num_gaussians = 60'000;
+    so.sh_degree = 0;
+    t->store = MakeSyntheticStreet(so);
+    t->refl.resize(t->store.size());
+    for (size_t i = 0; i < t->refl.size(); ++i) t->refl[i] = static_cast<float>((i * 37) % 101) / 100.0f;
+    t->sweep.T_world_from_lidar_start.translate(Eigen::Vector3d(20, 0.5, 1.73));
+    t->sweep.T_world_from_lidar_end = t->sweep.T_world_from_lidar_start;
+    t->sweep.T_world_from_lidar_end.translate(Eigen::Vector3d(1.5, 0, 0));
+    t->sweep.T_world_from_lidar_end.rotate(Eigen::AngleAxisd(0.05, Eigen::Vector3d::UnitZ()));
+    const size_t P = static_cast<size_t>(t->model.beams()) * t->model.columns;
+    std::mt19937 rng(4);
+    std::uniform_real_distribution<float> u(-0.5f, 0.5f);
+    for (size_t p = 0; p < P; ++p) {
+      t->dr.push_back(0.1f * u(rng));
+      t->da.push_back(u(rng));
+      t->di.push_back(u(rng));
+    }
+    return t;
+  }();
+  return *street;
 }
 
 }  // namespace streetsim::lidar_test

@@ -167,40 +167,8 @@ INSTANTIATE_TEST_SUITE_P(Sweeps, VulkanLidarBackwardSweep, ::testing::Values(fal
 // gradients, against the cpu scalar backward. The two forwards differ in rounding (a threshold
 // can flip on a few rays), so the whole vector per group is compared, as the cpu's own
 // VectorisedBackwardMatchesTheScalarReference (bound 1e-2 there; 1e-3 here).
-struct Street {
-  GaussianStore store;
-  std::vector<float> refl;
-  LidarModel model = KittiHdl64e(1024);
-  LidarSweepPose sweep;
-  std::vector<float> dr, da, di;
-  LidarUpstreamGrads up() const { return {dr.data(), da.data(), di.data()}; }
-};
-
-const Street& TheStreet() {
-  static const Street* street = [] {
-    auto* t = new Street;
-    SyntheticStreetOptions so;
-    so.num_gaussians = 60'000;
-    so.sh_degree = 0;
-    t->store = MakeSyntheticStreet(so);
-    t->refl.resize(t->store.size());
-    for (size_t i = 0; i < t->refl.size(); ++i) t->refl[i] = static_cast<float>((i * 37) % 101) / 100.0f;
-    t->sweep.T_world_from_lidar_start.translate(Eigen::Vector3d(20, 0.5, 1.73));
-    t->sweep.T_world_from_lidar_end = t->sweep.T_world_from_lidar_start;
-    t->sweep.T_world_from_lidar_end.translate(Eigen::Vector3d(1.5, 0, 0));
-    t->sweep.T_world_from_lidar_end.rotate(Eigen::AngleAxisd(0.05, Eigen::Vector3d::UnitZ()));
-    const size_t P = static_cast<size_t>(t->model.beams()) * t->model.columns;
-    std::mt19937 rng(4);
-    std::uniform_real_distribution<float> u(-0.5f, 0.5f);
-    for (size_t p = 0; p < P; ++p) {
-      t->dr.push_back(0.1f * u(rng));
-      t->da.push_back(u(rng));
-      t->di.push_back(u(rng));
-    }
-    return t;
-  }();
-  return *street;
-}
+using Street = lidar_test::StreetBackwardCase;
+const Street& TheStreet() { return lidar_test::StreetBackward(); }
 
 // The deterministic mode on the street (thousands of splats per tile, where two atomic passes
 // differ in their last bits): identical bits across two Backward calls on one kept sweep, a
@@ -251,28 +219,13 @@ TEST(VulkanLidarBackward, DeterministicIdenticalBitsOnAStreet) {
 }
 
 TEST(VulkanLidarBackward, MatchesTheCpuBackwardOnAStreet) {
-  SyntheticStreetOptions so;
-  so.num_gaussians = 60'000;
-  so.sh_degree = 0;
-  const GaussianStore store = MakeSyntheticStreet(so);
-  std::vector<float> refl(store.size());
-  for (size_t i = 0; i < refl.size(); ++i) refl[i] = static_cast<float>((i * 37) % 101) / 100.0f;
-  const LidarModel m = KittiHdl64e(1024);
-  LidarSweepPose sweep;
-  sweep.T_world_from_lidar_start.translate(Eigen::Vector3d(20, 0.5, 1.73));
-  sweep.T_world_from_lidar_end = sweep.T_world_from_lidar_start;
-  sweep.T_world_from_lidar_end.translate(Eigen::Vector3d(1.5, 0, 0));
-  sweep.T_world_from_lidar_end.rotate(Eigen::AngleAxisd(0.05, Eigen::Vector3d::UnitZ()));
+  const Street& t = TheStreet();
+  const GaussianStore& store = t.store;
+  const std::vector<float>& refl = t.refl;
+  const LidarModel& m = t.model;
+  const LidarSweepPose& sweep = t.sweep;
   const size_t P = static_cast<size_t>(m.beams()) * m.columns;
-  std::mt19937 rng(4);
-  std::uniform_real_distribution<float> u(-0.5f, 0.5f);
-  std::vector<float> dr(P), da(P), di(P);
-  for (size_t p = 0; p < P; ++p) {
-    dr[p] = 0.1f * u(rng);
-    da[p] = u(rng);
-    di[p] = u(rng);
-  }
-  const LidarUpstreamGrads up{dr.data(), da.data(), di.data()};
+  const LidarUpstreamGrads up = t.up();
   size_t saturated = 0;
   const Grads cpu = CpuGrads(store, m, sweep, refl, up, &saturated);
   EXPECT_GT(saturated, P / 20);
