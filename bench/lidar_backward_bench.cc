@@ -20,26 +20,20 @@
 #include "render/lidar/lidar_model.h"
 #include "render/lidar/lidar_renderer.h"
 #include "render/vulkan/lidar_renderer_vk.h"
+#include "bench/lidar_bench_setup.h"
 #include "scene/gaussians/synthetic_street.h"
 
 int main(int argc, char** argv) {
   using namespace streetsim;
-  SyntheticStreetOptions so;
-  so.num_gaussians = argc > 1 ? std::strtoul(argv[1], nullptr, 10) : 500'000;
-  so.sh_degree = 0;
-  const int columns = argc > 2 ? std::atoi(argv[2]) : 2048;
-  const int repeats = argc > 3 ? std::atoi(argv[3]) : 5;
-  const std::string kernel = argc > 4 ? argv[4] : "simd";
-  if (kernel != "simd" && kernel != "scalar" && kernel != "vulkan") {
-    std::fprintf(stderr, "kernel is simd, scalar or vulkan\n");
-    return 2;
-  }
-  LidarRenderOptions opt;
-  opt.kernel = kernel == "simd" ? LidarRenderOptions::Kernel::kSimd : LidarRenderOptions::Kernel::kScalar;
-  const GaussianStore store = MakeSyntheticStreet(so);
-  const LidarModel model = KittiHdl64e(columns);
-  Eigen::Isometry3d T_wl = Eigen::Isometry3d::Identity();
-  T_wl.translation() = Eigen::Vector3d(20, 0, 1.73);
+  bench::LidarBenchSetup setup;
+  if (!bench::ParseLidarBenchSetup(argc, argv, 5, &setup)) return 2;
+  const int columns = setup.columns;
+  const int repeats = setup.repeats;
+  const std::string& kernel = setup.kernel;
+  LidarRenderOptions opt = setup.opt;
+  const GaussianStore& store = setup.store;
+  const LidarModel& model = setup.model;
+  const Eigen::Isometry3d T_wl = setup.T_world_from_lidar;
   const LidarSweepPose fixed = LidarSweepPose::Static(T_wl);
   LidarSweepPose rolling = fixed;
   rolling.T_world_from_lidar_end.translate(Eigen::Vector3d(1.5, 0, 0));
