@@ -13,6 +13,7 @@
 #include "render/lidar/lidar_backward.h"
 #include "render/lidar/lidar_renderer.h"
 #include "scene/gaussians/synthetic_street.h"
+#include "tests/common/finite_differences.h"
 #include "tests/lidar/lidar_test_scenes.h"
 
 namespace streetsim {
@@ -75,36 +76,10 @@ std::vector<double> FiniteDiff(ThreadPool& pool, const Scene& s, const Group& gr
   GaussianStore store = s.store;
   std::vector<float> refl = s.reflectance;
   std::vector<float>& p = group.params ? store.*(group.params) : refl;
-  std::vector<double> fd(p.size());
-  usable->assign(p.size(), true);
-  for (size_t i = 0; i < p.size(); ++i) {
-    const float x = p[i];
-    auto diff = [&](double h) {
-      const float xp = static_cast<float>(x + h), xm = static_cast<float>(x - h);
-      p[i] = xp;
-      const double lp = LossDouble(pool, s, store, refl);
-      p[i] = xm;
-      const double lm = LossDouble(pool, s, store, refl);
-      p[i] = x;
-      return (lp - lm) / (double(xp) - double(xm));  // the steps actually taken (float grid)
-    };
-    const double h = 1e-4 * std::max(1.0, std::abs(double(x)));
-    const double d1 = diff(h), d2 = diff(h / 4);
-    fd[i] = d2;
-    if (std::abs(d1 - d2) > 0.02 * std::max(std::abs(d2), 1e-3)) (*usable)[i] = false;
-  }
-  return fd;
+  return testing::CentralDifferences(p, [&] { return LossDouble(pool, s, store, refl); }, usable);
 }
 
-double RelError(const std::vector<double>& fd, const std::vector<double>& an, const std::vector<bool>& usable) {
-  double num = 0, den = 0;
-  for (size_t i = 0; i < fd.size(); ++i) {
-    if (!usable[i]) continue;
-    num += (fd[i] - an[i]) * (fd[i] - an[i]);
-    den += fd[i] * fd[i];
-  }
-  return std::sqrt(num / std::max(den, 1e-300));
-}
+using testing::UsableRelError;
 
 class LidarGradCheck : public ::testing::TestWithParam<bool> {};
 
@@ -124,10 +99,10 @@ TEST_P(LidarGradCheck, AnalyticGradientsAgreeWithFiniteDifferences) {
     const std::vector<double> fd = FiniteDiff(pool, s, group, &usable);
     size_t skipped = 0;
     for (bool b : usable) skipped += !b;
-    const double e_double = RelError(fd, g_double.*(group.grads), usable);
-    const double e_scalar = RelError(fd, g_scalar.*(group.grads), usable);
-    const double e_simd = RelError(fd, g_simd.*(group.grads), usable);
-    const double e_avx2 = RelError(fd, g_avx2.*(group.grads), usable);
+    const double e_double = UsableRelError(fd, g_double.*(group.grads), usable);
+    const double e_scalar = UsableRelError(fd, g_scalar.*(group.grads), usable);
+    const double e_simd = UsableRelError(fd, g_simd.*(group.grads), usable);
+    const double e_avx2 = UsableRelError(fd, g_avx2.*(group.grads), usable);
     std::printf("%s %-15s rel. error: double %.2e  float scalar %.2e  float vectorised %.2e (%s) %.2e (avx2)  "
                 "(%zu of %zu left out: discontinuous)\n",
                 rolling ? "rolling" : "static ", group.name, e_double, e_scalar, e_simd, LidarRenderer::SimdIsa(),

@@ -19,6 +19,7 @@
 #include "render/vulkan/testing.h"
 #include "render/vulkan/vulkan_engine.h"
 #include "scene/gaussians/synthetic_street.h"
+#include "tests/common/finite_differences.h"
 #include "tests/common/grad_check_scene.h"
 
 namespace streetsim {
@@ -89,7 +90,7 @@ double RelError(const std::vector<float>& ref, const std::vector<float>& x) {
   return std::sqrt(num / std::max(den, 1e-300));
 }
 
-class VulkanBackward : public testing::Test {
+class VulkanBackward : public ::testing::Test {
  protected:
   void SetUp() override {
     if (Vulkan() == nullptr) GTEST_SKIP() << "no Vulkan device on this machine";
@@ -145,30 +146,11 @@ void CheckFiniteDifferences(bool deterministic) {
     for (const Group& group : kGroups) {
       GaussianStore store = s.store;
       std::vector<float>& p = store.*(group.params);
-      const std::vector<float>& an = vk.*(group.grads);
-      double num = 0, den = 0;
-      size_t skipped = 0;
-      for (size_t i = 0; i < p.size(); ++i) {
-        const float x = p[i];
-        auto diff = [&](double h) {
-          const float xp = static_cast<float>(x + h), xm = static_cast<float>(x - h);
-          p[i] = xp;
-          const double lp = LossDouble(pool, s, store);
-          p[i] = xm;
-          const double lm = LossDouble(pool, s, store);
-          p[i] = x;
-          return (lp - lm) / (double(xp) - double(xm));
-        };
-        const double h = 1e-4 * std::max(1.0, std::abs(double(x)));
-        const double d1 = diff(h), d2 = diff(h / 4);
-        if (std::abs(d1 - d2) > 0.02 * std::max(std::abs(d2), 1e-3)) {
-          ++skipped;  // a discontinuity inside the step (tile edge, the 1/255 cut)
-          continue;
-        }
-        num += (d2 - an[i]) * (d2 - an[i]);
-        den += d2 * d2;
-      }
-      const double e = std::sqrt(num / std::max(den, 1e-300));
+      std::vector<bool> usable;
+      const std::vector<double> fd =
+          testing::CentralDifferences(p, [&] { return LossDouble(pool, s, store); }, &usable);
+      const size_t skipped = std::count(usable.begin(), usable.end(), false);
+      const double e = testing::UsableRelError(fd, vk.*(group.grads), usable);
       std::printf("degree %d %-15s vulkan%s rel. error vs finite differences %.2e (%zu of %zu left out)\n",
                   degree, group.name, deterministic ? " deterministic" : "", e, skipped, p.size());
       EXPECT_LT(skipped, p.size() / 4 + 1) << group.name;

@@ -10,6 +10,7 @@
 #include "render/cpu/blend.h"
 #include "render/cpu/cpu_engine.h"
 #include "render/cpu/project.h"
+#include "tests/common/finite_differences.h"
 #include "tests/common/grad_check_scene.h"
 
 namespace streetsim {
@@ -53,37 +54,10 @@ const Group kGroups[] = {{"means", &GaussianStore::means, &GaussianGrads::means}
 // (a discontinuity inside the step: a tile edge, the 1/255 cut) are left out and counted.
 std::vector<double> FiniteDiff(ThreadPool& pool, const Scene& s, const Group& group, std::vector<bool>* usable) {
   GaussianStore store = s.store;
-  std::vector<float>& p = store.*(group.params);
-  std::vector<double> fd(p.size());
-  usable->assign(p.size(), true);
-  for (size_t i = 0; i < p.size(); ++i) {
-    const float x = p[i];
-    auto diff = [&](double h) {
-      const float xp = static_cast<float>(x + h), xm = static_cast<float>(x - h);
-      p[i] = xp;
-      const double lp = LossDouble(pool, s, store);
-      p[i] = xm;
-      const double lm = LossDouble(pool, s, store);
-      p[i] = x;
-      return (lp - lm) / (double(xp) - double(xm));  // the steps actually taken (float grid)
-    };
-    const double h = 1e-4 * std::max(1.0, std::abs(double(x)));
-    const double d1 = diff(h), d2 = diff(h / 4);
-    fd[i] = d2;
-    if (std::abs(d1 - d2) > 0.02 * std::max(std::abs(d2), 1e-3)) (*usable)[i] = false;
-  }
-  return fd;
+  return testing::CentralDifferences(store.*(group.params), [&] { return LossDouble(pool, s, store); }, usable);
 }
 
-double RelError(const std::vector<double>& fd, const std::vector<float>& an, const std::vector<bool>& usable) {
-  double num = 0, den = 0;
-  for (size_t i = 0; i < fd.size(); ++i) {
-    if (!usable[i]) continue;
-    num += (fd[i] - an[i]) * (fd[i] - an[i]);
-    den += fd[i] * fd[i];
-  }
-  return std::sqrt(num / std::max(den, 1e-300));
-}
+using testing::UsableRelError;
 
 class GradCheck : public ::testing::TestWithParam<int> {};
 
@@ -102,9 +76,9 @@ TEST_P(GradCheck, AllBackendsAgreeWithFiniteDifferences) {
     const std::vector<double> fd = FiniteDiff(pool, s, group, &usable);
     size_t skipped = 0;
     for (bool b : usable) skipped += !b;
-    const double e_double = RelError(fd, g_double.*(group.grads), usable);
-    const double e_scalar = RelError(fd, g_scalar.*(group.grads), usable);
-    const double e_simd = RelError(fd, g_simd.*(group.grads), usable);
+    const double e_double = UsableRelError(fd, g_double.*(group.grads), usable);
+    const double e_scalar = UsableRelError(fd, g_scalar.*(group.grads), usable);
+    const double e_simd = UsableRelError(fd, g_simd.*(group.grads), usable);
     std::printf("degree %d %-15s rel. error: double %.2e  float scalar %.2e  float simd %.2e  (%zu of %zu "
                 "left out: discontinuous)\n",
                 degree, group.name, e_double, e_scalar, e_simd, skipped, fd.size());
