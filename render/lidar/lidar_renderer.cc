@@ -293,25 +293,7 @@ absl::Status LidarRenderer::Render(const LidarModel& model, const LidarSweepPose
   });
   const auto t3 = std::chrono::steady_clock::now();
 
-  // Points: range along the pixel's ray in the frame of its column's pose (that column's time).
-  out->points = LidarPoints{};
-  if (options.want_points) {
-    LidarPoints& pts = out->points;
-    const Eigen::Isometry3d T_out = options.point_frame == LidarRenderOptions::PointFrame::kEgo
-                                        ? model.T_ego_from_lidar
-                                        : Eigen::Isometry3d::Identity();
-    for (int b = 0; b < B; ++b) {
-      for (int c = 0; c < W; ++c) {
-        const size_t pix = static_cast<size_t>(b) * W + c;
-        if (out->range[pix] <= 0.0f) continue;
-        pts.xyz.push_back((T_out * (model.RayDirection(b, c) * out->range[pix])).cast<float>());
-        pts.intensity.push_back(out->intensity[pix]);
-        pts.time_us.push_back(options.sweep_start_us + model.ColumnTimeOffsetUs(c));
-        pts.beam.push_back(static_cast<uint16_t>(b));
-        pts.column.push_back(static_cast<uint16_t>(c));
-      }
-    }
-  }
+  FillLidarPoints(model, options, out);
   if (options.keep_for_backward) {
     w.model = model;
     w.has_reflectance = options.reflectance != nullptr;
@@ -328,6 +310,28 @@ absl::Status LidarRenderer::Render(const LidarModel& model, const LidarSweepPose
   out->blend_ms = Ms(t2, t3);
   out->total_ms = Ms(t0, std::chrono::steady_clock::now());
   return absl::OkStatus();
+}
+
+// Points: range along the pixel's ray in the frame of its column's pose (that column's time).
+void FillLidarPoints(const LidarModel& model, const LidarRenderOptions& options, LidarRenderOutput* out) {
+  out->points = LidarPoints{};
+  if (!options.want_points) return;
+  LidarPoints& pts = out->points;
+  const int B = model.beams(), W = model.columns;
+  const Eigen::Isometry3d T_out = options.point_frame == LidarRenderOptions::PointFrame::kEgo
+                                      ? model.T_ego_from_lidar
+                                      : Eigen::Isometry3d::Identity();
+  for (int b = 0; b < B; ++b) {
+    for (int c = 0; c < W; ++c) {
+      const size_t pix = static_cast<size_t>(b) * W + c;
+      if (out->range[pix] <= 0.0f) continue;
+      pts.xyz.push_back((T_out * (model.RayDirection(b, c) * out->range[pix])).cast<float>());
+      pts.intensity.push_back(out->intensity[pix]);
+      pts.time_us.push_back(options.sweep_start_us + model.ColumnTimeOffsetUs(c));
+      pts.beam.push_back(static_cast<uint16_t>(b));
+      pts.column.push_back(static_cast<uint16_t>(c));
+    }
+  }
 }
 
 absl::Status LidarRenderer::Backward(const LidarUpstreamGrads& upstream, LidarGaussianGrads* grads,

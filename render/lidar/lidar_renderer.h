@@ -84,6 +84,11 @@ struct LidarRenderOutput {
   double projection_ms = 0, sort_ms = 0, blend_ms = 0, total_ms = 0;
 };
 
+// out->points from out->range / intensity when options.want_points (else empty): one point per
+// return along its pixel's ray, in the sensor (or ego) frame, at its column's time. Shared by the
+// cpu and Vulkan renderers.
+void FillLidarPoints(const LidarModel& model, const LidarRenderOptions& options, LidarRenderOutput* out);
+
 class LidarRenderer {
  public:
   // num_threads <= 0: STREETSIM_THREADS if set, else the hardware's count (ThreadPool).

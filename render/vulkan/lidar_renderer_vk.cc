@@ -428,24 +428,7 @@ absl::Status VulkanLidarRenderer::Impl::Render(const LidarModel& model, const Li
     dst->resize(P);
     std::memcpy(dst->data(), planes_host + static_cast<size_t>(plane) * P, P * 4);
   }
-  out->points = LidarPoints{};
-  if (options.want_points) {
-    LidarPoints& pts = out->points;
-    const Eigen::Isometry3d T_out = options.point_frame == LidarRenderOptions::PointFrame::kEgo
-                                        ? model.T_ego_from_lidar
-                                        : Eigen::Isometry3d::Identity();
-    for (int b = 0; b < B; ++b) {
-      for (int c = 0; c < W; ++c) {
-        const float r = out->range[static_cast<size_t>(b) * W + c];
-        if (r <= 0.0f) continue;
-        pts.xyz.push_back((T_out * (model.RayDirection(b, c) * r)).cast<float>());
-        pts.intensity.push_back(out->intensity[static_cast<size_t>(b) * W + c]);
-        pts.time_us.push_back(options.sweep_start_us + model.ColumnTimeOffsetUs(c));
-        pts.beam.push_back(static_cast<uint16_t>(b));
-        pts.column.push_back(static_cast<uint16_t>(c));
-      }
-    }
-  }
+  FillLidarPoints(model, options, out);
   out->num_gaussians = n;
   out->num_visible = counts[vk::kCountV];
   out->num_tile_instances = counts[vk::kCountI];
