@@ -374,12 +374,8 @@ TEST(LidarRender, RejectsBadInputs) {
 // libm and double; the blend evaluates whole 16-lane rows where the reference visits the opacity
 // box), so a handful of rays whose alpha sits on a threshold may differ; the bulk must be tight.
 TEST(LidarRender, SimdKernelsMatchTheScalarReference) {
-  SyntheticStreetOptions so;
-  so.num_gaussians = 60'000;
-  so.sh_degree = 0;
-  const GaussianStore store = MakeSyntheticStreet(so);
-  std::vector<float> refl(store.size());
-  for (size_t i = 0; i < refl.size(); ++i) refl[i] = static_cast<float>((i * 37) % 101) / 100.0f;
+  const GaussianStore& store = lidar_test::StreetBackward().store;  // the shared 60k street
+  const std::vector<float>& refl = lidar_test::StreetBackward().refl;
   const LidarModel m = KittiHdl64e(2048);
   Eigen::Isometry3d T_wl = Eigen::Isometry3d::Identity();
   T_wl.translate(Eigen::Vector3d(20, 0.5, 1.73));

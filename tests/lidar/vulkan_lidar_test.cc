@@ -265,12 +265,8 @@ TEST(VulkanLidar, MatchesTheScalarReferenceWithOddSizes) {
 }
 
 TEST(VulkanLidar, MatchesTheScalarReferenceOnAStreet) {
-  SyntheticStreetOptions so;
-  so.num_gaussians = 60'000;
-  so.sh_degree = 0;
-  const GaussianStore store = MakeSyntheticStreet(so);
-  std::vector<float> refl(store.size());
-  for (size_t i = 0; i < refl.size(); ++i) refl[i] = static_cast<float>((i * 37) % 101) / 100.0f;
+  const GaussianStore& store = lidar_test::StreetBackward().store;  // the shared 60k street
+  const std::vector<float>& refl = lidar_test::StreetBackward().refl;
   const LidarModel m = KittiHdl64e(2048);
   Eigen::Isometry3d T_wl = Eigen::Isometry3d::Identity();
   T_wl.translate(Eigen::Vector3d(20, 0.5, 1.73));
