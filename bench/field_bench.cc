@@ -3,11 +3,14 @@
 // - serving: field evaluation per timestamp for N Gaussians uniformly random in a 200 x 200 x 20 m
 //   AABB, without and with the static skip. The field is the spec's init with the space-time
 //   planes varied in time over a band of x (--dynamic-fraction of the AABB's x extent), so the
-//   Gaussians in the band move and the others do not.
+//   Gaussians in the band move and the others do not. Then the same with the extended field
+//   (--ext-modules, ';'-separated module lists, default "all"; "" skips these rows): its gate
+//   opened (0.1) and its decoder's last layers drawn (Xavier x 0.1), both of which start at 0.
 // - training: DeformScene + DeformBackward (random dL/d(deformed means, SH)), the plane
 //   regularisers and the field's Adam step, for Gaussians of the procedural street.
 //   field_bench [--serve 500000] [--train 139000,300000] [--repeats 5] [--samples 50]
 //               [--dynamic-fraction 0.1] [--threads 0] [--row-order (no Morton order when serving)]
+//               [--ext-modules "all;encoder,vae,attention,gru,decoder"]
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -21,6 +24,7 @@
 #include "absl/strings/str_split.h"
 #include "render/common/thread_pool.h"
 #include "scene/field/deformed_scene.h"
+#include "scene/field/extended/extended_serving.h"
 #include "scene/field/field_regularizers.h"
 #include "scene/field/static_skip.h"
 #include "scene/gaussians/synthetic_street.h"
@@ -83,7 +87,48 @@ GaussianStore RandomInBox(size_t n, const FieldAabb& box, uint64_t seed) {
   return g;
 }
 
-void BenchServe(size_t n, int repeats, int samples, double dyn_fraction, bool order, ThreadPool& pool) {
+// Per-timestamp cost of a served scene over `repeats` distinct timestamps (after a warm-up one).
+void TimeServe(size_t n, const std::string& name, field::ServedScene& sf, double setup_ms, int repeats,
+               ThreadPool& pool) {
+  double total = 0, cpu = 0;
+  for (int r = 0; r <= repeats; ++r) {
+    const auto t1 = Clock::now();
+    const double c1 = CpuMs();
+    absl::StatusOr<const GaussianStore*> s = sf.At(100'000 * (r + 1), pool);  // distinct timestamps
+    const double ms = Ms(t1), cms = CpuMs() - c1;
+    if (!s.ok()) std::exit(1);
+    if (r > 0) total += ms, cpu += cms;  // the first call warms the workspace
+  }
+  std::printf("serve %8zu %-13s dynamic %7zu (%5.1f %%)  setup %8.0f ms  per timestamp %7.1f ms wall, %7.1f ms cpu\n",
+              n, name.c_str(), sf.num_dynamic(), 100.0 * sf.num_dynamic() / n, setup_ms, total / repeats,
+              cpu / repeats);
+}
+
+// The extended field on `base` with `modules`, the modules let in: the gate at 0.1 and the
+// decoder's last layers Xavier x 0.1 (at init both are 0 and the extension changes nothing).
+ExtendedField BenchExtension(const DeformationField& base, const std::string& modules) {
+  absl::StatusOr<ExtendedFieldConfig> c = ExtendedFieldConfig::WithModules(modules);
+  if (!c.ok()) {
+    std::fprintf(stderr, "%s\n", std::string(c.status().message()).c_str());
+    std::exit(2);
+  }
+  absl::StatusOr<ExtendedField> e = ExtendedField::Create(base, *c, 3);
+  if (!e.ok()) std::exit(1);
+  const ExtendedLayout& L = e->layout();
+  std::vector<float>& p = e->mutable_params();
+  if (L.has_gate) std::fill_n(p.begin() + L.gate_offset, L.model_dim, 0.1f);
+  if (c->decoder) {
+    std::mt19937_64 rng(4);
+    for (const nn::LinearSpec* s : {&L.scale2, &L.rot2, &L.op2}) {
+      nn::InitLinear<float>(*s, rng, p.data());
+      for (size_t i = 0; i < size_t(s->in) * s->out; ++i) p[s->w_offset + i] *= 0.1f;
+    }
+  }
+  return std::move(*e);
+}
+
+void BenchServe(size_t n, int repeats, int samples, double dyn_fraction, bool order,
+                const std::vector<std::string>& ext_modules, ThreadPool& pool) {
   FieldAabb box;
   box.min[0] = -100; box.min[1] = -100; box.min[2] = -5;
   box.max[0] = 100;  box.max[1] = 100;  box.max[2] = 15;
@@ -111,18 +156,26 @@ void BenchServe(size_t n, int repeats, int samples, double dyn_fraction, bool or
       std::fprintf(stderr, "%s\n", std::string(sf.status().message()).c_str());
       std::exit(1);
     }
-    double total = 0, cpu = 0;
-    for (int r = 0; r <= repeats; ++r) {
-      const auto t1 = Clock::now();
-      const double c1 = CpuMs();
-      absl::StatusOr<const GaussianStore*> s = sf->At(100'000 * (r + 1), pool);  // distinct timestamps
-      const double ms = Ms(t1), cms = CpuMs() - c1;
-      if (!s.ok()) std::exit(1);
-      if (r > 0) total += ms, cpu += cms;  // the first call warms the workspace
+    TimeServe(n, mode.name, *sf, setup_ms, repeats, pool);
+  }
+  // The extended field (ExtServingField: no spatial-feature cache, ExtendedForward per timestamp).
+  for (const std::string& modules : ext_modules) {
+    std::printf("extended field, modules %s:\n", modules.c_str());
+    for (bool skip : {false, true}) {
+      StaticSkipOptions o;
+      o.enabled = skip;
+      o.num_samples = samples;
+      o.spatial_order = order;
+      const auto t0 = Clock::now();
+      absl::StatusOr<std::unique_ptr<ExtServingField>> sf =
+          ExtServingField::Create(BenchExtension(*f, modules), g, o, pool);
+      const double setup_ms = Ms(t0);
+      if (!sf.ok()) {
+        std::fprintf(stderr, "%s\n", std::string(sf.status().message()).c_str());
+        std::exit(1);
+      }
+      TimeServe(n, skip ? "ext skip" : "ext no-skip", **sf, setup_ms, repeats, pool);
     }
-    std::printf("serve %8zu %-13s dynamic %7zu (%5.1f %%)  setup %8.0f ms  per timestamp %7.1f ms wall, %7.1f ms cpu\n",
-                n, mode.name, sf->num_dynamic(), 100.0 * sf->num_dynamic() / n, setup_ms,
-                total / repeats, cpu / repeats);
   }
 }
 
@@ -220,7 +273,7 @@ void BenchTrain(size_t n, int repeats, ThreadPool& pool) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  std::string serve = "500000", train = "139000,300000";
+  std::string serve = "500000", train = "139000,300000", ext = "all;encoder,vae,attention,gru,decoder";
   int repeats = 5, samples = 50, threads = 0;
   double dyn = 0.1;
   bool order = true;
@@ -232,17 +285,19 @@ int main(int argc, char** argv) {
     else if (!std::strcmp(argv[i], "--dynamic-fraction") && i + 1 < argc) dyn = std::atof(argv[++i]);
     else if (!std::strcmp(argv[i], "--threads") && i + 1 < argc) threads = std::atoi(argv[++i]);
     else if (!std::strcmp(argv[i], "--row-order")) order = false;
+    else if (!std::strcmp(argv[i], "--ext-modules") && i + 1 < argc) ext = argv[++i];
     else {
       std::fprintf(stderr,
                    "usage: field_bench [--serve N,...] [--train N,...] [--repeats R] [--samples S] "
-                   "[--dynamic-fraction F] [--threads T] [--row-order]\n");
+                   "[--dynamic-fraction F] [--threads T] [--row-order] [--ext-modules 'LIST;LIST']\n");
       return 2;
     }
   }
   ThreadPool pool(threads);
   std::printf("field: spec sizes (35.7M plane parameters), %d threads, times averaged over %d repeats\n",
               pool.num_threads(), repeats);
-  for (size_t n : ParseSizes(serve)) BenchServe(n, repeats, samples, dyn, order, pool);
+  const std::vector<std::string> ext_modules = absl::StrSplit(ext, ';', absl::SkipEmpty());
+  for (size_t n : ParseSizes(serve)) BenchServe(n, repeats, samples, dyn, order, ext_modules, pool);
   for (size_t n : ParseSizes(train)) BenchTrain(n, repeats, pool);
   return 0;
 }

@@ -108,8 +108,8 @@ int main(int argc, char** argv) {
     std::printf("| S3Gaussian (FieldForward / FieldBackward) | 0 | %lld | 1.0 | 24 | %.1f | %.1f |\n",
                 static_cast<long long>(base_macs), f * per, fb * per);
   }
-  for (const char* modules : {"none", "encoder", "vae", "temporal", "attention", "gru", "decoder",
-                              "temporal,attention", "temporal,gru", "all"}) {
+  for (const char* modules : {"none", "encoder", "vae", "vae_dilated", "temporal", "attention", "gru", "decoder",
+                              "temporal,attention", "temporal,gru", "all", "all,vae_dilated"}) {
     if (!only.empty() && only != modules) continue;
     absl::StatusOr<ExtendedFieldConfig> ec = ExtendedFieldConfig::WithModules(modules);
     Check(ec.status());
@@ -135,7 +135,7 @@ int main(int argc, char** argv) {
       Check(ExtendedBackward<float>(model, pass, in, g, 1e-4 / n, gi, pool, ws).status());
     }, repeats);
     const int64_t macs = base_macs + ef->layout().Macs(*ec);
-    const int samples = bc.num_levels() * (3 + 3 * ec->tokens());
+    const int samples = bc.num_levels() * (3 + 3 * ec->tokens() + (ec->vae && ec->vae_dilation > 0 ? 12 : 0));
     std::printf("| extended: %s | %zu | %lld | %.1f | %d | %.1f | %.1f |\n", ec->ModulesString().c_str(),
                 ef->layout().total(), static_cast<long long>(macs), static_cast<double>(macs) / base_macs, samples,
                 f * per, fb * per);

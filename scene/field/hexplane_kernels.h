@@ -20,10 +20,11 @@ struct Tap {
   T dpx_dp = 0;    // d(px)/d(p): (R - 1) / 2 inside, 0 where clamped
 };
 
+// The tap at the continuous texel coordinate px (MakeTap's rules; the extended field's dilated
+// taps shift px by whole texels before the clamp).
 template <typename T>
-inline Tap<T> MakeTap(T p, int resolution) {
+inline Tap<T> MakeTapPx(T px, int resolution) {
   const T rm1 = static_cast<T>(resolution - 1);
-  T px = (p + T(1)) * T(0.5) * rm1;
   Tap<T> tap;
   tap.dpx_dp = (px > T(0) && px < rm1) ? rm1 * T(0.5) : T(0);
   // Written so that NaN lands on 0 (comparisons with NaN are false): bad input never indexes out.
@@ -34,6 +35,16 @@ inline Tap<T> MakeTap(T p, int resolution) {
   tap.i0 = i0;
   tap.w = px - static_cast<T>(i0);
   return tap;
+}
+
+template <typename T>
+inline T TexelCoord(T p, int resolution) {
+  return (p + T(1)) * T(0.5) * static_cast<T>(resolution - 1);
+}
+
+template <typename T>
+inline Tap<T> MakeTap(T p, int resolution) {
+  return MakeTapPx(TexelCoord(p, resolution), resolution);
 }
 
 // The four taps of one plane sample: offset of (u0, v0) relative to the plane and the weights.

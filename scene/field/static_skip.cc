@@ -13,6 +13,47 @@ namespace {
 constexpr size_t kAnalysisChunk = 32768;  // Gaussians whose statistics are kept at once
 }  // namespace
 
+void DeltaRanges::Reset(size_t rows, int width) {
+  rows_ = rows;
+  width_ = width;
+  samples_ = 0;
+  lo_.assign(rows * width, std::numeric_limits<float>::max());
+  hi_.assign(rows * width, std::numeric_limits<float>::lowest());
+  sum_.assign(rows * width, 0.0);
+}
+
+void DeltaRanges::Add(std::initializer_list<Block> blocks, ThreadPool& pool) { Add(blocks, nullptr, rows_, pool); }
+
+void DeltaRanges::Add(std::initializer_list<Block> blocks, const uint32_t* rows, size_t n, ThreadPool& pool) {
+  const std::vector<Block> bs(blocks);
+  ++samples_;
+  pool.ParallelFor(static_cast<int64_t>(n), 4096, [&](int64_t b, int64_t e, int) {
+    for (int64_t i = b; i < e; ++i) {
+      size_t j = (rows ? rows[i] : i) * width_;
+      for (const Block& blk : bs) {
+        for (int k = 0; k < blk.count; ++k, ++j) {
+          const float v = blk.data[i * blk.stride + k];
+          lo_[j] = std::min(lo_[j], v);
+          hi_[j] = std::max(hi_[j], v);
+          sum_[j] += v;
+        }
+      }
+    }
+  });
+}
+
+double DeltaRanges::max_range(size_t row, int k0, int count) const {
+  double m = 0;
+  for (int k = k0; k < k0 + count; ++k) m = std::max(m, double(range(row, k)));
+  return m;
+}
+
+bool MotionAndColourStatic(const DeltaRanges& r, size_t row, int sh_values, const StaticSkipOptions& o) {
+  double box2 = 0;
+  for (int k = 0; k < 3; ++k) box2 += double(r.range(row, k)) * r.range(row, k);
+  return std::sqrt(box2) < o.motion_threshold_m && r.max_range(row, 3, sh_values) < o.sh_threshold;
+}
+
 absl::StatusOr<StaticAnalysis> AnalyseStatic(const DeformationField& field, const GaussianStore& g,
                                              const StaticSkipOptions& o, ThreadPool& pool) {
   if (absl::Status s = g.Validate(); !s.ok()) return s;
@@ -25,17 +66,14 @@ absl::StatusOr<StaticAnalysis> AnalyseStatic(const DeformationField& field, cons
   out.mean_dx.assign(n * 3, 0.0f);
   out.mean_dsh.assign(n * K3, 0.0f);
   FieldWorkspace ws;
-  std::vector<float> dx, dsh, lo, hi, spatial;
-  std::vector<double> sum;
+  std::vector<float> dx, dsh, spatial;
+  DeltaRanges ranges;
   const int S = o.num_samples;
-  const int W = 3 + K3;  // statistics per Gaussian: Δx then ΔSH
   for (size_t c0 = 0; c0 < n; c0 += kAnalysisChunk) {
     const size_t cn = std::min(kAnalysisChunk, n - c0);
     dx.resize(cn * 3);
     dsh.resize(cn * kShOutputs);
-    lo.assign(cn * W, std::numeric_limits<float>::max());
-    hi.assign(cn * W, std::numeric_limits<float>::lowest());
-    sum.assign(cn * W, 0.0);
+    ranges.Reset(cn, 3 + K3);  // Δx then ΔSH
     // The spatial planes do not depend on time: sampled once per chunk, not once per sample.
     spatial.resize(cn * field.layout().feature_dim());
     SpatialFeatures<float>(field.layout(), field.params().data(), field.QueryAtCoordinate(0),
@@ -45,26 +83,14 @@ absl::StatusOr<StaticAnalysis> AnalyseStatic(const DeformationField& field, cons
       FieldForwardCached<float>(field.layout(), field.params().data(), field.QueryAtCoordinate(coord),
                                 g.means.data() + c0 * 3, nullptr, spatial.data(), cn, dx.data(), dsh.data(), pool,
                                 ws);
-      pool.ParallelFor(static_cast<int64_t>(cn), 4096, [&](int64_t b, int64_t e, int) {
-        for (int64_t i = b; i < e; ++i) {
-          for (int k = 0; k < W; ++k) {
-            const float v = k < 3 ? dx[i * 3 + k] : dsh[i * kShOutputs + (k - 3)];
-            const size_t j = i * W + k;
-            lo[j] = std::min(lo[j], v);
-            hi[j] = std::max(hi[j], v);
-            sum[j] += v;
-          }
-        }
-      });
+      ranges.Add({{dx.data(), 3, 3}, {dsh.data(), kShOutputs, K3}}, pool);
     }
     for (size_t i = 0; i < cn; ++i) {
-      double box2 = 0, sh_range = 0;
-      for (int k = 0; k < 3; ++k) box2 += double(hi[i * W + k] - lo[i * W + k]) * (hi[i * W + k] - lo[i * W + k]);
-      for (int k = 3; k < W; ++k) sh_range = std::max(sh_range, double(hi[i * W + k] - lo[i * W + k]));
-      for (int k = 0; k < 3; ++k) out.mean_dx[(c0 + i) * 3 + k] = static_cast<float>(sum[i * W + k] / S);
-      for (int k = 0; k < K3; ++k) out.mean_dsh[(c0 + i) * K3 + k] = static_cast<float>(sum[i * W + 3 + k] / S);
-      const bool is_static = std::sqrt(box2) < o.motion_threshold_m && sh_range < o.sh_threshold;
-      if (!is_static || !o.enabled) out.dynamic_rows.push_back(static_cast<uint32_t>(c0 + i));
+      for (int k = 0; k < 3; ++k) out.mean_dx[(c0 + i) * 3 + k] = ranges.mean(i, k);
+      for (int k = 0; k < K3; ++k) out.mean_dsh[(c0 + i) * K3 + k] = ranges.mean(i, 3 + k);
+      if (!MotionAndColourStatic(ranges, i, K3, o) || !o.enabled) {
+        out.dynamic_rows.push_back(static_cast<uint32_t>(c0 + i));
+      }
     }
   }
   return out;

@@ -6,6 +6,7 @@
 #pragma once
 
 #include <cstdint>
+#include <initializer_list>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -21,6 +22,14 @@ struct StaticSkipOptions {
   // ... and every ΔSH coefficient (of the store's degree) varies by less than this over the samples
   // (SH units; 0.01 is ~0.3 % of full-scale colour through C0).
   double sh_threshold = 0.01;
+  // The extended field's decoder heads (extended_serving.h), each Δ's range over the samples:
+  // every Δlog-scale component below log_scale_threshold (0.01: the baked scale is within 0.5 %),
+  // every Δ of the raw quaternion's components below rotation_threshold (0.01: for a unit
+  // quaternion at most ~0.01 rad of rotation), the Δopacity logit below opacity_threshold (0.01:
+  // opacity within 0.00125).
+  double log_scale_threshold = 0.01;
+  double rotation_threshold = 0.01;
+  double opacity_threshold = 0.01;
   bool enabled = true;               // false: every Gaussian is evaluated every time
   bool spatial_order = true;         // evaluate in Morton order (spatial_order.h); false: row order
   // Keep each dynamic Gaussian's spatial-plane product (field_eval.h SpatialFeatures; 4 x 32
@@ -35,22 +44,70 @@ struct StaticAnalysis {
   size_t num_static() const { return mean_dx.size() / 3 - dynamic_rows.size(); }
 };
 
+// Per Gaussian, the range (max - min) and the mean of each output channel of a deformation over
+// the analysis samples (AnalyseStatic; the extended field's analysis, extended_serving.cc).
+class DeltaRanges {
+ public:
+  // Channels of row i: `count` values at data[i * stride ...]; a sample's blocks side by side
+  // make up the width.
+  struct Block {
+    const float* data;
+    int stride, count;
+  };
+  void Reset(size_t rows, int width);
+  void Add(std::initializer_list<Block> blocks, ThreadPool& pool);  // one sample of every row
+  // One sample of some rows: the blocks' row r is row rows[r], r < n (the mean of a row counts the
+  // samples of every Add since Reset: only meaningful for rows present in all of them).
+  void Add(std::initializer_list<Block> blocks, const uint32_t* rows, size_t n, ThreadPool& pool);
+  float range(size_t row, int k) const { return hi_[row * width_ + k] - lo_[row * width_ + k]; }
+  float mean(size_t row, int k) const { return static_cast<float>(sum_[row * width_ + k] / samples_); }
+  // max over channels [k0, k0 + count) of range (0 when count is 0).
+  double max_range(size_t row, int k0, int count) const;
+
+ private:
+  size_t rows_ = 0;
+  int width_ = 0, samples_ = 0;
+  std::vector<float> lo_, hi_;
+  std::vector<double> sum_;
+};
+
+// S3Gaussian's test of a static Gaussian: the Δx range box (channels 0-2) has a diagonal below
+// motion_threshold_m and each of the next `sh_values` channels (ΔSH) varies by less than sh_threshold.
+bool MotionAndColourStatic(const DeltaRanges& r, size_t row, int sh_values, const StaticSkipOptions& o);
+
 absl::StatusOr<StaticAnalysis> AnalyseStatic(const DeformationField& field, const GaussianStore& canonical,
                                              const StaticSkipOptions& options, ThreadPool& pool);
 
-class ServingField {
+// A scene deformed at the requested time, evaluated once per time coordinate: what the server
+// renders from (ServingField below; the extended field's ExtServingField, extended_serving.h).
+class ServedScene {
+ public:
+  virtual ~ServedScene() = default;
+  // The deformed scene at a timestamp (clamped to the log's range: after the log end dynamic
+  // content holds its last state). Valid until the next call.
+  virtual absl::StatusOr<const GaussianStore*> At(int64_t time_us, ThreadPool& pool) = 0;
+  virtual size_t size() const = 0;
+  virtual size_t num_dynamic() const = 0;           // Gaussians evaluated per timestamp
+  virtual int64_t field_evaluations() const = 0;    // how often the field ran
+  virtual const DeformationField& field() const = 0;  // S3Gaussian's (an extended field's base)
+
+ protected:
+  ServedScene() = default;
+  ServedScene(const ServedScene&) = default;
+  ServedScene& operator=(const ServedScene&) = default;
+};
+
+class ServingField : public ServedScene {
  public:
   static absl::StatusOr<ServingField> Create(DeformationField field, GaussianStore canonical,
                                              const StaticSkipOptions& options, ThreadPool& pool);
 
-  // The deformed scene at a timestamp (clamped to the log's range: after the log end dynamic
-  // content holds its last state). Valid until the next call.
-  absl::StatusOr<const GaussianStore*> At(int64_t time_us, ThreadPool& pool);
+  absl::StatusOr<const GaussianStore*> At(int64_t time_us, ThreadPool& pool) override;
 
-  size_t size() const { return baked_.size(); }
-  size_t num_dynamic() const { return dynamic_rows_.size(); }
-  const DeformationField& field() const { return field_; }
-  int64_t field_evaluations() const { return evaluations_; }  // how often the field ran
+  size_t size() const override { return baked_.size(); }
+  size_t num_dynamic() const override { return dynamic_rows_.size(); }
+  const DeformationField& field() const override { return field_; }
+  int64_t field_evaluations() const override { return evaluations_; }
 
  private:
   DeformationField field_;

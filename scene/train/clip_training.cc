@@ -4,6 +4,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
+#include "scene/field/extended/extended_io.h"
 #include "scene/field/field_io.h"
 #include "scene/log/scene_manifest.h"
 #include "scene/train/dynamic_pixels.h"
@@ -155,11 +156,25 @@ absl::StatusOr<ClipTrainResult> TrainClips(const DriveLog& log, const std::strin
         return absl::FailedPreconditionError(
             absl::StrCat(prior_path, ": the field has another configuration (was --field-size changed?)"));
       }
+      if (o.field.extended) {
+        // --field extended: the extension chains too (field_ext.bin, tied to field.bin by its checksum).
+        const std::string ext_path =
+            (fs::path(out_dir) / set.clips[k - 1].dir / field::kExtendedFieldFileName).string();
+        if (!fs::exists(ext_path, ec)) {
+          return absl::FailedPreconditionError(
+              absl::StrCat(ext_path, " is missing: clip ", k - 1, " was not trained with --field extended"));
+        }
+        absl::StatusOr<field::ExtendedField> ext = field::LoadExtendedField(ext_path, *prior);
+        if (!ext.ok()) return ext.status();
+        o.field.ext_prior = std::make_shared<const field::ExtendedField>(std::move(*ext));
+      }
       o.field.prior = std::make_shared<const field::DeformationField>(std::move(*prior));
     }
     LOG(INFO) << "clip " << k << " of " << set.clips.size() << ": frames [" << clip.frames.first_frame << ", "
               << clip.frames.end_frame << ") -> " << dir
-              << (o.field.prior ? " (fine stage from the previous clip's field)" : "");
+              << (o.field.prior ? (o.field.ext_prior ? " (fine stage from the previous clip's field and extension)"
+                                                     : " (fine stage from the previous clip's field)")
+                                : "");
     absl::StatusOr<TrainResult> r = TrainClip(log, clip.frames, dir, o, progress);
     if (!r.ok()) return absl::Status(r.status().code(), absl::StrCat("clip ", k, ": ", r.status().message()));
     const bool finished = r->iterations >= opt.iterations;

@@ -33,6 +33,25 @@ double RegularizeAndStepBaseField(const field::FieldHyper& hyper, int64_t fine_i
   return reg.weighted;
 }
 
+// The extension of this clip's fine stage from the previous clip's: its parameters, this run's
+// config (Δ follows this clip's time axis). Modules and sizes must match.
+absl::StatusOr<field::ExtendedField> ExtendedFromPrior(field::DeformationField base,
+                                                       const field::ExtendedFieldConfig& ec,
+                                                       const field::ExtendedField& prior) {
+  const field::ExtendedFieldConfig& pc = prior.config();
+  const bool same = pc.ModulesString() == ec.ModulesString() && pc.heads == ec.heads &&
+                    pc.vae_latent == ec.vae_latent && pc.vae_dilation == ec.vae_dilation &&
+                    pc.gru_hidden == ec.gru_hidden && pc.window_k == ec.window_k &&
+                    pc.fourier_frequencies == ec.fourier_frequencies && pc.encoder_layers == ec.encoder_layers &&
+                    pc.activation == ec.activation;
+  if (!same) {
+    return absl::FailedPreconditionError(absl::StrCat("the previous clip's extension (--field-modules ",
+                                                      pc.ModulesString(), ") does not match this run's (",
+                                                      ec.ModulesString(), ", or its sizes differ)"));
+  }
+  return field::ExtendedField::FromParams(std::move(base), ec, prior.params());
+}
+
 }  // namespace
 
 const char* FieldModeName(FieldMode mode) { return mode == FieldMode::kS3Gaussian ? "s3gaussian" : "static"; }
@@ -83,7 +102,7 @@ field::FieldAabb AabbOfMeans(const std::vector<float>& means) {
 DynamicStage::DynamicStage(field::DeformationField f, field::FieldAdamState adam, const FieldOptions& options)
     : field_(std::move(f)), adam_(std::move(adam)), hyper_(options.hyper),
       ws_(std::make_unique<field::FieldWorkspace>()),
-      use_vulkan_(options.device == FieldDevice::kVulkan && !options.extended),
+      use_vulkan_(options.device == FieldDevice::kVulkan),
       ext_hyper_(options.ext_hyper),
       ext_noise_seed_(options.seed) {}
 
@@ -119,7 +138,8 @@ absl::StatusOr<std::unique_ptr<DynamicStage>> DynamicStage::Begin(TrainState* st
                                  : 0.0;
     }
     absl::StatusOr<field::ExtendedField> ext =
-        field::ExtendedField::Create(std::move(stage->field_), ec, options.seed + 0x9e37);
+        options.ext_prior ? ExtendedFromPrior(std::move(stage->field_), ec, *options.ext_prior)
+                          : field::ExtendedField::Create(std::move(stage->field_), ec, options.seed + 0x9e37);
     if (!ext.ok()) return ext.status();
     stage->ext_ = std::make_unique<field::ExtendedField>(std::move(*ext));
   }
@@ -333,7 +353,23 @@ absl::StatusOr<GaussianParamsView> DynamicStage::DeformExtended(const TrainState
   const field::ExtCanonicalView c{st.size(), st.params.means.data(), st.params.sh.data(),
                                   st.params.log_scales.data(), st.params.rotations.data(),
                                   st.params.opacity_logits.data()};
-  if (absl::Status s = field::DeformSceneExt(*ext_, pass, c, pool, *ext_ws_, &ext_deformed_); !s.ok()) return s;
+  if (use_vulkan_ && !vk_ext_) {  // here, after Begin/Resume/prior have set the parameters
+    absl::StatusOr<std::unique_ptr<field::VulkanExtendedField>> vk = field::VulkanExtendedField::Create(*ext_);
+    if (!vk.ok()) return vk.status();
+    vk_ext_ = std::move(*vk);
+    field::VulkanExtendedField* f = vk_ext_.get();
+    ext_eval_.forward = [f](const field::ExtPass& p, const field::ExtInputs<float>& in,
+                            const field::ExtOutputs<float>& out) { return f->Forward(p, in, out); };
+    ext_eval_.backward = [f](const field::ExtPass& p, const field::ExtInputs<float>& in,
+                             const field::ExtOutputGrads<float>& d_out, double kl_weight,
+                             const field::ExtInputGrads<float>& grads) {
+      return f->Backward(p, in, d_out, kl_weight, grads);
+    };
+    LOG(INFO) << "fine stage: the extended field runs on Vulkan (" << vk_ext_->device_description() << ")";
+  }
+  if (absl::Status s = field::DeformSceneExt(*ext_, pass, c, pool, *ext_ws_, &ext_deformed_, ext_eval_); !s.ok()) {
+    return s;
+  }
   return field::ExtDeformedParamsView(ParamsView(st, active_degree), ext_deformed_);
 }
 
@@ -356,11 +392,14 @@ absl::StatusOr<double> DynamicStage::BackwardExtended(const TrainState& st, int 
   absl::StatusOr<field::ExtDeformLosses> dl =
       field::DeformBackwardExt(*ext_, c, ext_deformed_, active_degree, hyper_,
                                field::ExtKlBeta(ext_->config(), fine_iteration), pool, *ext_ws_, grads, &d_field_,
-                               &d_ext_);
+                               &d_ext_, ext_eval_);
   if (!dl.ok()) return dl.status();
   const double reg = RegularizeAndStepBaseField(hyper_, fine_iteration, st.extent, pool, base, d_field_, &adam_);
   field::ExtAdamStep(ext_->mutable_params().data(), d_ext_.data(), d_ext_.size(), &ext_adam_,
                      field::ExtNetworkLr(ext_hyper_, fine_iteration));
+  if (vk_ext_) {
+    if (absl::Status s = vk_ext_->UpdateParams(base.params(), ext_->params()); !s.ok()) return s;
+  }
   return dl->weighted + reg;
 }
 

@@ -22,6 +22,7 @@
 #include "scene/field/extended/extended_deform.h"
 #include "scene/field/field_adam.h"
 #include "scene/field/vulkan/vulkan_field.h"
+#include "scene/field/vulkan/ext/vulkan_extended_field.h"
 #include "scene/gaussians/gaussian_store.h"
 #include "scene/train/dataset.h"
 #include "scene/train/train_state.h"
@@ -52,8 +53,13 @@ struct FieldOptions {
   std::shared_ptr<const field::DeformationField> prior;
   // --field extended (docs/field.md "Extended field"): the seed paper's modules on top of the
   // field above (set: the fine stage trains an ExtendedField; its base is what `config`, `prior`
-  // and field.bin describe). The extension's parameters start from their init in every run.
+  // and field.bin describe). The extension's parameters start from their init, or from ext_prior's.
   std::optional<field::ExtendedFieldConfig> extended;
+  // Clips with --field extended: the previous clip's extension (field_ext.bin, loaded against its
+  // field.bin), whose parameters start this fine stage's extension; it must have `extended`'s
+  // modules and sizes. Its Adam moments and the KL warm-up are not carried over (a fresh Adam and
+  // schedules per clip, like the base field's).
+  std::shared_ptr<const field::ExtendedField> ext_prior;
   field::ExtHyper ext_hyper;  // the extension's Adam group ("network", lr 1.6e-3)
   // The log's frame interval: the token window's Δ is one frame on the time axis (0: keep
   // extended->window_dt as given).
@@ -61,7 +67,8 @@ struct FieldOptions {
   // Where S3Gaussian's field runs in the fine stage (docs/field.md "Vulkan field"): kAuto takes
   // the Vulkan field when the trainer's backend is vulkan and a Vulkan GPU exists (on lavapipe it
   // is 20-40x slower than the cpu field; ResolveFieldDevice); kVulkan forces it (any Vulkan
-  // device). The extended field is cpu only.
+  // device). The same holds for --field extended (VulkanExtendedField; docs/field.md "Extended
+  // field on Vulkan").
   FieldDevice device = FieldDevice::kAuto;
 };
 
@@ -121,6 +128,9 @@ class DynamicStage {
   absl::StatusOr<double> BackwardExtended(const TrainState& st, int active_degree, int64_t fine_iteration,
                                           GaussianGrads* grads, ThreadPool& pool);
   std::unique_ptr<field::ExtendedField> ext_;
+  // The extended field on Vulkan (use_vulkan_), made at the first fine Deform like vk_.
+  std::unique_ptr<field::VulkanExtendedField> vk_ext_;
+  field::ExtEvaluator ext_eval_;  // vk_ext_'s Forward / Backward (empty: the cpu)
   field::ExtAdamState ext_adam_;
   field::ExtHyper ext_hyper_;
   std::unique_ptr<field::ExtWorkspace> ext_ws_;

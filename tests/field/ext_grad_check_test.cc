@@ -325,6 +325,145 @@ TEST(ExtendedFieldConfigTest, ModulesParseAndBadValuesAreErrors) {
   EXPECT_EQ(spec->attention.head_dim(), 16);
 }
 
+// The VAE's dilated variance branch (vae_dilation > 0): gradients through the dilated taps
+// (planes, means) and the two Linears, alone and with every module on.
+ExtendedFieldConfig Dilated(ExtendedFieldConfig c, int d) {
+  c.vae = true;
+  c.vae_dilation = d;
+  return c;
+}
+
+TEST(ExtendedFieldGradCheck, DilatedVarianceAlone) {
+  for (int d : {1, 2}) {
+    ExtendedFieldConfig c;
+    c.vae_latent = 3;
+    Problem p = MakeProblem(Dilated(c, d), 8, -0.2, 20 + d);
+    CheckAll(p, d == 1 ? "vae_dilated d 1" : "vae_dilated d 2");
+  }
+}
+
+TEST(ExtendedFieldGradCheck, EveryModuleOnDilated) {
+  Problem p = MakeProblem(Dilated(ExtendedFieldConfig::AllOn(), 1), 10, 0.37, 22);
+  EXPECT_EQ(CheckAll(p, "all on, vae_dilated"), 13);
+  p.pass.training = false;
+  CheckAll(p, "all on, vae_dilated, inference");
+}
+
+// Bilinear sample of a plane at continuous texel coordinates (a, b) with border clamp (grid_sample,
+// align_corners), written out independently of hexplane_kernels.h.
+double SampleAt(const std::vector<double>& params, const PlaneInfo& pi, int C, int k, double a, double b) {
+  auto clampc = [](double v, int n) { return std::min(std::max(v, 0.0), static_cast<double>(n - 1)); };
+  a = clampc(a, pi.width), b = clampc(b, pi.height);
+  const int a0 = std::min(static_cast<int>(std::floor(a)), pi.width - 2);
+  const int b0 = std::min(static_cast<int>(std::floor(b)), pi.height - 2);
+  const double wa = a - a0, wb = b - b0;
+  auto at = [&](int u, int v) { return params[pi.offset + (static_cast<size_t>(v) * pi.width + u) * C + k]; };
+  return (1 - wa) * (1 - wb) * at(a0, b0) + wa * (1 - wb) * at(a0 + 1, b0) + (1 - wa) * wb * at(a0, b0 + 1) +
+         wa * wb * at(a0 + 1, b0 + 1);
+}
+
+TEST(ExtendedFieldDilated, VarianceBranchIsTheDocumentedFormula) {
+  // μ = 0 (Linear_mu zeroed), inference: Σ KL = ½ Σ (e^{lv} - lv - 1) with lv = Linear_var(S_dil),
+  // S_dil computed here from the formula in extended_config.h.
+  for (int d : {1, 3}) {
+    ExtendedFieldConfig c;
+    c.vae_latent = 3;
+    Problem p = MakeProblem(Dilated(c, d), 12, 0.1, 30 + d);
+    p.pass.training = false;
+    for (const nn::NnParamBlock& b : p.EL.params.blocks())
+      if (b.name.rfind("vae.mu", 0) == 0)
+        for (size_t i = 0; i < b.count; ++i) p.v.ext[b.offset + i] = 0;
+    ThreadPool pool(2);
+    ExtWorkspace ws;
+    std::vector<double> dx(p.n * 3);
+    absl::StatusOr<double> kl = ExtendedForward<double>(Model(p, p.v), p.pass, Inputs(p, p.v), {dx.data()}, pool, ws);
+    ASSERT_TRUE(kl.ok()) << kl.status();
+    const FieldAabb a = TestAabb();
+    const int C = p.BL.channels, D = p.BL.feature_dim(), lat = c.vae_latent;
+    double expect = 0;
+    for (size_t g = 0; g < p.n; ++g) {
+      double px[3];
+      std::vector<double> sdil(D);
+      for (int l = 0; l < p.BL.num_levels; ++l) {
+        const int R = p.BL.level_resolution[l];
+        for (int k = 0; k < 3; ++k) {
+          const double ext = a.max[k] - a.min[k];
+          const double nrm = -2.0 / ext * p.v.means[g * 3 + k] + 1.0 + 2.0 * a.min[k] / ext;
+          px[k] = (nrm + 1) / 2 * (R - 1);
+        }
+        for (int ch = 0; ch < C; ++ch) {
+          double prod = 1;
+          for (int plane : {0, 1, 3}) {  // xy, xz, yz
+            const PlaneInfo& pi = p.BL.planes[l * kPlanesPerLevel + plane];
+            const double u = px[kPlaneCoords[plane][0]], v = px[kPlaneCoords[plane][1]];
+            prod *= 0.25 * (SampleAt(p.v.base, pi, C, ch, u + d, v) + SampleAt(p.v.base, pi, C, ch, u - d, v) +
+                            SampleAt(p.v.base, pi, C, ch, u, v + d) + SampleAt(p.v.base, pi, C, ch, u, v - d));
+          }
+          sdil[l * C + ch] = prod;
+        }
+      }
+      const double* w = p.v.ext.data() + p.EL.vae_var.w_offset;
+      const double* bias = p.v.ext.data() + p.EL.vae_var.b_offset;
+      for (int i = 0; i < lat; ++i) {
+        double lv = bias[i];
+        for (int j = 0; j < D; ++j) lv += w[i * D + j] * sdil[j];
+        expect += 0.5 * (std::exp(lv) - lv - 1);
+      }
+    }
+    EXPECT_GT(expect, 0);
+    EXPECT_NEAR(*kl, expect, 1e-12 * expect) << "d " << d;
+  }
+}
+
+TEST(ExtendedFieldDilated, ModulesAndLayout) {
+  absl::StatusOr<ExtendedFieldConfig> c = ExtendedFieldConfig::WithModules("vae_dilated,gru");
+  ASSERT_TRUE(c.ok());
+  EXPECT_TRUE(c->vae);
+  EXPECT_EQ(c->vae_dilation, 1);
+  EXPECT_EQ(c->ModulesString(), "vae_dilated,gru");
+  EXPECT_EQ(ExtendedFieldConfig::WithModules("all")->vae_dilation, 0);  // "all" keeps the plain VAE
+  EXPECT_EQ(ExtendedFieldConfig::WithModules("all,vae_dilated")->ModulesString(),
+            "encoder,vae_dilated,temporal,attention,gru,decoder");
+  // The two Linears replace vae.in: M -> L on q and D -> L on S_dil.
+  absl::StatusOr<ExtendedLayout> L = ExtendedLayout::Make(FieldConfig(), *c);
+  ASSERT_TRUE(L.ok()) << L.status();
+  EXPECT_EQ(L->vae_in.out, 0);
+  EXPECT_EQ(L->vae_mu.in, 64);
+  EXPECT_EQ(L->vae_mu.out, 32);
+  EXPECT_EQ(L->vae_var.in, 128);
+  EXPECT_EQ(L->vae_var.out, 32);
+  ExtendedFieldConfig bad = *c;
+  bad.vae_dilation = -1;
+  EXPECT_FALSE(ExtendedLayout::Make(FieldConfig(), bad).ok());
+  bad.vae_dilation = 17;
+  EXPECT_FALSE(ExtendedLayout::Make(FieldConfig(), bad).ok());
+}
+
+TEST(ExtendedFieldDilated, DilationChangesOnlyTheVariance) {
+  // Inference (z = μ): the outputs do not depend on the variance branch; training (ε) and the KL do.
+  ExtendedFieldConfig c;
+  c.vae_latent = 3;
+  Problem p = MakeProblem(Dilated(c, 1), 20, 0.3, 40);
+  ThreadPool pool(2);
+  ExtWorkspace ws;
+  auto run = [&](bool training, std::vector<double>* dx) {
+    p.pass.training = training;
+    dx->assign(p.n * 3, 0.0);
+    return *ExtendedForward<double>(Model(p, p.v), p.pass, Inputs(p, p.v), {dx->data()}, pool, ws);
+  };
+  std::vector<double> a, b, ta, tb;
+  const double kla = run(false, &a), tkla = run(true, &ta);
+  for (const nn::NnParamBlock& blk : p.EL.params.blocks())
+    if (blk.name.rfind("vae.var", 0) == 0)
+      for (size_t i = 0; i < blk.count; ++i) p.v.ext[blk.offset + i] *= 0.5;
+  const double klb = run(false, &b), tklb = run(true, &tb);
+  EXPECT_EQ(a, b);
+  EXPECT_NE(ta, tb);
+  EXPECT_NE(kla, klb);
+  EXPECT_EQ(kla, tkla);  // the KL does not depend on ε
+  EXPECT_EQ(klb, tklb);
+}
+
 TEST(ExtendedFieldConfigTest, BadInputsAreErrors) {
   Problem p = MakeProblem(ExtendedFieldConfig::AllOn(), 4, 0.0, 7);
   ThreadPool pool(1);

@@ -2,6 +2,7 @@
 // deformed store of a loaded extended scene, and the shared-pointer bundle render / eval use.
 #include <unistd.h>
 
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <string>
@@ -91,6 +92,47 @@ TEST(ExtendedFieldIo, DamageAndMismatchAreDataLoss) {
   EXPECT_NE(std::string(s.message()).find("does not belong"), std::string::npos) << s;
   EXPECT_EQ(LoadExtendedField(TempPath("missing.bin"), f.base()).status().code(), absl::StatusCode::kNotFound);
   std::filesystem::remove(path);
+}
+
+TEST(ExtendedFieldIo, DilatedBranchIsVersion2AndVersion1StaysAsItWas) {
+  // Without the dilated branch: version 1 (what older readers read); with it: version 2 carrying d.
+  auto version_of = [](const std::string& path) {
+    std::ifstream in(path, std::ios::binary);
+    std::string b((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    uint32_t v = 0;
+    if (b.size() >= 12) std::memcpy(&v, b.data() + 8, 4);
+    return v;
+  };
+  const ExtendedField plain = MakeField(4);
+  const std::string p1 = TempPath("v1.bin");
+  ASSERT_TRUE(SaveExtendedField(plain, p1).ok());
+  EXPECT_EQ(version_of(p1), 1u);
+  ExtendedFieldConfig c = ExtendedFieldConfig::AllOn();
+  c.vae_dilation = 2;
+  absl::StatusOr<ExtendedField> dil = ExtendedField::Create(plain.base(), c, 9);
+  ASSERT_TRUE(dil.ok()) << dil.status();
+  const std::string p2 = TempPath("v2.bin");
+  ASSERT_TRUE(SaveExtendedField(*dil, p2).ok());
+  EXPECT_EQ(version_of(p2), 2u);
+  absl::StatusOr<ExtendedField> back = LoadExtendedField(p2, plain.base());
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(back->config().vae_dilation, 2);
+  EXPECT_EQ(back->config().ModulesString(), "encoder,vae_dilated,temporal,attention,gru,decoder");
+  EXPECT_EQ(back->params(), dil->params());
+  // A version-2 file relabelled version 1 (one field too many for it): refused, never misread.
+  std::string bytes;
+  {
+    std::ifstream in(p2, std::ios::binary);
+    bytes.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+  }
+  bytes[8] = 1;
+  {
+    std::ofstream out(p2, std::ios::binary | std::ios::trunc);
+    out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+  }
+  EXPECT_EQ(LoadExtendedField(p2, plain.base()).status().code(), absl::StatusCode::kDataLoss);
+  std::filesystem::remove(p1);
+  std::filesystem::remove(p2);
 }
 
 TEST(ExtendedFieldShared, DeformedStoreFindsTheExtensionThroughTheBase) {

@@ -23,6 +23,7 @@ absl::Status ExtendedFieldConfig::Validate(const FieldConfig& base) const {
   if (encoder_layers < 0 || encoder_layers > 8) {
     return bad(absl::StrCat("encoder layers ", encoder_layers, " not in 0..8"));
   }
+  if (vae_dilation < 0 || vae_dilation > 16) return bad(absl::StrCat("VAE dilation ", vae_dilation, " not in 0..16"));
   if (!(window_dt >= 0 && window_dt <= 2)) return bad(absl::StrCat("window dt ", window_dt, " not in [0, 2]"));
   if (!(kl_weight >= 0 && kl_weight < 1e6) || kl_warmup_iterations < 0) return bad("KL weight / warm-up out of range");
   return absl::OkStatus();
@@ -36,6 +37,9 @@ absl::StatusOr<ExtendedFieldConfig> ExtendedFieldConfig::WithModules(const std::
       c.encoder = true;
     } else if (part == "vae") {
       c.vae = true;
+    } else if (part == "vae_dilated") {
+      c.vae = true;
+      c.vae_dilation = 1;
     } else if (part == "temporal") {
       c.temporal = true;
     } else if (part == "attention") {
@@ -49,7 +53,8 @@ absl::StatusOr<ExtendedFieldConfig> ExtendedFieldConfig::WithModules(const std::
     } else {
       return absl::InvalidArgumentError(absl::StrCat(
           "--field-modules: unknown module '", std::string(part),
-          "' (want a comma-separated subset of encoder,vae,temporal,attention,gru,decoder, or all, or none)"));
+          "' (want a comma-separated subset of encoder,vae,vae_dilated,temporal,attention,gru,decoder, or all, or "
+          "none)"));
     }
   }
   return c;
@@ -58,7 +63,7 @@ absl::StatusOr<ExtendedFieldConfig> ExtendedFieldConfig::WithModules(const std::
 std::string ExtendedFieldConfig::ModulesString() const {
   std::vector<std::string> parts;
   if (encoder) parts.push_back("encoder");
-  if (vae) parts.push_back("vae");
+  if (vae) parts.push_back(vae_dilation > 0 ? "vae_dilated" : "vae");
   if (temporal) parts.push_back("temporal");
   if (attention) parts.push_back("attention");
   if (gru) parts.push_back("gru");
@@ -109,7 +114,12 @@ absl::StatusOr<ExtendedLayout> ExtendedLayout::Make(const FieldConfig& base, con
     }
   }
   if (c.vae) {
-    STREETSIM_NN_RETURN_IF_ERROR(Assign(nn::MakeLinear(p, "vae.in", M, 2 * c.vae_latent), &L.vae_in));
+    if (c.vae_dilation > 0) {
+      STREETSIM_NN_RETURN_IF_ERROR(Assign(nn::MakeLinear(p, "vae.mu", M, c.vae_latent), &L.vae_mu));
+      STREETSIM_NN_RETURN_IF_ERROR(Assign(nn::MakeLinear(p, "vae.var", L.feature_dim, c.vae_latent), &L.vae_var));
+    } else {
+      STREETSIM_NN_RETURN_IF_ERROR(Assign(nn::MakeLinear(p, "vae.in", M, 2 * c.vae_latent), &L.vae_in));
+    }
     STREETSIM_NN_RETURN_IF_ERROR(Assign(nn::MakeVae(c.vae_latent), &L.vae));
     STREETSIM_NN_RETURN_IF_ERROR(Assign(nn::MakeLinear(p, "vae.out", c.vae_latent, M), &L.vae_out));
   }
@@ -148,7 +158,7 @@ int64_t ExtendedLayout::Macs(const ExtendedFieldConfig& c) const {
     m += enc_in.Macs();
     for (const nn::LinearSpec& l : enc_linear) m += l.Macs();
   }
-  if (c.vae) m += vae_in.Macs() + vae_out.Macs();
+  if (c.vae) m += vae_in.Macs() + vae_mu.Macs() + vae_var.Macs() + vae_out.Macs();
   if (c.attention) m += attention.Macs();
   if (c.gru) m += gru.Macs();
   if (c.temporal && !c.attention && !c.gru) m += readout.Macs();
@@ -176,7 +186,12 @@ void InitExtendedParams(const ExtendedFieldConfig& c, const ExtendedLayout& L, u
     }
   }
   if (c.vae) {
-    nn::InitLinear(L.vae_in, rng, p);
+    if (c.vae_dilation > 0) {
+      nn::InitLinear(L.vae_mu, rng, p);
+      nn::InitLinear(L.vae_var, rng, p);
+    } else {
+      nn::InitLinear(L.vae_in, rng, p);
+    }
     nn::InitLinear(L.vae_out, rng, p);
   }
   if (c.attention) nn::InitAttention(L.attention, rng, p);

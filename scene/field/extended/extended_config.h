@@ -6,6 +6,7 @@
 //
 //   q  = encoder ? Enc([p, opacity, vec Σ, S(x)]) : h0          spatial latent (model dim = width)
 //   q  = vae ? Linear_zq(z), z = μ + σ ⊙ ε (training) | μ, (μ, log σ²) = Linear_vae(q) : q
+//        (vae_dilation d > 0: μ = Linear_mu(q), log σ² = Linear_var(S_dil(x)), see below)
 //   tokens_j = [Fourier(t_j) (temporal only), f(x, t_j)]        t_j = t + jΔ, j = -k..k (temporal)
 //                                                               or the single token f(x, t)
 //   r  = attention ? Attn(q, tokens) (residual + LayerNorm inside) : (encoder || vae ? q : 0)
@@ -17,6 +18,23 @@
 // S3Gaussian's field and the modules grow in. Without it the randomly initialised modules (whose
 // LayerNorm outputs have unit scale) swamp h0 and the field must first unlearn them
 // (docs/field.md "Extended field": measured on the moving-cluster scene).
+//
+// The VAE's dilated variance branch (method.md section 2 item 2, `vae_dilation` = d texels > 0;
+// d = 0 is the single Linear_vae above, bit for bit). Per level l (resolution R_l) and spatial
+// plane c in {xy, xz, yz} with coordinates (u, v), in that level's continuous texel units
+// px = (p + 1) / 2 · (R_l - 1) (p: the normalised position, as S(x) samples it):
+//   A_c(x) = ¼ [s_c(u + d, v) + s_c(u - d, v) + s_c(u, v + d) + s_c(u, v - d)]     [C per level]
+// where s_c(a, b) is the plane's bilinear sample at the texel coordinates (a, b) under the same
+// Tap rules as S(x) (hexplane_kernels.h: align-corners, border clamp to [0, R_l - 1] applied to
+// the shifted coordinate, zero coordinate derivative where it clamps). The centre tap is not in
+// the average. Then, like S(x),
+//   S_dil(x) = concat_l (A_xy ⊙ A_xz ⊙ A_yz)                                      [D]
+//   μ = Linear_mu(q) [L],  log σ² = Linear_var(S_dil(x)) [L],  z = μ + σ ⊙ ε | μ,  KL unchanged.
+// Our reading of the paper's "dilated convolution": a fixed (unlearned) 4-tap cross of dilation
+// d on each plane, averaged, not a learned kernel; the learned part is Linear_var. The variance
+// therefore depends on the neighbourhood's features, the mean on the point's. The cpu sums the
+// four taps in the order written (from 0), then multiplies by ¼. `--field-modules vae_dilated`
+// sets d = 1 (`all` keeps d = 0); a field with d > 0 is field_ext.bin version 2 (extended_io.h).
 //
 // With every module off r = 0: the field is S3Gaussian's exactly (a strict ablation, tested).
 // The extension's parameters live in their own flat array (the "network" Adam group); the planes
@@ -61,6 +79,8 @@ struct ExtendedFieldConfig {
   int window_k = 2;               // K = 2k + 1 tokens with `temporal`
   int fourier_frequencies = 8;    // m
   int encoder_layers = 1;         // L layers of Linear + LayerNorm + activation after the input projection
+  // VAE variance branch dilation d in texels (header comment); 0: (μ, log σ²) from one Linear on q.
+  int vae_dilation = 0;
   nn::Activation activation = nn::Activation::kRelu;
   // Δ, one frame on the field's time axis (time-coordinate units, [-1, 1] spans the log). The
   // trainer sets it from the log's frame interval; tokens t + jΔ clamp to [-1, 1] like t.
@@ -97,7 +117,8 @@ struct ExtendedLayout {
   std::vector<nn::LinearSpec> enc_linear;
   std::vector<nn::LayerNormSpec> enc_norm;
   // VAE.
-  nn::LinearSpec vae_in, vae_out;
+  nn::LinearSpec vae_in, vae_out;   // vae_in: vae_dilation == 0 only
+  nn::LinearSpec vae_mu, vae_var;   // vae_dilation > 0: M -> L on q, D -> L on S_dil(x)
   nn::VaeSpec vae;
   // Tokens and their consumers.
   nn::FourierTimeSpec fourier;

@@ -30,7 +30,7 @@ void ExtAdamStep(float* params, const float* grads, size_t n, ExtAdamState* s, d
 }
 
 absl::Status DeformSceneExt(const ExtendedField& field, const ExtPass& pass, const ExtCanonicalView& c,
-                            ThreadPool& pool, ExtWorkspace& ws, ExtDeformedScene* out) {
+                            ThreadPool& pool, ExtWorkspace& ws, ExtDeformedScene* out, const ExtEvaluator& eval) {
   if (c.n > 0 && (!c.means || !c.sh || !c.log_scales || !c.rotations || !c.opacity_logits)) {
     return absl::InvalidArgumentError("DeformSceneExt: null canonical arrays");
   }
@@ -47,7 +47,8 @@ absl::Status DeformSceneExt(const ExtendedField& field, const ExtPass& pass, con
   ExtInputs<float> in{n, c.means, c.opacity_logits, c.log_scales, c.rotations};
   ExtOutputs<float> o{out->dx.data(), out->dsh.data(), dec ? out->dscale.data() : nullptr,
                       dec ? out->drot.data() : nullptr, dec ? out->dopacity.data() : nullptr};
-  absl::StatusOr<double> kl = ExtendedForward<float>(ModelOf(field), pass, in, o, pool, ws);
+  absl::StatusOr<double> kl =
+      eval.forward ? eval.forward(pass, in, o) : ExtendedForward<float>(ModelOf(field), pass, in, o, pool, ws);
   if (!kl.ok()) return kl.status();
   out->kl_sum = *kl;
   pool.ParallelFor(static_cast<int64_t>(n), 8192, [&](int64_t b, int64_t e, int) {
@@ -78,7 +79,7 @@ absl::StatusOr<ExtDeformLosses> DeformBackwardExt(const ExtendedField& field, co
                                                   const ExtDeformedScene& d, int active_degree, const FieldHyper& h,
                                                   double kl_beta, ThreadPool& pool, ExtWorkspace& ws,
                                                   GaussianGrads* grads, std::vector<float>* d_base,
-                                                  std::vector<float>* d_ext) {
+                                                  std::vector<float>* d_ext, const ExtEvaluator& eval) {
   const size_t n = c.n;
   if (active_degree < 0 || active_degree > 3) {
     return absl::InvalidArgumentError(absl::StrCat("DeformBackwardExt: SH degree ", active_degree));
@@ -127,7 +128,9 @@ absl::StatusOr<ExtDeformLosses> DeformBackwardExt(const ExtendedField& field, co
   ExtInputGrads<float> gi{d_base->data(), d_ext->data(), grads->means.data(),
                           enc ? grads->opacity_logits.data() : nullptr, enc ? grads->log_scales.data() : nullptr,
                           enc ? grads->rotations.data() : nullptr};
-  absl::StatusOr<double> kl = ExtendedBackward<float>(ModelOf(field), d.pass, in, go, kl_beta / n, gi, pool, ws);
+  absl::StatusOr<double> kl =
+      eval.backward ? eval.backward(d.pass, in, go, kl_beta / n, gi)
+                    : ExtendedBackward<float>(ModelOf(field), d.pass, in, go, kl_beta / n, gi, pool, ws);
   if (!kl.ok()) return kl.status();
   losses.kl_mean = *kl / n;
   losses.weighted = h.lambda_dx * losses.dx_l1 + h.lambda_dsh * losses.dsh_l1 + kl_beta * losses.kl_mean;

@@ -7,6 +7,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <vector>
 
@@ -51,8 +52,19 @@ struct ExtDeformedScene {
   double kl_sum = 0;
 };
 
+// Where DeformSceneExt / DeformBackwardExt evaluate the field: null members (the default) run
+// ExtendedForward / ExtendedBackward<float> on the cpu with `field`'s parameters; the trainer's
+// Vulkan path sets them to a VulkanExtendedField's Forward / Backward (same semantics).
+struct ExtEvaluator {
+  std::function<absl::StatusOr<double>(const ExtPass&, const ExtInputs<float>&, const ExtOutputs<float>&)> forward;
+  std::function<absl::StatusOr<double>(const ExtPass&, const ExtInputs<float>&, const ExtOutputGrads<float>&, double,
+                                       const ExtInputGrads<float>&)>
+      backward;
+};
+
 absl::Status DeformSceneExt(const ExtendedField& field, const ExtPass& pass, const ExtCanonicalView& canonical,
-                            ThreadPool& pool, ExtWorkspace& ws, ExtDeformedScene* out);
+                            ThreadPool& pool, ExtWorkspace& ws, ExtDeformedScene* out,
+                            const ExtEvaluator& eval = {});
 // `canonical` with the deformed arrays of `deformed` in place of the canonical ones.
 GaussianParamsView ExtDeformedParamsView(const GaussianParamsView& canonical, const ExtDeformedScene& deformed);
 
@@ -70,7 +82,7 @@ absl::StatusOr<ExtDeformLosses> DeformBackwardExt(const ExtendedField& field, co
                                                   const ExtDeformedScene& deformed, int active_degree,
                                                   const FieldHyper& hyper, double kl_beta, ThreadPool& pool,
                                                   ExtWorkspace& ws, GaussianGrads* grads, std::vector<float>* d_base,
-                                                  std::vector<float>* d_ext);
+                                                  std::vector<float>* d_ext, const ExtEvaluator& eval = {});
 
 // `canonical` (SH degree 3) deformed at `time_us` (inference: z = μ).
 absl::StatusOr<GaussianStore> ExtDeformedStore(const ExtendedField& field, const GaussianStore& canonical,

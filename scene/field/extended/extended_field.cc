@@ -5,6 +5,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "scene/field/extended/encoder_geometry.h"
+#include "scene/field/extended/ext_noise.h"
 #include "scene/field/extended/extended_sampling.h"
 
 namespace streetsim::field {
@@ -35,30 +36,19 @@ struct BaseMlp {
   }
 };
 
-// ε ~ N(0, 1) of (seed, Gaussian, latent index): splitmix64 -> two uniforms -> Box-Muller.
-inline uint64_t SplitMix(uint64_t x) {
-  x += 0x9e3779b97f4a7c15ull;
-  x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ull;
-  x = (x ^ (x >> 27)) * 0x94d049bb133111ebull;
-  return x ^ (x >> 31);
-}
-inline double Normal(uint64_t seed, uint64_t g, uint64_t i) {
-  const uint64_t h1 = SplitMix(seed ^ SplitMix(g * 0x100000001b3ull + i));
-  const uint64_t h2 = SplitMix(h1);
-  const double u1 = (static_cast<double>(h1 >> 11) + 0.5) * 0x1.0p-53;
-  const double u2 = static_cast<double>(h2 >> 11) * 0x1.0p-53;
-  return std::sqrt(-2.0 * std::log(u1)) * std::cos(2.0 * M_PI * u2);
-}
+using internal::Normal;  // ε (ext_noise.h)
 
 template <typename T>
 struct Scratch {
   // Sampling.
   Mat<T> S, Ftok, F;  // [B, D] spatial product, [B, K*D] per-token features, [B, D] centre token
+  Mat<T> Sdil;        // [B, D] dilated spatial product (VAE variance branch)
   std::vector<internal::Tap<T>> taps;  // sampling scratch
   std::vector<T> tbuf;
   // Network.
   Mat<T> H0, H, Arelu, P1, Sh1, X1, R1, O1, q0, q, r, Tok, times;
   Mat<T> Xenc, ML, eps, z, attn_out, gru_out, tmp;
+  Mat<T> mu, lv;  // dilated VAE: the two halves of ML before they are joined
   std::vector<Mat<T>> enc_z, enc_n, enc_a;  // per encoder layer: linear out, norm out, activation out
   Mat<T> E0;
   std::vector<nn::LayerNormCache<T>> ln_cache;
@@ -68,6 +58,7 @@ struct Scratch {
   nn::AttentionCache<T> attn_cache;
   nn::BiGruCache<T> gru_cache;
   // Backward.
+  Mat<T> dSdil;
   Mat<T> dH, dr, dA, dP1, dSh1, dX1, dR1, dO1, dq, dq0, dTok, dTok2, dq2, dML, dz, dF, dFtok, dX, dE, dN, dZ;
   std::vector<T> base_grad, ext_grad;  // per thread, [base MLP], [extension]
   double kl = 0;
@@ -96,7 +87,8 @@ struct Ctx {
   Ctx(const ExtModel<T>& model, const ExtPass& pass)
       : m(model), c(*model.config), L(*model.layout), BL(*model.base_layout), base(*model.base_layout),
         sampler(*model.base_layout, model.base_params, model.aabb, pass.time_coord, model.config->tokens(),
-                model.config->temporal ? model.config->window_dt : 0.0),
+                model.config->temporal ? model.config->window_dt : 0.0,
+                model.config->vae ? model.config->vae_dilation : 0),
         bp_mlp(model.base_params + model.base_layout->grid_size) {}
 };
 
@@ -151,7 +143,15 @@ absl::Status NetForward(const Ctx<T>& x, const ExtPass& pass, const ExtInputs<T>
     sc.q0 = sc.H0;
   }
   if (c.vae) {
-    EXT_RETURN_IF_ERROR(nn::LinearApply<T>(L.vae_in, ep, sc.q0, &sc.ML));
+    if (c.vae_dilation > 0) {
+      // μ from the latent, log σ² from the dilated samples (extended_config.h).
+      EXT_RETURN_IF_ERROR(nn::LinearApply<T>(L.vae_mu, ep, sc.q0, &sc.mu));
+      EXT_RETURN_IF_ERROR(nn::LinearApply<T>(L.vae_var, ep, sc.Sdil, &sc.lv));
+      sc.ML.resize(B, 2 * L.vae.latent);
+      sc.ML << sc.mu, sc.lv;
+    } else {
+      EXT_RETURN_IF_ERROR(nn::LinearApply<T>(L.vae_in, ep, sc.q0, &sc.ML));
+    }
     if (pass.training) {
       const int lat = L.vae.latent;
       sc.eps.resize(B, lat);
@@ -295,7 +295,13 @@ absl::Status NetBackward(const Ctx<T>& x, const ExtPass& pass, const ExtInputs<T
     }
     T kl = 0;
     EXT_RETURN_IF_ERROR(nn::VaeKl<T>(L.vae, sc.ML, kl_weight, &kl, &sc.dML));
-    EXT_RETURN_IF_ERROR(nn::LinearGrad<T>(L.vae_in, ep, sc.q0, sc.dML, &sc.dq0, false, ge));
+    if (c.vae_dilation > 0) {
+      const int lat = L.vae.latent;
+      EXT_RETURN_IF_ERROR(nn::LinearGrad<T>(L.vae_mu, ep, sc.q0, sc.dML.leftCols(lat), &sc.dq0, false, ge));
+      EXT_RETURN_IF_ERROR(nn::LinearGrad<T>(L.vae_var, ep, sc.Sdil, sc.dML.rightCols(lat), &sc.dSdil, false, ge));
+    } else {
+      EXT_RETURN_IF_ERROR(nn::LinearGrad<T>(L.vae_in, ep, sc.q0, sc.dML, &sc.dq0, false, ge));
+    }
   } else {
     sc.dq0 = sc.dq;
   }
@@ -419,7 +425,7 @@ absl::StatusOr<double> ExtendedForward(const ExtModel<T>& model, const ExtPass& 
   ForChunks(pool, static_cast<int64_t>(in.n), kRowsPerChunk, [&](int64_t b, int64_t e, int tid) {
     Scratch<T>& sc = ws.threads[tid];
     if (!sc.status.ok()) return;
-    ctx.sampler.Forward(in.means, b, e, &sc.S, &sc.Ftok, sc.taps, sc.tbuf, nullptr, nullptr);
+    ctx.sampler.Forward(in.means, b, e, &sc.S, &sc.Ftok, sc.taps, sc.tbuf, nullptr, nullptr, &sc.Sdil);
     sc.status = NetForward(ctx, pass, in, b, e, sc, &out);
   });
   double kl = 0;
@@ -465,14 +471,15 @@ absl::StatusOr<double> ExtendedBackward(const ExtModel<T>& model, const ExtPass&
       const int64_t b = static_cast<int64_t>(b0) + lb, e = static_cast<int64_t>(b0) + le;
       T* samples = &ws.samples[static_cast<size_t>(lb) * slots * C];
       internal::PlaneTaps<T>* taps = &ws.taps[static_cast<size_t>(lb) * slots];
-      ctx.sampler.Forward(in.means, b, e, &sc.S, &sc.Ftok, sc.taps, sc.tbuf, taps, samples);
+      ctx.sampler.Forward(in.means, b, e, &sc.S, &sc.Ftok, sc.taps, sc.tbuf, taps, samples, &sc.Sdil);
       sc.status = NetForward(ctx, pass, in, b, e, sc, static_cast<const ExtOutputs<T>*>(nullptr));  // sums the KL
       if (!sc.status.ok()) return;
       sc.status = NetBackward(ctx, pass, in, d_out, static_cast<T>(kl_weight), b, e, sc, grads);
       if (!sc.status.ok()) return;
       const T* dS = model.config->encoder ? sc.dX.data() + kEncoderGeometryInputs : nullptr;
       const int64_t dS_stride = model.config->encoder ? sc.dX.cols() : 0;
-      ctx.sampler.Backward(in.means, b, e, dS, dS_stride, sc.dFtok.data(), taps, samples, grads.d_means);
+      const T* dSdil = model.config->vae && model.config->vae_dilation > 0 ? sc.dSdil.data() : nullptr;
+      ctx.sampler.Backward(in.means, b, e, dS, dS_stride, sc.dFtok.data(), taps, samples, grads.d_means, dSdil);
     });
     for (int t = 0; t < nt; ++t) EXT_RETURN_IF_ERROR(ws.threads[t].status);
     ctx.sampler.Scatter(bn, ws.taps.data(), ws.samples.data(), grads.d_base, pool);

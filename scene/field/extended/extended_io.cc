@@ -13,7 +13,9 @@ namespace streetsim::field {
 namespace {
 
 constexpr char kMagic[8] = {'S', 'S', 'F', 'L', 'D', 'E', 'X', 'T'};
-constexpr uint32_t kVersion = 1;
+// Version 2 adds i32 vae_dilation after the activation; a field without the dilated branch is
+// still written as version 1 (byte for byte what it was), so older readers keep reading it.
+constexpr uint32_t kVersion1 = 1, kVersion2 = 2;
 constexpr uint32_t kFlagAdam = 1;
 
 using checked_file::Reader;
@@ -29,13 +31,15 @@ absl::Status Save(const ExtendedField& f, const ExtAdamState* adam, const std::s
   }
   Writer w;
   w.Raw(kMagic, 8);
-  w.Pod<uint32_t>(kVersion);
+  const bool v2 = c.vae_dilation != 0;
+  w.Pod<uint32_t>(v2 ? kVersion2 : kVersion1);
   w.Pod<uint32_t>(adam ? kFlagAdam : 0);
   for (bool b : {c.encoder, c.vae, c.temporal, c.attention, c.gru, c.decoder}) w.Pod<uint8_t>(b ? 1 : 0);
   for (int v : {c.heads, c.vae_latent, c.gru_hidden, c.window_k, c.fourier_frequencies, c.encoder_layers,
                 static_cast<int>(c.activation)}) {
     w.Pod<int32_t>(v);
   }
+  if (v2) w.Pod<int32_t>(c.vae_dilation);
   w.Pod<double>(c.window_dt);
   w.Pod<double>(c.kl_weight);
   w.Pod<int32_t>(c.kl_warmup_iterations);
@@ -67,7 +71,9 @@ absl::StatusOr<ExtendedField> Load(const std::string& path, DeformationField bas
   r.Raw(magic, 8);
   uint32_t version = 0, flags = 0;
   if (!r.Pod(&version) || !r.Pod(&flags)) return corrupt("truncated header");
-  if (version != kVersion) return corrupt(absl::StrCat("unsupported extended field version ", version, " (want 1)"));
+  if (version != kVersion1 && version != kVersion2) {
+    return corrupt(absl::StrCat("unsupported extended field version ", version, " (want 1 or 2)"));
+  }
   if (stored != Checksum(bytes.data(), body)) return corrupt("checksum mismatch (truncated or corrupt file)");
   if (flags & ~kFlagAdam) return corrupt(absl::StrCat("unknown flags ", flags));
   ExtendedFieldConfig c;
@@ -75,6 +81,8 @@ absl::StatusOr<ExtendedField> Load(const std::string& path, DeformationField bas
   int32_t iv[7], warm = 0, feature_dim = 0, model_dim = 0;
   bool ok = r.Raw(sw, 6);
   for (int i = 0; i < 7 && ok; ++i) ok = r.Pod(&iv[i]);
+  int32_t dilation = 0;
+  if (version == kVersion2) ok = ok && r.Pod(&dilation);
   ok = ok && r.Pod(&c.window_dt) && r.Pod(&c.kl_weight) && r.Pod(&warm) && r.Pod(&feature_dim) && r.Pod(&model_dim);
   uint64_t base_sum = 0, count = 0;
   ok = ok && r.Pod(&base_sum) && r.Pod(&count);
@@ -82,6 +90,7 @@ absl::StatusOr<ExtendedField> Load(const std::string& path, DeformationField bas
   c.encoder = sw[0], c.vae = sw[1], c.temporal = sw[2], c.attention = sw[3], c.gru = sw[4], c.decoder = sw[5];
   c.heads = iv[0], c.vae_latent = iv[1], c.gru_hidden = iv[2], c.window_k = iv[3], c.fourier_frequencies = iv[4];
   c.encoder_layers = iv[5];
+  c.vae_dilation = dilation;
   if (iv[6] < 0 || iv[6] > static_cast<int>(nn::Activation::kSilu)) return corrupt("unknown activation");
   c.activation = static_cast<nn::Activation>(iv[6]);
   c.kl_warmup_iterations = warm;

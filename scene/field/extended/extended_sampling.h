@@ -4,9 +4,14 @@
 // (f(x, t) is S3Gaussian's f). Built on scene/field's per-sample kernels (hexplane_kernels.h:
 // taps, bilinear sample, coordinate gradient, splat), so the grid_sample rules are the field's.
 //
+// With a dilation d > 0 it also gives S_dil(x), the VAE variance branch's input (extended_config.h):
+// per level and spatial plane the mean of the 4 samples at texel coordinates (u ± d, v), (u, v ± d),
+// multiplied over the 3 planes.
+//
 // The backward keeps every slot's taps and sample per row of a block (slot = level x {3 spatial,
-// 3 x K space-time}); Scatter then splats the block's dL/d(sample) one plane per task, in row order
-// (no locks, identical plane gradients for any thread count, as FieldBackward does).
+// 3 x K space-time, 3 x 4 dilated when d > 0}); Scatter then splats the block's dL/d(sample) one
+// plane per task, in row order (no locks, identical plane gradients for any thread count, as
+// FieldBackward does).
 #pragma once
 
 #include <algorithm>
@@ -23,13 +28,34 @@ inline constexpr int kSpatialPlaneIds[3] = {0, 1, 3};  // xy, xz, yz
 inline constexpr int kTimePlaneIds[3] = {2, 4, 5};     // xt, yt, zt
 inline constexpr int kMaxSamplerChannels = 256;
 inline constexpr int64_t kPrefetchRows = 16;  // sampling: prefetch the taps of the row this far ahead
+inline constexpr int kDilatedTaps = 4;        // (u + d, v), (u - d, v), (u, v + d), (u, v - d)
+
+// Prefetches the two texel rows (2 texels of C values each) a sample at `pt` reads.
+template <typename T>
+inline void PrefetchPlaneTaps(const T* plane, const PlaneTaps<T>& pt, int C) {
+  const char* a0 = reinterpret_cast<const char*>(plane + pt.off00);
+  const char* a1 = reinterpret_cast<const char*>(plane + pt.off00 + pt.row);
+  for (size_t o = 0; o < 2 * C * sizeof(T); o += 64) {
+    __builtin_prefetch(a0 + o);
+    __builtin_prefetch(a1 + o);
+  }
+}
+
+// The shifted taps of dilated tap q of a plane whose coordinates have texel coordinates pu, pv.
+template <typename T>
+inline void DilatedTaps(T pu, T pv, int resolution, int dilation, int q, Tap<T>* tu, Tap<T>* tv) {
+  const T d = static_cast<T>(q % 2 == 0 ? dilation : -dilation);
+  *tu = MakeTapPx(q < 2 ? pu + d : pu, resolution);
+  *tv = MakeTapPx(q < 2 ? pv : pv + d, resolution);
+}
 
 template <typename T>
 class TokenSampler {
  public:
-  // Token j's time: clamp(t + (j - (K-1)/2) dt, -1, 1).
-  TokenSampler(const FieldLayout& L, const T* params, const FieldAabb& aabb, double time_coord, int tokens, double dt)
-      : L_(L), params_(params), K_(tokens) {
+  // Token j's time: clamp(t + (j - (K-1)/2) dt, -1, 1). dilation: texels of S_dil (0: no S_dil).
+  TokenSampler(const FieldLayout& L, const T* params, const FieldAabb& aabb, double time_coord, int tokens, double dt,
+               int dilation = 0)
+      : L_(L), params_(params), K_(tokens), dil_(dilation) {
     for (int k = 0; k < 3; ++k) {
       const double ext = aabb.max[k] - aabb.min[k];
       nm_a[k] = static_cast<T>(-2.0 / ext);
@@ -43,20 +69,22 @@ class TokenSampler {
     }
   }
 
-  int slots_per_level() const { return 3 + 3 * K_; }
+  int slots_per_level() const { return 3 + 3 * K_ + (dil_ > 0 ? 3 * kDilatedTaps : 0); }
+  int dilated_slot(int plane, int q) const { return 3 + 3 * K_ + plane * kDilatedTaps + q; }
   int slots_per_row() const { return L_.num_levels * slots_per_level(); }
 
-  // Rows [b, e) of `means`: S [B, D], Ftok [B, K*D]. With taps_out / samples_out (the backward's
-  // block storage, row 0 = row b), keeps every slot's taps and sample. Plane-major over the rows
-  // with the taps of a row kPrefetchRows ahead prefetched (field_eval's order: the rows' cache
-  // misses on a plane overlap).
+  // Rows [b, e) of `means`: S [B, D], Ftok [B, K*D], with a dilation Sdil [B, D] (else untouched).
+  // With taps_out / samples_out (the backward's block storage, row 0 = row b), keeps every slot's
+  // taps and sample. Plane-major over the rows with the taps of a row kPrefetchRows ahead
+  // prefetched (field_eval's order: the rows' cache misses on a plane overlap).
   // `taps` and `tbuf` are the calling thread's scratch.
   void Forward(const T* means, int64_t b, int64_t e, nn::Mat<T>* S, nn::Mat<T>* Ftok, std::vector<Tap<T>>& taps,
-               std::vector<T>& tbuf, PlaneTaps<T>* taps_out, T* samples_out) const {
+               std::vector<T>& tbuf, PlaneTaps<T>* taps_out, T* samples_out, nn::Mat<T>* Sdil = nullptr) const {
     const int C = L_.channels, D = L_.feature_dim(), NS = slots_per_row(), SL = slots_per_level();
     const int64_t B = e - b;
     S->resize(B, D);
     Ftok->resize(B, static_cast<Eigen::Index>(K_) * D);
+    if (dil_ > 0) Sdil->resize(B, D);
     taps.resize(B * 3);
     tbuf.resize(static_cast<size_t>(B) * C);
     // One plane over every row: out[r] *= sample (and keep it for the backward at `slot`).
@@ -68,13 +96,7 @@ class TokenSampler {
       for (int64_t r = 0; r < B; ++r) {
         if (r + kPrefetchRows < B) {
           const int64_t q = r + kPrefetchRows;
-          const PlaneTaps<T> ahead = MakePlaneTaps(taps[q * 3 + cu], tv(q), pi.width, C);
-          const char* a0 = reinterpret_cast<const char*>(plane + ahead.off00);
-          const char* a1 = reinterpret_cast<const char*>(plane + ahead.off00 + ahead.row);
-          for (size_t o = 0; o < 2 * C * sizeof(T); o += 64) {
-            __builtin_prefetch(a0 + o);
-            __builtin_prefetch(a1 + o);
-          }
+          PrefetchPlaneTaps(plane, MakePlaneTaps(taps[q * 3 + cu], tv(q), pi.width, C), C);
         }
         const PlaneTaps<T> pt = MakePlaneTaps(taps[r * 3 + cu], tv(r), pi.width, C);
         T* o = out + r * out_stride;
@@ -105,13 +127,15 @@ class TokenSampler {
           for (int k = 0; k < C; ++k) f[k] = sr[k] * tr[k];
         }
       }
+      if (dil_ > 0) DilatedForward(means, b, B, l, Sdil, tbuf, taps_out, samples_out);
     }
   }
 
   // Given dL/dS (rows of stride dS_stride; null = zero) and dL/dFtok [B, K*D]: turns the kept
   // samples into dL/d(sample) in place and adds dL/d(means) through the sampling coordinates.
+  // dSdil: dL/dS_dil [B, D] (with a dilation; null = zero).
   void Backward(const T* means, int64_t b, int64_t e, const T* dS, int64_t dS_stride, const T* dFtok,
-                const PlaneTaps<T>* taps, T* samples, T* d_means) const {
+                const PlaneTaps<T>* taps, T* samples, T* d_means, const T* dSdil = nullptr) const {
     const int C = L_.channels, D = L_.feature_dim(), NS = slots_per_row(), SL = slots_per_level();
     T Sv[kMaxSamplerChannels], dSv[kMaxSamplerChannels], Tv[kMaxSamplerChannels], dT[kMaxSamplerChannels];
     for (int64_t r = 0; r < e - b; ++r) {
@@ -175,6 +199,7 @@ class TokenSampler {
           dp[cu] += du * txyz[cu].dpx_dp;
           dp[cv] += dv * txyz[cv].dpx_dp;
         }
+        if (dil_ > 0) DilatedBackward(x, l, r, dSdil ? dSdil + r * D + l * C : nullptr, taps, samples, dp);
       }
       if (d_means)
         for (int k = 0; k < 3; ++k) d_means[(b + r) * 3 + k] += dp[k] * nm_a[k];
@@ -198,6 +223,12 @@ class TokenSampler {
             const size_t slot = r * NS + l * SL + (time ? 3 + j * 3 + idx : idx);
             ScatterPlane(grad, taps[slot], C, samples + slot * C);
           }
+          if (dil_ > 0 && !time) {
+            for (int q = 0; q < kDilatedTaps; ++q) {
+              const size_t slot = r * NS + l * SL + dilated_slot(idx, q);
+              ScatterPlane(grad, taps[slot], C, samples + slot * C);
+            }
+          }
         }
       }
     });
@@ -207,9 +238,105 @@ class TokenSampler {
   std::vector<T> token_time;
 
  private:
+  // Level l of S_dil for rows [b, b + B) (the level's columns of Sdil), optionally keeping the
+  // 12 dilated slots' taps and samples.
+  void DilatedForward(const T* means, int64_t b, int64_t B, int l, nn::Mat<T>* Sdil, std::vector<T>& acc,
+                      PlaneTaps<T>* taps_out, T* samples_out) const {
+    const int C = L_.channels, D = L_.feature_dim(), NS = slots_per_row(), SL = slots_per_level();
+    const int R = L_.level_resolution[l];
+    T smp[kMaxSamplerChannels];
+    Sdil->middleCols(l * C, C).setOnes();
+    for (int i = 0; i < 3; ++i) {
+      const int c = kSpatialPlaneIds[i];
+      const int cu = kPlaneCoords[c][0], cv = kPlaneCoords[c][1];
+      const PlaneInfo& pi = L_.planes[l * kPlanesPerLevel + c];
+      const T* plane = params_ + pi.offset;
+      std::fill(acc.begin(), acc.begin() + B * C, T(0));
+      auto coords = [&](int64_t r, T* pu, T* pv) {
+        *pu = TexelCoord(nm_a[cu] * means[(b + r) * 3 + cu] + nm_b[cu], R);
+        *pv = TexelCoord(nm_a[cv] * means[(b + r) * 3 + cv] + nm_b[cv], R);
+      };
+      for (int64_t r = 0; r < B; ++r) {
+        T pu, pv;
+        if (r + kPrefetchRows < B) {
+          coords(r + kPrefetchRows, &pu, &pv);
+          for (int q = 0; q < kDilatedTaps; ++q) {
+            Tap<T> tu, tv;
+            DilatedTaps(pu, pv, R, dil_, q, &tu, &tv);
+            PrefetchPlaneTaps(plane, MakePlaneTaps(tu, tv, pi.width, C), C);
+          }
+        }
+        coords(r, &pu, &pv);
+        T* a = acc.data() + r * C;
+        for (int q = 0; q < kDilatedTaps; ++q) {
+          Tap<T> tu, tv;
+          DilatedTaps(pu, pv, R, dil_, q, &tu, &tv);
+          const PlaneTaps<T> pt = MakePlaneTaps(tu, tv, pi.width, C);
+          T* s = smp;
+          if (samples_out) {
+            const size_t sl = static_cast<size_t>(r) * NS + l * SL + dilated_slot(i, q);
+            s = samples_out + sl * C;
+            taps_out[sl] = pt;
+          }
+          SamplePlane(plane, pt, C, s);
+          for (int k = 0; k < C; ++k) a[k] += s[k];
+        }
+      }
+      for (int64_t r = 0; r < B; ++r) {
+        T* o = Sdil->data() + r * D + l * C;
+        const T* a = acc.data() + r * C;
+        for (int k = 0; k < C; ++k) o[k] *= T(0.25) * a[k];
+      }
+    }
+  }
+
+  // Level l of row r: the 12 dilated slots' samples -> dL/d(sample) in place given dS_dil (null:
+  // zero), dL/d(texel coordinates) added to dp (normalised-coordinate units, like the other slots).
+  void DilatedBackward(const T* x, int l, int64_t r, const T* dSd, const PlaneTaps<T>* taps, T* samples,
+                       T* dp) const {
+    const int C = L_.channels, NS = slots_per_row(), SL = slots_per_level();
+    const int R = L_.level_resolution[l];
+    T A[3][kMaxSamplerChannels];
+    T* ls = samples + (static_cast<size_t>(r) * NS + l * SL) * C;
+    for (int i = 0; i < 3; ++i) {
+      for (int k = 0; k < C; ++k) A[i][k] = 0;
+      for (int q = 0; q < kDilatedTaps; ++q) {
+        const T* s = ls + dilated_slot(i, q) * C;
+        for (int k = 0; k < C; ++k) A[i][k] += s[k];
+      }
+      for (int k = 0; k < C; ++k) A[i][k] *= T(0.25);
+    }
+    T g[3][kMaxSamplerChannels];  // dL/d(one tap's sample) of plane i: ¼ dL/dA_i
+    for (int k = 0; k < C; ++k) {
+      const T d = dSd ? dSd[k] * T(0.25) : T(0);
+      g[0][k] = d * A[1][k] * A[2][k];
+      g[1][k] = d * A[0][k] * A[2][k];
+      g[2][k] = d * A[0][k] * A[1][k];
+    }
+    for (int i = 0; i < 3; ++i) {
+      const int c = kSpatialPlaneIds[i];
+      const int cu = kPlaneCoords[c][0], cv = kPlaneCoords[c][1];
+      const PlaneInfo& pi = L_.planes[l * kPlanesPerLevel + c];
+      const T pu = TexelCoord(nm_a[cu] * x[cu] + nm_b[cu], R);
+      const T pv = TexelCoord(nm_a[cv] * x[cv] + nm_b[cv], R);
+      for (int q = 0; q < kDilatedTaps; ++q) {
+        T* s = ls + dilated_slot(i, q) * C;
+        for (int k = 0; k < C; ++k) s[k] = g[i][k];
+        Tap<T> tu, tv;
+        DilatedTaps(pu, pv, R, dil_, q, &tu, &tv);
+        T du = 0, dv = 0;
+        SampleCoordGrad(params_ + pi.offset, taps[static_cast<size_t>(r) * NS + l * SL + dilated_slot(i, q)], tu.w,
+                        tv.w, C, s, &du, &dv);
+        dp[cu] += du * tu.dpx_dp;
+        dp[cv] += dv * tv.dpx_dp;
+      }
+    }
+  }
+
   const FieldLayout& L_;
   const T* params_;
   int K_;
+  int dil_;
   std::vector<Tap<T>> time_taps_;
 };
 

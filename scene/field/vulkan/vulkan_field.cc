@@ -6,12 +6,14 @@
 #include <chrono>
 #include <cmath>
 #include <cstring>
-#include <thread>
 
 #include "absl/strings/str_cat.h"
 #include "render/vulkan/buffer.h"
 #include "render/vulkan/context.h"
 #include "render/vulkan/pipeline.h"
+#include "scene/field/vulkan/field_linear_push.h"
+#include "scene/field/vulkan/field_device_util.h"
+#include "scene/field/vulkan/plane_groups.h"
 #include "streetsim_spirv.h"
 
 namespace streetsim::field {
@@ -20,28 +22,21 @@ namespace vk = vulkan;
 
 namespace {
 
-constexpr int kMaxPlaneBuffers = 4;      // field_planes.glsl: bindings 0..3 (grads 8..11)
 constexpr int kMaxBindings = 12;         // field_sample_backward.glsl
 constexpr uint32_t kWg = 256;            // field_common.glsl: FIELD_WG
 constexpr uint32_t kGaussiansPerBackwardWg = 8;  // field_sample_backward.glsl: 256 / LANES
 constexpr uint32_t kTile = 64;           // field_linear*.comp: 64 x 64 tiles
 constexpr size_t kMinRowsPerChunk = 1024;  // field_linear_grad.comp: rows per partial sum
-// field_linear.comp flags.
-constexpr uint32_t kReluIn = 1, kReluOut = 2, kTrans = 4, kAccum = 8, kMask = 16, kBias = 32;
+using vkgemm::kAccum, vkgemm::kBias, vkgemm::kMask, vkgemm::kReluOut, vkgemm::kTrans;  // field_linear.comp flags
 
 struct SamplePush {
   float ax, ay, az, bx, by, bz, time_coord;
   uint32_t rows, time_res;
 };
-struct LinearPush {
-  uint32_t rows, K, N, w_off, b_off, flags;
-};
-struct GradPush {
-  uint32_t rows, N, K, rows_per_chunk, w_off, b_off, mlp_total, relu_in;
-};
-struct ReducePush {
-  uint32_t mlp_total, chunks;
-};
+// field_linear*.comp and field_reduce.comp (shared with nn/vk_nn_kernels.cc): dense views here.
+using vkgemm::GradPush;
+using vkgemm::LinearPush;
+using vkgemm::ReducePush;
 
 uint32_t DivUp(uint64_t a, uint64_t b) { return static_cast<uint32_t>((a + b - 1) / b); }
 double MsSince(std::chrono::steady_clock::time_point t0) {
@@ -54,22 +49,6 @@ absl::Status MakeBuffer(const vk::Context& ctx, vk::Buffer* out, size_t bytes, v
   if (!b.ok()) return b.status();
   *out = *std::move(b);
   return absl::OkStatus();
-}
-
-// dst += src over a downloaded gradient (35.7 M floats at spec sizes: memory-bound, so split over
-// a few threads when large).
-void AddInto(float* dst, const float* src, size_t n) {
-  constexpr size_t kPerThread = size_t{1} << 22;
-  const size_t threads = std::min<size_t>({8, std::max(1u, std::thread::hardware_concurrency()), n / kPerThread + 1});
-  auto add = [&](size_t b, size_t e) {
-    for (size_t i = b; i < e; ++i) dst[i] += src[i];
-  };
-  if (threads <= 1) return add(0, n);
-  std::vector<std::thread> pool;
-  const size_t step = (n + threads - 1) / threads;
-  for (size_t t = 1; t < threads; ++t) pool.emplace_back(add, std::min(n, t * step), std::min(n, (t + 1) * step));
-  add(0, std::min(n, step));
-  for (std::thread& t : pool) t.join();
 }
 
 absl::Status CheckLayout(const FieldLayout& L) {
@@ -115,12 +94,7 @@ struct VulkanField::Impl {
   VulkanFieldTimings last_forward, last_backward;
 
   ~Impl() {
-    if (ctx == nullptr) return;
-    VkDevice dev = ctx->device();
-    vkDeviceWaitIdle(dev);
-    if (query_pool != VK_NULL_HANDLE) vkDestroyQueryPool(dev, query_pool, nullptr);
-    if (fence != VK_NULL_HANDLE) vkDestroyFence(dev, fence, nullptr);
-    if (cmd != VK_NULL_HANDLE) vkFreeCommandBuffers(dev, ctx->command_pool(), 1, &cmd);
+    if (ctx != nullptr) DestroyFrameObjects(*ctx, cmd, fence, query_pool);
   }
 
   const vk::Buffer* PlaneBuf(int g) const { return &planes[std::min<int>(g, planes.size() - 1)]; }
@@ -137,7 +111,7 @@ struct VulkanField::Impl {
 
   void Linear(vk::Recorder& rec, const vk::Buffer& x, const vk::Buffer& y, const vk::Buffer* mask, uint32_t rows,
               uint32_t K, uint32_t N, const DenseInfo& d, uint32_t flags) const {
-    const LinearPush push{rows, K, N, MlpOffset(d.w_offset), MlpOffset(d.b_offset), flags};
+    const LinearPush push{rows, K, N, MlpOffset(d.w_offset), MlpOffset(d.b_offset), flags, 0, K, 0, N};
     rec.Dispatch(*linear, {&x, &mlp, &y, mask ? mask : &y}, push,
                  vk::GridFor(uint64_t{DivUp(rows, kTile)} * DivUp(N, kTile)));
   }
@@ -146,7 +120,8 @@ struct VulkanField::Impl {
                   const DenseInfo& d) const {
     const GradPush push{rows, static_cast<uint32_t>(d.out), static_cast<uint32_t>(d.in),
                         static_cast<uint32_t>(rows_per_chunk), MlpOffset(d.w_offset), MlpOffset(d.b_offset),
-                        static_cast<uint32_t>(mlp_total), 0u};
+                        static_cast<uint32_t>(mlp_total), 0u, 0u, static_cast<uint32_t>(d.out), 0u,
+                        static_cast<uint32_t>(d.in)};
     const uint64_t groups = uint64_t{DivUp(rows, rows_per_chunk)} * DivUp(d.out, kTile) * DivUp(d.in + 1, kTile);
     rec.Dispatch(*linear_grad, {&dy, &x, &partials}, push, vk::GridFor(groups));
   }
@@ -179,30 +154,11 @@ absl::Status VulkanField::Impl::Init(std::span<const float> params) {
   const size_t range = lim.maxStorageBufferRange;
   const size_t group_limit =
       std::min<size_t>(options.max_plane_buffer_bytes > 0 ? options.max_plane_buffer_bytes : range, range);
-  // Planes into groups, greedily in layout order (a group is a contiguous range of the array).
-  const int C = layout.channels;
-  std::vector<uint32_t> table;
-  for (const PlaneInfo& pi : layout.planes) {
-    const size_t bytes = pi.size(C) * sizeof(float);
-    if (bytes > group_limit) {
-      return absl::FailedPreconditionError(absl::StrCat("vulkan field: a ", pi.width, " x ", pi.height, " x ", C,
-                                                        " plane (", bytes, " B) exceeds the device's buffer range ",
-                                                        group_limit, " B"));
-    }
-    if (group_begin.empty() || (pi.offset + pi.size(C) - group_begin.back()) * sizeof(float) > group_limit) {
-      group_begin.push_back(pi.offset);
-      group_end.push_back(pi.offset);
-    }
-    group_end.back() = pi.offset + pi.size(C);
-    table.insert(table.end(), {static_cast<uint32_t>(group_begin.size() - 1),
-                               static_cast<uint32_t>(pi.offset - group_begin.back()), static_cast<uint32_t>(pi.width),
-                               static_cast<uint32_t>(pi.height)});
-  }
-  if (group_begin.size() > static_cast<size_t>(kMaxPlaneBuffers)) {
-    return absl::FailedPreconditionError(absl::StrCat("vulkan field: the planes need ", group_begin.size(),
-                                                      " buffers of at most ", group_limit, " B, the kernels bind ",
-                                                      kMaxPlaneBuffers));
-  }
+  absl::StatusOr<PlaneGroups> packed = PackPlaneGroups(layout, group_limit);
+  if (!packed.ok()) return packed.status();
+  group_begin = packed->begin;
+  group_end = packed->end;
+  const std::vector<uint32_t>& table = packed->table;
   for (size_t g = 0; g < group_begin.size(); ++g) {
     const size_t bytes = (group_end[g] - group_begin[g]) * sizeof(float);
     planes.emplace_back();
@@ -325,17 +281,7 @@ void VulkanField::Impl::TimestampEnd() {
   if (query_pool == VK_NULL_HANDLE) return;
   vkCmdWriteTimestamp(cmd, VK_PIPELINE_STAGE_BOTTOM_OF_PIPE_BIT, query_pool, 1);
 }
-double VulkanField::Impl::ReadTimestamps() const {
-  if (query_pool == VK_NULL_HANDLE) return 0;
-  uint64_t ticks[2] = {0, 0};
-  if (vkGetQueryPoolResults(ctx->device(), query_pool, 0, 2, sizeof(ticks), ticks, 8,
-                            VK_QUERY_RESULT_64_BIT | VK_QUERY_RESULT_WAIT_BIT) != VK_SUCCESS) {
-    return 0;
-  }
-  const uint32_t bits = ctx->timestamp_valid_bits();
-  const uint64_t mask = bits >= 64 ? ~uint64_t{0} : ((uint64_t{1} << bits) - 1);
-  return static_cast<double>((ticks[1] - ticks[0]) & mask) * ctx->timestamp_period_ns() * 1e-6;
-}
+double VulkanField::Impl::ReadTimestamps() const { return ReadBatchTimestampsMs(*ctx, query_pool); }
 
 namespace {
 
@@ -517,7 +463,8 @@ absl::Status VulkanField::Backward(const FieldQuery& query, std::span<const floa
                  {m.PlaneBuf(0), m.PlaneBuf(1), m.PlaneBuf(2), m.PlaneBuf(3), &m.plane_table, &m.means,
                   &m.d_features, &m.d_means, m.GradBuf(0), m.GradBuf(1), m.GradBuf(2), m.GradBuf(3)},
                  sp, vk::GridFor(DivUp(bn, kGaussiansPerBackwardWg)));
-    const ReducePush rp{static_cast<uint32_t>(m.mlp_total), DivUp(bn, m.rows_per_chunk)};
+    const ReducePush rp{static_cast<uint32_t>(m.mlp_total), DivUp(bn, m.rows_per_chunk), 0,
+                        static_cast<uint32_t>(m.mlp_total), 0};
     rec.Dispatch(*m.reduce, {&m.partials, &m.d_mlp}, rp, vk::GridFor(DivUp(m.mlp_total, kWg)));
     rec.Barrier();
     m.TimestampEnd();
@@ -532,23 +479,8 @@ absl::Status VulkanField::Backward(const FieldQuery& query, std::span<const floa
     ++timings.batches;
   }
   // The gradients, one buffer at a time, added into the caller's array.
-  auto download_add = [&](const vk::Buffer& src, size_t floats, float* dst) -> absl::Status {
-    if (auto s = m.ctx->SubmitAndWait([&](VkCommandBuffer cmd) {
-          const VkBufferCopy region{0, 0, floats * sizeof(float)};
-          vkCmdCopyBuffer(cmd, src.handle(), m.grad_readback.handle(), 1, &region);
-          VkMemoryBarrier to_host{VK_STRUCTURE_TYPE_MEMORY_BARRIER};
-          to_host.srcAccessMask = VK_ACCESS_TRANSFER_WRITE_BIT;
-          to_host.dstAccessMask = VK_ACCESS_HOST_READ_BIT;
-          vkCmdPipelineBarrier(cmd, VK_PIPELINE_STAGE_TRANSFER_BIT, VK_PIPELINE_STAGE_HOST_BIT, 0, 1, &to_host, 0,
-                               nullptr, 0, nullptr);
-        });
-        !s.ok()) {
-      return s;
-    }
-    if (auto s = m.grad_readback.InvalidateForHost(); !s.ok()) return s;
-    const float* g = static_cast<const float*>(m.grad_readback.mapped());
-    AddInto(dst, g, floats);
-    return absl::OkStatus();
+  auto download_add = [&](const vk::Buffer& src, size_t floats, float* dst) {
+    return DownloadAdd(*m.ctx, src, floats, &m.grad_readback, dst);
   };
   for (size_t g = 0; g < m.grads.size(); ++g) {
     if (auto s = download_add(m.grads[g], m.group_end[g] - m.group_begin[g], d_params.data() + m.group_begin[g]);

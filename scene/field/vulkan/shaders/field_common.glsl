@@ -34,9 +34,11 @@ struct Tap {
   float w;    // weight of the upper texel
   float dpx;  // d(px)/d(p): (R - 1) / 2 inside, 0 where clamped
 };
-Tap MakeTap(float p, uint R) {
+// The tap at the continuous texel coordinate px (the extended field's dilated taps shift px by
+// whole texels before the clamp, as internal::MakeTapPx).
+float TexelCoord(float p, uint R) { return (p + 1.0) * 0.5 * float(R - 1u); }
+Tap MakeTapPx(float px, uint R) {
   const float rm1 = float(R - 1u);
-  float px = (p + 1.0) * 0.5 * rm1;
   Tap t;
   t.dpx = (px > 0.0 && px < rm1) ? rm1 * 0.5 : 0.0;
   px = px > 0.0 ? px : 0.0;
@@ -47,5 +49,6 @@ Tap MakeTap(float p, uint R) {
   t.w = clamp(px - float(i0), 0.0, 1.0);
   return t;
 }
+Tap MakeTap(float p, uint R) { return MakeTapPx(TexelCoord(p, R), R); }
 
 #endif  // STREETSIM_FIELD_COMMON_GLSL_

@@ -1,7 +1,10 @@
-// One Linear layer of the field's MLP on a batch of rows, as a tiled GEMM in shared memory:
+// One Linear layer on a batch of rows, as a tiled GEMM in shared memory (the deformation field's
+// MLP, vulkan_field.cc, and the extended field's Linear, nn/vk_nn_kernels.cc):
 //   forward  (no F_TRANS): Y[r][n] = act(sum_k act_in(X[r][k]) W[n][k] + b[n])   W: [N x K]
 //   backward (F_TRANS):    Y[r][n] = (sum_k X[r][k] W[k][n] (+ Y[r][n])) * [M[r][n] > 0]   W: [K x N]
-// (W row-major [out x in], PyTorch's layout, at w_off in the MLP parameters.) Each workgroup
+// (W row-major [out x in], PyTorch's layout, at w_off in the parameter buffer.) X and Y are
+// row-strided views: X[r][k] at x_off + r * x_stride + k, Y (and the mask M) at
+// y_off + r * y_stride + n; the host keeps every such index within 32 bits. Each workgroup
 // computes a 64 x 64 tile of Y, each invocation 4 x 4 outputs, K in steps of 16.
 #version 460
 #extension GL_GOOGLE_include_directive : require
@@ -18,12 +21,13 @@
 #define F_BIAS 32u
 
 layout(local_size_x = 256) in;
-layout(std430, binding = 0) readonly buffer X { float x[]; };      // [rows * K]
-layout(std430, binding = 1) readonly buffer Mlp { float mlp[]; };  // MLP parameters
-layout(std430, binding = 2) buffer Y { float y[]; };               // [rows * N]
-layout(std430, binding = 3) readonly buffer Mask { float mask[]; };  // [rows * N] (F_MASK)
+layout(std430, binding = 0) readonly buffer X { float x[]; };      // [rows x K] view
+layout(std430, binding = 1) readonly buffer Mlp { float mlp[]; };  // parameters
+layout(std430, binding = 2) buffer Y { float y[]; };               // [rows x N] view
+layout(std430, binding = 3) readonly buffer Mask { float mask[]; };  // Y's layout (F_MASK)
 layout(push_constant, std430) uniform Push {
   uint rows, K, N, w_off, b_off, flags;
+  uint x_off, x_stride, y_off, y_stride;
 } pc;
 
 shared float xs[TK][TM];
@@ -46,7 +50,7 @@ void main() {
       const uint e = tid + 256u * j;
       const uint row = e / TK, kk = e % TK;
       const uint r = r0 + row, k = k0 + kk;
-      float v = (r < pc.rows && k < pc.K) ? x[r * pc.K + k] : 0.0;
+      float v = (r < pc.rows && k < pc.K) ? x[pc.x_off + r * pc.x_stride + k] : 0.0;
       if (relu_in) v = max(v, 0.0);
       xs[kk][row] = v;
     }
@@ -82,12 +86,13 @@ void main() {
     for (uint j = 0u; j < 4u; ++j) {
       const uint n = n0 + tx + 16u * j;
       if (n >= pc.N) continue;
+      const uint yi = pc.y_off + r * pc.y_stride + n;
       float v = acc[i][j];
       if ((pc.flags & F_BIAS) != 0u) v += mlp[pc.b_off + n];
-      if ((pc.flags & F_ACCUM) != 0u) v += y[r * pc.N + n];
+      if ((pc.flags & F_ACCUM) != 0u) v += y[yi];
       if ((pc.flags & F_RELU_OUT) != 0u) v = max(v, 0.0);
-      if ((pc.flags & F_MASK) != 0u && !(mask[r * pc.N + n] > 0.0)) v = 0.0;
-      y[r * pc.N + n] = v;
+      if ((pc.flags & F_MASK) != 0u && !(mask[yi] > 0.0)) v = 0.0;
+      y[yi] = v;
     }
   }
 }

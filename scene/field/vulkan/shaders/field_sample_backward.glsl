@@ -22,43 +22,8 @@ layout(local_size_x = 256) in;
 layout(std430, binding = 5) readonly buffer Means { float means[]; };       // [rows * 3]
 layout(std430, binding = 6) readonly buffer DFeatures { float d_features[]; };  // [rows * D]
 layout(std430, binding = 7) writeonly buffer DMeans { float d_means[]; };   // [rows * 3]
-#ifdef CAS_ATOMICS
-#define GRAD_T uint
-#else
-#define GRAD_T float
-#endif
-// Plane gradients, grouped as the planes (binding 8 + group).
-layout(std430, binding = 8) buffer Grads0 { GRAD_T grads0[]; };
-layout(std430, binding = 9) buffer Grads1 { GRAD_T grads1[]; };
-layout(std430, binding = 10) buffer Grads2 { GRAD_T grads2[]; };
-layout(std430, binding = 11) buffer Grads3 { GRAD_T grads3[]; };
 SAMPLE_PUSH
-
-#ifdef CAS_ATOMICS
-#define ATOMIC_ADD_F(buf, i, v)                                                               \
-  {                                                                                           \
-    uint old_ = buf[i];                                                                       \
-    for (;;) {                                                                                \
-      const uint prev_ = atomicCompSwap(buf[i], old_, floatBitsToUint(uintBitsToFloat(old_) + (v))); \
-      if (prev_ == old_) break;                                                               \
-      old_ = prev_;                                                                           \
-    }                                                                                         \
-  }
-#else
-#define ATOMIC_ADD_F(buf, i, v) atomicAdd(buf[i], (v))
-#endif
-
-void AddGrad(uint group, uint i, float v) {
-  if (v == 0.0) return;  // border taps (weight 0) and zero gradients: adding 0 changes nothing
-  switch (group) {
-    case 0u: ATOMIC_ADD_F(grads0, i, v); break;
-    case 1u: ATOMIC_ADD_F(grads1, i, v); break;
-    case 2u: ATOMIC_ADD_F(grads2, i, v); break;
-    default: ATOMIC_ADD_F(grads3, i, v); break;
-  }
-}
-
-shared float red[3][256];
+#include "field_plane_grads.glsl"
 
 void main() {
   const uint C = CHANNELS;
@@ -82,11 +47,7 @@ void main() {
       float s[6];
       for (uint c = 0u; c < PLANES_PER_LEVEL; ++c) {
         pts[c] = MakePlaneTaps(plane_table[l * PLANES_PER_LEVEL + c], taps[PlaneU(c)], taps[PlaneV(c)], C, k);
-        v[c][0] = LoadPlane(pts[c].group, pts[c].off00);
-        v[c][1] = LoadPlane(pts[c].group, pts[c].off00 + C);
-        v[c][2] = LoadPlane(pts[c].group, pts[c].off00 + pts[c].row);
-        v[c][3] = LoadPlane(pts[c].group, pts[c].off00 + pts[c].row + C);
-        s[c] = pts[c].w00 * v[c][0] + pts[c].w01 * v[c][1] + pts[c].w10 * v[c][2] + pts[c].w11 * v[c][3];
+        s[c] = LoadSample(pts[c], v[c]);
       }
       float suf[6];
       suf[5] = 1.0;
@@ -95,39 +56,12 @@ void main() {
       for (uint c = 0u; c < PLANES_PER_LEVEL; ++c) {
         const float gc = pre * suf[c];
         pre *= s[c];
-        const PlaneTaps pt = pts[c];
-        AddGrad(pt.group, pt.off00, pt.w00 * gc);
-        AddGrad(pt.group, pt.off00 + C, pt.w01 * gc);
-        AddGrad(pt.group, pt.off00 + pt.row, pt.w10 * gc);
-        AddGrad(pt.group, pt.off00 + pt.row + C, pt.w11 * gc);
         const uint cu = PlaneU(c), cv = PlaneV(c);
-        const float wu = taps[cu].w, wv = taps[cv].w;
-        const float du = gc * ((1.0 - wv) * (v[c][1] - v[c][0]) + wv * (v[c][3] - v[c][2]));
-        dp[cu] += du * taps[cu].dpx;
-        if (cv != 3u) {  // time is not a parameter
-          const float dv = gc * ((1.0 - wu) * (v[c][2] - v[c][0]) + wu * (v[c][3] - v[c][1]));
-          dp[cv] += dv * taps[cv].dpx;
-        }
+        const vec2 duv = SplatSample(pts[c], v[c], taps[cu].w, taps[cv].w, gc);
+        dp[cu] += duv.x * taps[cu].dpx;
+        if (cv != 3u) dp[cv] += duv.y * taps[cv].dpx;  // time is not a parameter
       }
     }
   }
-  red[0][tid] = dp[0];
-  red[1][tid] = dp[1];
-  red[2][tid] = dp[2];
-  memoryBarrierShared();
-  barrier();
-  for (uint h = LANES / 2u; h > 0u; h >>= 1u) {
-    if (lane < h) {
-      red[0][tid] += red[0][tid + h];
-      red[1][tid] += red[1][tid + h];
-      red[2][tid] += red[2][tid + h];
-    }
-    memoryBarrierShared();
-    barrier();
-  }
-  if (lane == 0u && g < pc.rows) {
-    d_means[g * 3u] = red[0][tid] * pc.ax;
-    d_means[g * 3u + 1u] = red[1][tid] * pc.ay;
-    d_means[g * 3u + 2u] = red[2][tid] * pc.az;
-  }
+  WriteMeanGrads(tid, lane, g, dp);
 }
