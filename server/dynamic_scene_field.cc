@@ -1,15 +1,15 @@
 #include "server/dynamic_scene_field.h"
 
 #include "absl/strings/str_cat.h"
+#include "scene/field/extended/extended_serving.h"
 
 namespace streetsim::server {
 
-absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
-    field::DeformationField field, GaussianStore canonical, std::optional<std::vector<float>> reflectance,
-    const field::StaticSkipOptions& options, const SceneUploader& upload) {
+absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Begin(
+    const GaussianStore& canonical, std::optional<std::vector<float>> reflectance) {
   if (canonical.sh_degree != 3) {
-    return absl::FailedPreconditionError(absl::StrCat(
-        "a field needs SH degree 3 Gaussians, scene.ply has degree ", canonical.sh_degree));
+    return absl::FailedPreconditionError(
+        absl::StrCat("a field needs SH degree 3 Gaussians, scene.ply has degree ", canonical.sh_degree));
   }
   std::unique_ptr<DynamicSceneField> f(new DynamicSceneField());
   f->num_gaussians_ = canonical.size();
@@ -17,10 +17,35 @@ absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
   // One pool per scene: ThreadPool is not reentrant, and At runs under the engine lock, so the
   // field and the renderer never compete for the cores.
   f->pool_ = std::make_unique<ThreadPool>(0);
+  return f;
+}
+
+absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
+    field::DeformationField field, GaussianStore canonical, std::optional<std::vector<float>> reflectance,
+    const field::StaticSkipOptions& options, const SceneUploader& upload) {
+  absl::StatusOr<std::unique_ptr<DynamicSceneField>> f = Begin(canonical, std::move(reflectance));
+  if (!f.ok()) return f.status();
   absl::StatusOr<field::ServingField> serving =
-      field::ServingField::Create(std::move(field), std::move(canonical), options, *f->pool_);
+      field::ServingField::Create(std::move(field), std::move(canonical), options, *(*f)->pool_);
   if (!serving.ok()) return serving.status();
-  f->serving_.emplace(std::move(*serving));
+  (*f)->serving_ = std::make_unique<field::ServingField>(std::move(*serving));
+  return Finish(std::move(*f), upload);
+}
+
+absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
+    field::ExtendedField field, GaussianStore canonical, std::optional<std::vector<float>> reflectance,
+    const field::StaticSkipOptions& options, const SceneUploader& upload) {
+  absl::StatusOr<std::unique_ptr<DynamicSceneField>> f = Begin(canonical, std::move(reflectance));
+  if (!f.ok()) return f.status();
+  absl::StatusOr<std::unique_ptr<field::ExtServingField>> serving =
+      field::ExtServingField::Create(std::move(field), std::move(canonical), options, *(*f)->pool_);
+  if (!serving.ok()) return serving.status();
+  (*f)->serving_ = std::move(*serving);
+  return Finish(std::move(*f), upload);
+}
+
+absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Finish(std::unique_ptr<DynamicSceneField> f,
+                                                                            const SceneUploader& upload) {
   f->num_dynamic_ = f->serving_->num_dynamic();
   // The first upload allocates the device copy (and checks the Gaussians); later timestamps update it.
   absl::StatusOr<const GaussianStore*> first = f->serving_->At(f->serving_->field().time_range().start_us, *f->pool_);

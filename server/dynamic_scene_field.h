@@ -1,6 +1,7 @@
 // A dynamic scene served at the request's time (docs/server.md "Dynamic scenes"): the canonical
-// Gaussians of scene.ply deformed by DIR/field.bin through field::ServingField (static Gaussians
-// baked once at load, the dynamic ones evaluated once per new timestamp). The deformed Gaussians
+// Gaussians of scene.ply deformed by DIR/field.bin through field::ServingField, or with
+// DIR/field_ext.bin by the extended field through field::ExtServingField (static Gaussians baked
+// once at load, the dynamic ones evaluated once per new timestamp). The deformed Gaussians
 // of the last timestamp are kept on the device and on the host, so every camera and the LiDAR of
 // one step share one field evaluation.
 #pragma once
@@ -15,6 +16,7 @@
 
 #include "absl/status/statusor.h"
 #include "render/common/thread_pool.h"
+#include "scene/field/extended/extended_field.h"
 #include "scene/field/static_skip.h"
 #include "server/scene_field.h"
 
@@ -27,6 +29,10 @@ class DynamicSceneField : public SceneField {
   static absl::StatusOr<std::unique_ptr<DynamicSceneField>> Create(
       field::DeformationField field, GaussianStore canonical, std::optional<std::vector<float>> reflectance,
       const field::StaticSkipOptions& options, const SceneUploader& upload);
+  // The same with an extended field (--field extended: field.bin + field_ext.bin).
+  static absl::StatusOr<std::unique_ptr<DynamicSceneField>> Create(
+      field::ExtendedField field, GaussianStore canonical, std::optional<std::vector<float>> reflectance,
+      const field::StaticSkipOptions& options, const SceneUploader& upload);
 
   absl::StatusOr<const DeviceScene*> At(int64_t time_us, Engine& engine) const override;
   absl::StatusOr<std::shared_ptr<const HostScene>> HostAt(int64_t time_us) const override;
@@ -35,12 +41,18 @@ class DynamicSceneField : public SceneField {
 
  private:
   DynamicSceneField() = default;
+  // The two halves around building serving_ that both Create share: the checks, the pool and the
+  // reflectance; then the first evaluation and upload.
+  static absl::StatusOr<std::unique_ptr<DynamicSceneField>> Begin(const GaussianStore& canonical,
+                                                                   std::optional<std::vector<float>> reflectance);
+  static absl::StatusOr<std::unique_ptr<DynamicSceneField>> Finish(std::unique_ptr<DynamicSceneField> f,
+                                                                    const SceneUploader& upload);
   // The deformed store at time_us (mu_ held).
   absl::StatusOr<const GaussianStore*> EvaluateLocked(int64_t time_us) const;
 
   mutable std::mutex mu_;
   mutable std::unique_ptr<ThreadPool> pool_;
-  mutable std::optional<field::ServingField> serving_;
+  mutable std::unique_ptr<field::ServedScene> serving_;
   mutable std::unique_ptr<DeviceScene> device_;
   mutable int64_t device_evaluation_ = 0;  // serving_'s evaluation count the device copy holds (0: baked)
   mutable std::shared_ptr<const HostScene> host_;

@@ -1,5 +1,6 @@
 // The seam where a scene is evaluated at a time: a static Gaussian set (StaticSceneField, below)
-// or a dynamic scene deformed by its field.bin (DynamicSceneField, dynamic_scene_field.h).
+// or a dynamic scene deformed by its field.bin, and field_ext.bin for --field extended
+// (DynamicSceneField, dynamic_scene_field.h).
 #pragma once
 
 #include <cstdint>

@@ -51,21 +51,25 @@ absl::StatusOr<std::shared_ptr<LoadedScene>> LoadSceneFile(const std::string& pa
   const fs::path field_path = fs::path(path).parent_path() / field::kFieldFileName;
   std::error_code ec;
   if (fs::path(path).filename() == "scene.ply" && fs::exists(field_path, ec)) {
-    // --field extended scenes need the extended field at every timestamp; serving them with
-    // field.bin alone would silently drop the seed paper's modules.
-    const fs::path ext_path = fs::path(path).parent_path() / field::kExtendedFieldFileName;
-    if (fs::exists(ext_path, ec)) {
-      return absl::FailedPreconditionError(absl::StrCat(
-          ext_path.string(), ": a scene trained with --field extended, which the server does not serve yet "
-                             "(render or eval it with the streetsim CLI)"));
-    }
     absl::StatusOr<field::DeformationField> f = field::LoadField(field_path.string());
     if (!f.ok()) return f.status();  // DATA_LOSS naming the file
-    absl::StatusOr<std::unique_ptr<DynamicSceneField>> dynamic = DynamicSceneField::Create(
-        std::move(*f), std::move(*store), std::move(*reflectance), field::StaticSkipOptions{}, upload);
+    // --field extended: DIR/field_ext.bin, checked against this field.bin as the CLI's
+    // train::LoadSceneField does (damage, another run's file: DATA_LOSS naming field_ext.bin).
+    const fs::path ext_path = fs::path(path).parent_path() / field::kExtendedFieldFileName;
+    const bool extended = fs::exists(ext_path, ec);
+    absl::StatusOr<std::unique_ptr<DynamicSceneField>> dynamic;
+    if (extended) {
+      absl::StatusOr<field::ExtendedField> ext = field::LoadExtendedField(ext_path.string(), std::move(*f));
+      if (!ext.ok()) return ext.status();
+      dynamic = DynamicSceneField::Create(std::move(*ext), std::move(*store), std::move(*reflectance),
+                                          field::StaticSkipOptions{}, upload);
+    } else {
+      dynamic = DynamicSceneField::Create(std::move(*f), std::move(*store), std::move(*reflectance),
+                                          field::StaticSkipOptions{}, upload);
+    }
     if (!dynamic.ok()) {
-      return absl::Status(dynamic.status().code(),
-                          absl::StrCat(field_path.string(), ": ", dynamic.status().message()));
+      const fs::path& named = extended ? ext_path : field_path;
+      return absl::Status(dynamic.status().code(), absl::StrCat(named.string(), ": ", dynamic.status().message()));
     }
     loaded->field = std::move(*dynamic);
     return loaded;

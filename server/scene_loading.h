@@ -27,9 +27,10 @@ struct LoadedScene {
 absl::StatusOr<SceneManifest> ReadSceneDirManifest(const std::string& manifest_path);
 
 // Reads `ply_path` (with its LiDAR reflectance), and for DIR/scene.ply with DIR/field.bin the
-// field (a DynamicSceneField), else a StaticSceneField; uploads through `upload`.
-// Errors: a PLY or field.bin that cannot be read (DataLoss naming the file), a --field extended
-// scene (FailedPrecondition), upload failures.
+// field (a DynamicSceneField; with DIR/field_ext.bin beside it the extended field of a --field
+// extended run), else a StaticSceneField; uploads through `upload`.
+// Errors: a PLY, field.bin or field_ext.bin that cannot be read, or a field_ext.bin of another
+// field.bin (DataLoss naming the file), upload failures.
 absl::StatusOr<std::shared_ptr<LoadedScene>> LoadSceneFile(const std::string& ply_path, const SceneUploader& upload);
 
 }  // namespace streetsim::server

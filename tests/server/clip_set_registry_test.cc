@@ -132,31 +132,8 @@ TEST(ClipSetRegistry, ClipsThatDisagreeOrLeaveTheSetAreListedWithTheClipNamed) {
   fs::remove_all(root);
 }
 
-// A scene trained with --field extended (field_ext.bin beside field.bin) is refused with the file
-// named rather than served with the base field alone.
-TEST(ExtendedSceneRegistry, RefusedWithTheFileNamed) {
-  const fs::path root = fs::path(::testing::TempDir()) / ("streetsim_ext_registry_" + std::to_string(getpid()));
-  fs::remove_all(root);
-  fs::create_directories(root / "ext");
-  SyntheticStreetOptions o;
-  o.num_gaussians = 200;
-  ASSERT_TRUE(WriteGaussianPly(MakeSyntheticStreet(o), (root / "ext/scene.ply").string()).ok());
-  for (const char* f : {"field.bin", "field_ext.bin"}) {
-    std::ofstream((root / "ext" / f).string()) << "not read: refused before";
-  }
-  SceneRegistry registry(root.string(), "", nullptr);
-  absl::StatusOr<v1::Scene> load = registry.Load("ext", true, nullptr);
-  absl::Status status = load.ok() ? absl::OkStatus() : load.status();
-  if (load.ok()) {  // a finished load reports its error in the scene
-    EXPECT_NE(load->error().find("field_ext.bin"), std::string::npos) << load->error();
-    EXPECT_NE(load->error().find("--field extended"), std::string::npos) << load->error();
-  } else {
-    EXPECT_EQ(status.code(), absl::StatusCode::kFailedPrecondition) << status;
-    EXPECT_NE(status.message().find("field_ext.bin"), std::string::npos) << status;
-  }
-  EXPECT_FALSE(registry.Acquire("ext", nullptr).ok());
-  fs::remove_all(root);
-}
+// Scenes trained with --field extended are served since (tests/server/ext_field_scene_test.cc,
+// which also covers a damaged or foreign field_ext.bin being refused with the file named).
 
 }  // namespace
 }  // namespace streetsim::server
