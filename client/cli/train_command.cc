@@ -13,6 +13,7 @@
 #include "scene/log/open_log.h"
 #include "scene/log/scene_manifest.h"
 #include "scene/train/clip_training.h"
+#include "scene/train/train_state.h"
 #include "scene/train/trainer.h"
 
 namespace streetsim {
@@ -25,6 +26,39 @@ std::string Duration(double s) {
   const int t = static_cast<int>(s + 0.5);
   std::snprintf(buf, sizeof(buf), "%d:%02d:%02d", t / 3600, (t / 60) % 60, t % 60);
   return buf;
+}
+
+// --field's default (issue 5: "the best measured"; docs/training.md "Default field"): S3Gaussian's
+// field when the run is longer than its static warm-up (--static-iterations, 5000), static
+// otherwise: a run too short for a fine stage gains nothing from the field. A resumed run keeps the
+// field it was trained with, read from its directory: field checkpoints mark a dynamic run; a
+// checkpoint past the warm-up without one, a static run.
+absl::StatusOr<train::FieldMode> DefaultFieldMode(const ParsedArgs& args, int64_t iterations, int static_iterations,
+                                                  const std::string& out_dir) {
+  if (args.Get("static-iterations")) {
+    // An explicit warm-up asks for the staged run (its value is checked below).
+    return train::FieldMode::kS3Gaussian;
+  }
+  namespace fs = std::filesystem;
+  const fs::path ckpt = fs::path(out_dir) / "checkpoint.bin";
+  std::error_code ec;
+  if (args.Has("resume") && fs::exists(ckpt, ec)) {
+    bool field_ckpt = false, ext_ckpt = false;
+    for (const fs::directory_entry& e : fs::directory_iterator(out_dir, ec)) {
+      const std::string name = e.path().filename().string();
+      if (name.rfind("checkpoint_field_", 0) != 0) continue;
+      (name.size() > 8 && name.compare(name.size() - 8, 8, "_ext.bin") == 0 ? ext_ckpt : field_ckpt) = true;
+    }
+    if (ext_ckpt) {
+      return absl::FailedPreconditionError(
+          absl::StrCat(out_dir, " holds a --field extended run: resume it with --field extended and its --field-modules"));
+    }
+    if (field_ckpt) return train::FieldMode::kS3Gaussian;
+    absl::StatusOr<int64_t> done = train::PeekCheckpointIteration(ckpt.string());
+    if (!done.ok()) return done.status();
+    if (*done > static_iterations) return train::FieldMode::kStatic;
+  }
+  return iterations > static_iterations ? train::FieldMode::kS3Gaussian : train::FieldMode::kStatic;
 }
 
 }  // namespace
@@ -85,6 +119,15 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
           field::ExtendedFieldConfig::WithModules(args->Get("field-modules").value_or("all"));
       if (!ec.ok()) return Fail(2, ec.status());
       opt.field.extended = *ec;
+    }
+  }
+  if (!args->Get("field")) {
+    absl::StatusOr<train::FieldMode> m = DefaultFieldMode(*args, opt.iterations, opt.field.static_iterations, *out);
+    if (!m.ok()) return Fail(2, m.status());
+    opt.field.mode = *m;
+    if (*m == train::FieldMode::kS3Gaussian) {
+      std::fprintf(stderr, "streetsim train: --field s3gaussian (the default for runs with a fine stage; "
+                           "--field static for a static model)\n");
     }
   }
   if (args->Get("field-modules") && !opt.field.extended) {

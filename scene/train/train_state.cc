@@ -390,6 +390,19 @@ absl::Status SaveCheckpoint(const TrainState& s, const std::string& path) {
   return checked_file::WriteAtomically(path, w.buf_);
 }
 
+absl::StatusOr<int64_t> PeekCheckpointIteration(const std::string& path) {
+  std::ifstream f(path, std::ios::binary);
+  if (!f) return absl::NotFoundError(absl::StrCat("cannot open checkpoint ", path));
+  char head[8 + sizeof(int64_t)];
+  if (!f.read(head, sizeof(head)) || std::memcmp(head, kMagic, 8) != 0) {
+    return absl::DataLossError(absl::StrCat(path, ": not a streetsim training checkpoint"));
+  }
+  int64_t iteration = 0;
+  std::memcpy(&iteration, head + 8, sizeof(iteration));
+  if (iteration < 0) return absl::DataLossError(absl::StrCat(path, ": corrupt iteration ", iteration));
+  return iteration;
+}
+
 absl::StatusOr<TrainState> LoadCheckpoint(const std::string& path) {
   std::ifstream f(path, std::ios::binary);
   if (!f) return absl::NotFoundError(absl::StrCat("cannot open checkpoint ", path));

@@ -81,5 +81,8 @@ void ResetOpacity(TrainState* s);
 
 absl::Status SaveCheckpoint(const TrainState& s, const std::string& path);
 absl::StatusOr<TrainState> LoadCheckpoint(const std::string& path);
+// The iteration a checkpoint was written at, from its header alone (the CLI's --field default
+// on resume reads it without loading the Gaussians). DataLoss when the file is not a checkpoint.
+absl::StatusOr<int64_t> PeekCheckpointIteration(const std::string& path);
 
 }  // namespace streetsim::train

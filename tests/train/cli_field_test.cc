@@ -90,7 +90,7 @@ TEST(CliField, BadValuesExitTwoWithOneLine) {
            train + " --iterations 20 --field s3gaussian --static-iterations 20",
            train + " --iterations 20 --field s3gaussian --static-iterations -1",
            train + " --iterations 20 --field s3gaussian --static-iterations x",
-           train + " --iterations 20 --static-iterations 5",  // needs --field s3gaussian
+           train + " --iterations 20 --field static --static-iterations 5",  // needs --field s3gaussian
            train + " --iterations 100 --field s3gaussian",     // the default 5000 static iterations
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-size huge",
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-device gpu",
@@ -103,6 +103,50 @@ TEST(CliField, BadValuesExitTwoWithOneLine) {
     EXPECT_EQ(r.code, 2) << args << ": " << r.err;
     EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << args << ": " << r.err;
   }
+}
+
+// --field's default: S3Gaussian's field when the run has a fine stage, static otherwise; a resumed
+// run keeps the field its directory shows (docs/training.md "Default field").
+TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
+  const std::string common = " --field-size small --resolution-scale 0.12 --holdout-every 10 --voxel 0.5 --seed 3";
+  const std::string short_dir = streetsim::testing::ScratchDir("streetsim_cli_field_default", "short");
+  Result r = RunCli("train --log " + kKitti + " --out " + short_dir + " --iterations 6" + common);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_FALSE(std::filesystem::exists(short_dir + "/field.bin"));  // 6 <= the 5000-iteration warm-up
+  EXPECT_EQ(nlohmann::json::parse(Slurp(short_dir + "/train_meta.json"))["field"], "static");
+
+  const std::string staged_dir = streetsim::testing::ScratchDir("streetsim_cli_field_default", "staged");
+  r = RunCli("train --log " + kKitti + " --out " + staged_dir + " --iterations 10 --static-iterations 6" + common);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("--field s3gaussian (the default"), std::string::npos) << r.err;
+  EXPECT_TRUE(std::filesystem::exists(staged_dir + "/field.bin"));
+  EXPECT_EQ(nlohmann::json::parse(Slurp(staged_dir + "/train_meta.json"))["field"], "s3gaussian");
+
+  // Resume without --field: the directory decides. The checkpoints here are headers only (magic +
+  // iteration), so every resume then fails loading it; what is checked is the field picked first.
+  const std::string dir = streetsim::testing::ScratchDir("streetsim_cli_field_default", "resume");
+  auto header = [&](int64_t iteration) {
+    std::ofstream f(dir + "/checkpoint.bin", std::ios::binary | std::ios::trunc);
+    f.write("SSTRN001", 8);
+    f.write(reinterpret_cast<const char*>(&iteration), sizeof(iteration));
+  };
+  const std::string resume = "train --log " + kKitti + " --out " + dir + " --iterations 30000 --resume" + common;
+  header(6000);  // past the warm-up without a field checkpoint: a static run
+  r = RunCli(resume);
+  EXPECT_NE(r.code, 0);
+  EXPECT_EQ(r.err.find("--field s3gaussian (the default"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("corrupt checkpoint"), std::string::npos) << r.err;
+  header(3000);  // inside the warm-up: the same rule as a fresh run of 30000 iterations
+  r = RunCli(resume);
+  EXPECT_NE(r.err.find("--field s3gaussian (the default"), std::string::npos) << r.err;
+  header(6000);
+  std::ofstream(dir + "/checkpoint_field_6000.bin") << "x";  // a dynamic run past its warm-up
+  r = RunCli(resume);
+  EXPECT_NE(r.err.find("--field s3gaussian (the default"), std::string::npos) << r.err;
+  std::ofstream(dir + "/checkpoint_field_6000_ext.bin") << "x";  // an extended run: say how to resume
+  r = RunCli(resume);
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_NE(r.err.find("--field extended"), std::string::npos) << r.err;
 }
 
 }  // namespace
