@@ -20,7 +20,6 @@
 namespace streetsim::train {
 namespace {
 
-using synthetic::kClipUs;
 using synthetic::MovingClusterOptions;
 using synthetic::MovingClusterRun;
 using synthetic::MovingClusterViews;
@@ -34,13 +33,7 @@ struct RunResult {
 RunResult HeldOut(FieldMode mode, const char* modules, const std::string& name) {
   const MovingClusterRun views = MovingClusterViews();
   const std::vector<View>& test = views.test;
-  TrainOptions opt = MovingClusterOptions(mode);
-  if (modules) {
-    absl::StatusOr<field::ExtendedFieldConfig> ec = field::ExtendedFieldConfig::WithModules(modules);
-    EXPECT_TRUE(ec.ok());
-    opt.field.extended = *ec;
-    opt.field.frame_interval_us = kClipUs / 23;  // the training cameras' spacing in time
-  }
+  const TrainOptions opt = MovingClusterOptions(mode, modules);
   const auto dir = std::filesystem::temp_directory_path() /
                    ("streetsim_ext_convergence_" + std::to_string(getpid()) + "_" + name);
   std::filesystem::remove_all(dir);

@@ -6,107 +6,43 @@
 #include <cmath>
 #include <cstdio>
 #include <functional>
-#include <map>
 #include <random>
 #include <string>
 
 #include "gtest/gtest.h"
 #include "scene/field/extended/extended_field.h"
 #include "scene/field/field_eval.h"
+#include "tests/field/ext_test_fields.h"
 #include "tests/field/field_test_util.h"
 
 namespace streetsim::field {
 namespace {
 
-using testing::RandomMeans;
-using testing::RandomParams;
+using testing::All;
+using testing::ArrayOf;
+using testing::ExtGroup;
+using testing::ExtInputsOf;
+using testing::ExtModelOf;
+using testing::ExtProblem;
+using testing::ExtValues;
+using testing::kExtOut;
+using testing::MakeExtProblem;
+using testing::RelDiff;
 using testing::RelError;
 using testing::SmallConfig;
 using testing::TestAabb;
 
-constexpr int kOut[5] = {3, kShOutputs, kDecoderScaleOutputs, kDecoderRotationOutputs, kDecoderOpacityOutputs};
-
-// Values rounded to float so that the float and double passes see the same numbers.
-template <typename T>
-struct Copy {
-  std::vector<T> base, ext, means, opacity, scales, rotations;
-};
-
-struct Problem {
-  FieldConfig bc;
-  FieldLayout BL;
-  ExtendedFieldConfig ec;
-  ExtendedLayout EL;
-  Copy<double> v;
-  std::vector<double> w[5];  // loss weights per output
-  size_t n = 0;
-  ExtPass pass;
-  double kl_weight = 0.3;
-};
-
-double R(double x) { return static_cast<double>(static_cast<float>(x)); }
-
-Problem MakeProblem(const ExtendedFieldConfig& ec, size_t n, double time_coord, uint64_t seed) {
-  Problem p;
-  p.bc = SmallConfig();
-  p.BL = FieldLayout::Make(p.bc);
-  p.ec = ec;
-  absl::StatusOr<ExtendedLayout> el = ExtendedLayout::Make(p.bc, ec);
-  EXPECT_TRUE(el.ok()) << el.status();
-  p.EL = *el;
-  p.n = n;
-  p.v.base = RandomParams<double>(p.bc, p.BL, seed);
-  InitExtendedParams(ec, p.EL, seed + 1, &p.v.ext);
-  std::mt19937_64 rng(seed + 2);
-  std::uniform_real_distribution<double> u(-0.4, 0.4);
-  std::normal_distribution<double> g;
-  for (double& x : p.v.ext) x += u(rng);  // off the init (zero decoder outputs, unit gains)
-  p.v.means = RandomMeans<double>(n, n / 4, seed + 3);
-  p.v.opacity.resize(n);
-  p.v.scales.resize(n * 3);
-  p.v.rotations.resize(n * 4);
-  for (double& x : p.v.opacity) x = g(rng);
-  for (double& x : p.v.scales) x = -1.5 + u(rng) * 2;
-  for (double& x : p.v.rotations) x = g(rng);
-  for (int o = 0; o < 5; ++o) {
-    p.w[o].resize(n * kOut[o]);
-    for (double& x : p.w[o]) x = R(g(rng));
-  }
-  for (std::vector<double>* vec : {&p.v.base, &p.v.ext, &p.v.means, &p.v.opacity, &p.v.scales, &p.v.rotations})
-    for (double& x : *vec) x = R(x);
-  p.pass.time_coord = time_coord;
-  p.pass.training = true;
-  p.pass.noise_seed = seed + 11;
-  return p;
-}
-
-template <typename T>
-ExtModel<T> Model(const Problem& p, const Copy<T>& c) {
-  ExtModel<T> m;
-  m.base_layout = &p.BL;
-  m.base_params = c.base.data();
-  m.config = &p.ec;
-  m.layout = &p.EL;
-  m.ext_params = c.ext.data();
-  m.aabb = TestAabb();
-  return m;
-}
-template <typename T>
-ExtInputs<T> Inputs(const Problem& p, const Copy<T>& c) {
-  return {p.n, c.means.data(), c.opacity.data(), c.scales.data(), c.rotations.data()};
-}
-
 // L = Σ w · outputs + kl_weight · Σ KL.
-double Loss(const Problem& p, const Copy<double>& c, ThreadPool& pool, ExtWorkspace& ws) {
+double Loss(const ExtProblem& p, const ExtValues<double>& c, ThreadPool& pool, ExtWorkspace& ws) {
   std::vector<double> out[5];
-  for (int o = 0; o < 5; ++o) out[o].assign(p.n * kOut[o], 0.0);
+  for (int o = 0; o < 5; ++o) out[o].assign(p.n * kExtOut[o], 0.0);
   ExtOutputs<double> eo{out[0].data(), out[1].data(), p.ec.decoder ? out[2].data() : nullptr,
                         p.ec.decoder ? out[3].data() : nullptr, p.ec.decoder ? out[4].data() : nullptr};
-  absl::StatusOr<double> kl = ExtendedForward<double>(Model(p, c), p.pass, Inputs(p, c), eo, pool, ws);
+  absl::StatusOr<double> kl = ExtendedForward<double>(ExtModelOf(p, c), p.pass, ExtInputsOf(p, c), eo, pool, ws);
   EXPECT_TRUE(kl.ok()) << kl.status();
   double l = p.kl_weight * kl.value_or(0);
   for (int o = 0; o < 5; ++o)
-    for (size_t i = 0; i < out[o].size(); ++i) l += p.w[o][i] * out[o][i];
+    for (size_t i = 0; i < out[o].size(); ++i) l += p.v.w[o][i] * out[o][i];
   return l;
 }
 
@@ -116,13 +52,8 @@ struct Grads {
 };
 
 template <typename T>
-Grads<double> Analytic(const Problem& p, ThreadPool& pool) {
-  Copy<T> c;
-  auto cv = [](const std::vector<double>& v) { return std::vector<T>(v.begin(), v.end()); };
-  c.base = cv(p.v.base), c.ext = cv(p.v.ext), c.means = cv(p.v.means), c.opacity = cv(p.v.opacity);
-  c.scales = cv(p.v.scales), c.rotations = cv(p.v.rotations);
-  std::vector<T> w[5];
-  for (int o = 0; o < 5; ++o) w[o] = cv(p.w[o]);
+Grads<double> Analytic(const ExtProblem& p, ThreadPool& pool) {
+  const ExtValues<T> c = testing::CastValues<T>(p.v);
   Grads<T> g;
   g.base.assign(p.BL.total, T(0));
   g.ext.assign(p.EL.total(), T(0));
@@ -131,66 +62,30 @@ Grads<double> Analytic(const Problem& p, ThreadPool& pool) {
   g.scales.assign(p.n * 3, T(0));
   g.rotations.assign(p.n * 4, T(0));
   ExtWorkspace ws;
-  ExtOutputGrads<T> d{w[0].data(), w[1].data(), w[2].data(), w[3].data(), w[4].data()};
+  ExtOutputGrads<T> d{c.w[0].data(), c.w[1].data(), c.w[2].data(), c.w[3].data(), c.w[4].data()};
   ExtInputGrads<T> gi{g.base.data(), g.ext.data(), g.means.data(), g.opacity.data(), g.scales.data(),
                       g.rotations.data()};
-  absl::StatusOr<double> kl = ExtendedBackward<T>(Model(p, c), p.pass, Inputs(p, c), d, p.kl_weight, gi, pool, ws);
+  absl::StatusOr<double> kl =
+      ExtendedBackward<T>(ExtModelOf(p, c), p.pass, ExtInputsOf(p, c), d, p.kl_weight, gi, pool, ws);
   EXPECT_TRUE(kl.ok()) << kl.status();
   auto dv = [](const std::vector<T>& v) { return std::vector<double>(v.begin(), v.end()); };
   return {dv(g.base), dv(g.ext), dv(g.means), dv(g.opacity), dv(g.scales), dv(g.rotations)};
 }
 
-double RelDiff(const std::vector<double>& a, const std::vector<double>& b, const std::vector<size_t>& idx) {
-  double num = 0, den = 0;
-  for (size_t i : idx) num += (a[i] - b[i]) * (a[i] - b[i]), den += b[i] * b[i];
-  return den > 0 ? std::sqrt(num / den) : std::sqrt(num);
-}
-
-std::vector<size_t> All(size_t n) {
-  std::vector<size_t> v(n);
-  for (size_t i = 0; i < n; ++i) v[i] = i;
-  return v;
-}
-
 // Checks every group; prints a line per group. Returns the number of groups checked.
-int CheckAll(Problem& p, const char* tag) {
+int CheckAll(ExtProblem& p, const char* tag) {
   ThreadPool serial(1), pool(2);
   ExtWorkspace ws;
   const Grads<double> ad = Analytic<double>(p, pool);
   const Grads<double> af = Analytic<float>(p, pool);
-  struct G {
-    std::string name;
-    std::vector<double>* x;
-    const std::vector<double>* ad;
-    const std::vector<double>* af;
-    std::vector<size_t> idx;
-  };
-  std::vector<G> groups;
-  G sp{"spatial planes", &p.v.base, &ad.base, &af.base, {}}, tp{"time planes", &p.v.base, &ad.base, &af.base, {}};
-  for (const PlaneInfo& pi : p.BL.planes)
-    for (size_t i = 0; i < pi.size(p.BL.channels); ++i) (PlaneHasTime(pi.plane) ? tp : sp).idx.push_back(pi.offset + i);
-  groups.push_back(sp);
-  groups.push_back(tp);
-  G mlp{"s3gaussian mlp", &p.v.base, &ad.base, &af.base, {}};
-  for (size_t i = p.BL.grid_size; i < p.BL.total; ++i) mlp.idx.push_back(i);
-  groups.push_back(mlp);
-  // One group per module (block name prefix up to the first dot).
-  std::map<std::string, std::vector<size_t>> by_module;
-  for (const nn::NnParamBlock& b : p.EL.params.blocks()) {
-    const std::string mod = b.name.substr(0, b.name.find('.'));
-    for (size_t i = 0; i < b.count; ++i) by_module[mod].push_back(b.offset + i);
-  }
-  for (auto& [mod, idx] : by_module) groups.push_back({mod, &p.v.ext, &ad.ext, &af.ext, idx});
-  groups.push_back({"means", &p.v.means, &ad.means, &af.means, All(p.n * 3)});
-  if (p.ec.encoder) {
-    groups.push_back({"opacity logits", &p.v.opacity, &ad.opacity, &af.opacity, All(p.n)});
-    groups.push_back({"log scales", &p.v.scales, &ad.scales, &af.scales, All(p.n * 3)});
-    groups.push_back({"rotations", &p.v.rotations, &ad.rotations, &af.rotations, All(p.n * 4)});
-  }
-  for (G& g : groups) {
+  const std::vector<ExtGroup> groups = testing::ExtGroups(p);
+  for (const ExtGroup& g : groups) {
+    std::vector<double>& x = ArrayOf(p.v, g.array);
+    const std::vector<double>& gd = ArrayOf(ad, g.array);
+    const std::vector<double>& gf = ArrayOf(af, g.array);
     int excluded = 0;
-    const double e = RelError(*g.x, g.idx, *g.ad, [&] { return Loss(p, p.v, serial, ws); }, &excluded);
-    const double ef = RelDiff(*g.af, *g.ad, g.idx);
+    const double e = RelError(x, g.idx, gd, [&] { return Loss(p, p.v, serial, ws); }, &excluded);
+    const double ef = RelDiff(gf, gd, g.idx);
     std::printf("[%s] %-16s %5zu entries: double vs FD %.1e (%d excluded), float vs double %.1e\n", tag,
                 g.name.c_str(), g.idx.size(), e, excluded, ef);
     EXPECT_LT(e, 1e-6) << tag << " " << g.name;
@@ -198,38 +93,33 @@ int CheckAll(Problem& p, const char* tag) {
     EXPECT_LE(excluded, static_cast<int>(g.idx.size() / 10)) << tag << " " << g.name;
     // A gradient that is identically zero would pass vacuously.
     double norm = 0;
-    for (size_t i : g.idx) norm += std::abs((*g.ad)[i]);
+    for (size_t i : g.idx) norm += std::abs(gd[i]);
     EXPECT_GT(norm, 0) << tag << " " << g.name << ": zero gradient";
   }
   return static_cast<int>(groups.size());
 }
 
 TEST(ExtendedFieldGradCheck, EveryModuleOn) {
-  Problem p = MakeProblem(ExtendedFieldConfig::AllOn(), 10, 0.37, 1);
+  ExtProblem p = MakeExtProblem(ExtendedFieldConfig::AllOn(), 10, 0.37, 1);
   EXPECT_EQ(CheckAll(p, "all on"), 13);  // planes x2, MLP, 6 module groups + gate, 4 canonical
 }
 
 TEST(ExtendedFieldGradCheck, EveryModuleOnNearTheLogEnd) {
   // t + Δ clamps to the axis end: that token holds the last state.
-  Problem p = MakeProblem(ExtendedFieldConfig::AllOn(), 6, 0.85, 2);
+  ExtProblem p = MakeExtProblem(ExtendedFieldConfig::AllOn(), 6, 0.85, 2);
   CheckAll(p, "all on, t 0.85");
 }
 
 TEST(ExtendedFieldGradCheck, EachModuleAlone) {
   for (const char* m : {"encoder", "vae", "temporal", "attention", "gru", "decoder"}) {
-    ExtendedFieldConfig c = ExtendedFieldConfig::AllOn();
-    absl::StatusOr<ExtendedFieldConfig> only = ExtendedFieldConfig::WithModules(m);
-    ASSERT_TRUE(only.ok());
-    c.encoder = only->encoder, c.vae = only->vae, c.temporal = only->temporal;
-    c.attention = only->attention, c.gru = only->gru, c.decoder = only->decoder;
-    Problem p = MakeProblem(c, 6, -0.2, 3);
+    ExtProblem p = MakeExtProblem(testing::OnlyModule(m), 6, -0.2, 3);
     CheckAll(p, m);
   }
 }
 
 TEST(ExtendedFieldGradCheck, InferenceUsesTheMean) {
   // z = μ: the pass is deterministic whatever the noise seed; training with ε differs.
-  Problem p = MakeProblem(ExtendedFieldConfig::AllOn(), 6, 0.1, 4);
+  ExtProblem p = MakeExtProblem(ExtendedFieldConfig::AllOn(), 6, 0.1, 4);
   ThreadPool pool(2);
   ExtWorkspace ws;
   p.pass.training = false;
@@ -247,7 +137,7 @@ TEST(ExtendedFieldGradCheck, InferenceUsesTheMean) {
 
 TEST(ExtendedFieldAblation, EveryModuleOffIsS3Gaussian) {
   for (double t : {-1.3, -0.6, 0.0, 0.37, 1.0}) {
-    Problem p = MakeProblem(ExtendedFieldConfig(), 40, t, 5);
+    ExtProblem p = MakeExtProblem(ExtendedFieldConfig(), 40, t, 5);
     ASSERT_EQ(p.EL.total(), 0u);
     ThreadPool pool(2);
     ExtWorkspace ws;
@@ -257,25 +147,25 @@ TEST(ExtendedFieldAblation, EveryModuleOffIsS3Gaussian) {
     FieldForward<double>(p.BL, p.v.base.data(), q, p.v.means.data(), nullptr, p.n, dx.data(), dsh.data(), pool, fws);
     ExtOutputs<double> eo{ex.data(), esh.data()};
     ExtInputs<double> in{p.n, p.v.means.data()};
-    ASSERT_TRUE(ExtendedForward<double>(Model(p, p.v), p.pass, in, eo, pool, ws).ok());
+    ASSERT_TRUE(ExtendedForward<double>(ExtModelOf(p, p.v), p.pass, in, eo, pool, ws).ok());
     double worst = 0;
     for (size_t i = 0; i < dx.size(); ++i) worst = std::max(worst, std::abs(dx[i] - ex[i]));
     for (size_t i = 0; i < dsh.size(); ++i) worst = std::max(worst, std::abs(dsh[i] - esh[i]));
     EXPECT_LT(worst, 1e-12) << "t " << t;
     // And its backward is FieldBackward's.
     std::vector<double> gb(p.BL.total, 0.0), gm(p.n * 3, 0.0), fb(p.BL.total, 0.0), fm(p.n * 3, 0.0);
-    FieldBackward<double>(p.BL, p.v.base.data(), q, p.v.means.data(), p.n, p.w[0].data(), p.w[1].data(), fb.data(),
-                          fm.data(), pool, fws);
-    ExtOutputGrads<double> d{p.w[0].data(), p.w[1].data()};
+    FieldBackward<double>(p.BL, p.v.base.data(), q, p.v.means.data(), p.n, p.v.w[0].data(), p.v.w[1].data(),
+                          fb.data(), fm.data(), pool, fws);
+    ExtOutputGrads<double> d{p.v.w[0].data(), p.v.w[1].data()};
     ExtInputGrads<double> gi{gb.data(), nullptr, gm.data()};
-    ASSERT_TRUE(ExtendedBackward<double>(Model(p, p.v), p.pass, in, d, 0.0, gi, pool, ws).ok());
+    ASSERT_TRUE(ExtendedBackward<double>(ExtModelOf(p, p.v), p.pass, in, d, 0.0, gi, pool, ws).ok());
     EXPECT_LT(RelDiff(gb, fb, All(gb.size())), 1e-12) << "t " << t;
     EXPECT_LT(RelDiff(gm, fm, All(gm.size())), 1e-12) << "t " << t;
   }
 }
 
 TEST(ExtendedFieldAblation, ThreadCountsAgree) {
-  Problem p = MakeProblem(ExtendedFieldConfig::AllOn(), 300, 0.2, 6);
+  ExtProblem p = MakeExtProblem(ExtendedFieldConfig::AllOn(), 300, 0.2, 6);
   ThreadPool one(1), two(2);
   const Grads<double> a = Analytic<double>(p, one), b = Analytic<double>(p, two);
   EXPECT_EQ(a.base.size(), b.base.size());
@@ -288,15 +178,14 @@ TEST(ExtendedFieldAblation, ThreadCountsAgree) {
   for (const char* modules : {"none", "all"}) {
     ExtendedFieldConfig c = *ExtendedFieldConfig::WithModules(modules);
     c.heads = 2, c.vae_latent = 3, c.gru_hidden = 3, c.window_k = 1, c.fourier_frequencies = 2;
-    Problem q = MakeProblem(c, 1000, 0.2, 8);
-    Copy<float> f;
-    auto cv = [](const std::vector<double>& v) { return std::vector<float>(v.begin(), v.end()); };
-    f.base = cv(q.v.base), f.ext = cv(q.v.ext), f.means = cv(q.v.means), f.opacity = cv(q.v.opacity);
-    f.scales = cv(q.v.scales), f.rotations = cv(q.v.rotations);
+    ExtProblem q = MakeExtProblem(c, 1000, 0.2, 8);
+    const ExtValues<float>& f = q.f;
     std::vector<float> dx1(q.n * 3), dsh1(q.n * kShOutputs), dx2(q.n * 3), dsh2(q.n * kShOutputs);
     ExtWorkspace ws1, ws2;
-    ASSERT_TRUE(ExtendedForward<float>(Model(q, f), q.pass, Inputs(q, f), {dx1.data(), dsh1.data()}, one, ws1).ok());
-    ASSERT_TRUE(ExtendedForward<float>(Model(q, f), q.pass, Inputs(q, f), {dx2.data(), dsh2.data()}, two, ws2).ok());
+    ASSERT_TRUE(
+        ExtendedForward<float>(ExtModelOf(q, f), q.pass, ExtInputsOf(q, f), {dx1.data(), dsh1.data()}, one, ws1).ok());
+    ASSERT_TRUE(
+        ExtendedForward<float>(ExtModelOf(q, f), q.pass, ExtInputsOf(q, f), {dx2.data(), dsh2.data()}, two, ws2).ok());
     EXPECT_EQ(dx1, dx2) << modules;
     EXPECT_EQ(dsh1, dsh2) << modules;
   }
@@ -337,13 +226,13 @@ TEST(ExtendedFieldGradCheck, DilatedVarianceAlone) {
   for (int d : {1, 2}) {
     ExtendedFieldConfig c;
     c.vae_latent = 3;
-    Problem p = MakeProblem(Dilated(c, d), 8, -0.2, 20 + d);
+    ExtProblem p = MakeExtProblem(Dilated(c, d), 8, -0.2, 20 + d);
     CheckAll(p, d == 1 ? "vae_dilated d 1" : "vae_dilated d 2");
   }
 }
 
 TEST(ExtendedFieldGradCheck, EveryModuleOnDilated) {
-  Problem p = MakeProblem(Dilated(ExtendedFieldConfig::AllOn(), 1), 10, 0.37, 22);
+  ExtProblem p = MakeExtProblem(Dilated(ExtendedFieldConfig::AllOn(), 1), 10, 0.37, 22);
   EXPECT_EQ(CheckAll(p, "all on, vae_dilated"), 13);
   p.pass.training = false;
   CheckAll(p, "all on, vae_dilated, inference");
@@ -368,7 +257,7 @@ TEST(ExtendedFieldDilated, VarianceBranchIsTheDocumentedFormula) {
   for (int d : {1, 3}) {
     ExtendedFieldConfig c;
     c.vae_latent = 3;
-    Problem p = MakeProblem(Dilated(c, d), 12, 0.1, 30 + d);
+    ExtProblem p = MakeExtProblem(Dilated(c, d), 12, 0.1, 30 + d);
     p.pass.training = false;
     for (const nn::NnParamBlock& b : p.EL.params.blocks())
       if (b.name.rfind("vae.mu", 0) == 0)
@@ -376,7 +265,8 @@ TEST(ExtendedFieldDilated, VarianceBranchIsTheDocumentedFormula) {
     ThreadPool pool(2);
     ExtWorkspace ws;
     std::vector<double> dx(p.n * 3);
-    absl::StatusOr<double> kl = ExtendedForward<double>(Model(p, p.v), p.pass, Inputs(p, p.v), {dx.data()}, pool, ws);
+    absl::StatusOr<double> kl =
+        ExtendedForward<double>(ExtModelOf(p, p.v), p.pass, ExtInputsOf(p, p.v), {dx.data()}, pool, ws);
     ASSERT_TRUE(kl.ok()) << kl.status();
     const FieldAabb a = TestAabb();
     const int C = p.BL.channels, D = p.BL.feature_dim(), lat = c.vae_latent;
@@ -443,13 +333,13 @@ TEST(ExtendedFieldDilated, DilationChangesOnlyTheVariance) {
   // Inference (z = μ): the outputs do not depend on the variance branch; training (ε) and the KL do.
   ExtendedFieldConfig c;
   c.vae_latent = 3;
-  Problem p = MakeProblem(Dilated(c, 1), 20, 0.3, 40);
+  ExtProblem p = MakeExtProblem(Dilated(c, 1), 20, 0.3, 40);
   ThreadPool pool(2);
   ExtWorkspace ws;
   auto run = [&](bool training, std::vector<double>* dx) {
     p.pass.training = training;
     dx->assign(p.n * 3, 0.0);
-    return *ExtendedForward<double>(Model(p, p.v), p.pass, Inputs(p, p.v), {dx->data()}, pool, ws);
+    return *ExtendedForward<double>(ExtModelOf(p, p.v), p.pass, ExtInputsOf(p, p.v), {dx->data()}, pool, ws);
   };
   std::vector<double> a, b, ta, tb;
   const double kla = run(false, &a), tkla = run(true, &ta);
@@ -465,12 +355,12 @@ TEST(ExtendedFieldDilated, DilationChangesOnlyTheVariance) {
 }
 
 TEST(ExtendedFieldConfigTest, BadInputsAreErrors) {
-  Problem p = MakeProblem(ExtendedFieldConfig::AllOn(), 4, 0.0, 7);
+  ExtProblem p = MakeExtProblem(ExtendedFieldConfig::AllOn(), 4, 0.0, 7);
   ThreadPool pool(1);
   ExtWorkspace ws;
   std::vector<double> dx(p.n * 3);
   ExtInputs<double> in{p.n, p.v.means.data()};  // the encoder needs opacity, scales, rotations
-  EXPECT_FALSE(ExtendedForward<double>(Model(p, p.v), p.pass, in, {dx.data()}, pool, ws).ok());
+  EXPECT_FALSE(ExtendedForward<double>(ExtModelOf(p, p.v), p.pass, in, {dx.data()}, pool, ws).ok());
 }
 
 }  // namespace

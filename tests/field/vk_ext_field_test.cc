@@ -10,7 +10,6 @@
 #include <cstdio>
 #include <cstring>
 #include <limits>
-#include <map>
 #include <random>
 #include <string>
 #include <vector>
@@ -20,17 +19,23 @@
 #include "render/vulkan/vulkan_engine.h"
 #include "scene/field/extended/extended_field.h"
 #include "scene/field/vulkan/ext/vulkan_extended_field.h"
+#include "tests/field/ext_test_fields.h"
 #include "tests/field/field_test_util.h"
 
 namespace streetsim::field {
 namespace {
 
+using testing::All;
+using testing::ExtInputsOf;
+using testing::ExtModelOf;
+using testing::ExtProblem;
+using testing::kExtOut;
+using testing::MakeExtProblem;
+using testing::OnlyModule;
 using testing::RandomMeans;
-using testing::RandomParams;
-using testing::SmallConfig;
+using testing::RelDiff;
 using testing::TestAabb;
 
-constexpr int kOut[5] = {3, kShOutputs, kDecoderScaleOutputs, kDecoderRotationOutputs, kDecoderOpacityOutputs};
 const char* const kOutName[5] = {"dx", "dsh", "dscale", "drot", "dopacity"};
 
 // Float32 tolerances: the Vulkan and cpu float paths sum in different orders (tiled GEMMs,
@@ -42,78 +47,6 @@ constexpr double kOutTol = 1e-5, kGradTol = 1e-4;
 bool HaveVulkan() {
   static const bool have = !ListVulkanDevices().empty();
   return have;
-}
-
-template <typename T>
-struct Values {
-  std::vector<T> base, ext, means, opacity, scales, rotations, w[5];
-};
-
-struct Problem {
-  FieldConfig bc = SmallConfig();
-  FieldLayout BL;
-  ExtendedFieldConfig ec;
-  ExtendedLayout EL;
-  Values<double> d;
-  Values<float> f;
-  size_t n = 0;
-  ExtPass pass;
-  double kl_weight = 0.3;
-};
-
-// Every value rounded to float, so that both sides see the same numbers.
-Problem MakeProblem(const ExtendedFieldConfig& ec, size_t n, double time_coord, uint64_t seed) {
-  Problem p;
-  p.BL = FieldLayout::Make(p.bc);
-  p.ec = ec;
-  absl::StatusOr<ExtendedLayout> el = ExtendedLayout::Make(p.bc, ec);
-  EXPECT_TRUE(el.ok()) << el.status();
-  p.EL = *el;
-  p.n = n;
-  p.d.base = RandomParams<double>(p.bc, p.BL, seed);
-  InitExtendedParams(ec, p.EL, seed + 1, &p.d.ext);
-  std::mt19937_64 rng(seed + 2);
-  std::uniform_real_distribution<double> u(-0.4, 0.4);
-  std::normal_distribution<double> g;
-  for (double& x : p.d.ext) x += u(rng);  // off the init (zero gate and decoder outputs)
-  p.d.means = RandomMeans<double>(n, n / 4, seed + 3);
-  p.d.opacity.resize(n);
-  p.d.scales.resize(n * 3);
-  p.d.rotations.resize(n * 4);
-  for (double& x : p.d.opacity) x = g(rng);
-  for (double& x : p.d.scales) x = -1.5 + u(rng) * 2;
-  for (double& x : p.d.rotations) x = g(rng);
-  for (int o = 0; o < 5; ++o) {
-    p.d.w[o].resize(n * kOut[o]);
-    for (double& x : p.d.w[o]) x = g(rng);
-  }
-  auto round = [](std::vector<double>& v, std::vector<float>& out) {
-    out.resize(v.size());
-    for (size_t i = 0; i < v.size(); ++i) v[i] = out[i] = static_cast<float>(v[i]);
-  };
-  round(p.d.base, p.f.base), round(p.d.ext, p.f.ext), round(p.d.means, p.f.means);
-  round(p.d.opacity, p.f.opacity), round(p.d.scales, p.f.scales), round(p.d.rotations, p.f.rotations);
-  for (int o = 0; o < 5; ++o) round(p.d.w[o], p.f.w[o]);
-  p.pass.time_coord = time_coord;
-  p.pass.training = true;
-  p.pass.noise_seed = seed + 11;
-  return p;
-}
-
-template <typename T>
-ExtModel<T> Model(const Problem& p, const Values<T>& v) {
-  ExtModel<T> m;
-  m.base_layout = &p.BL;
-  m.base_params = v.base.data();
-  m.config = &p.ec;
-  m.layout = &p.EL;
-  m.ext_params = v.ext.data();
-  m.aabb = TestAabb();
-  return m;
-}
-template <typename T>
-ExtInputs<T> Inputs(const Problem& p, const Values<T>& v) {
-  return {p.n, v.means.data(), v.opacity.data(), v.scales.data(), v.rotations.data()};
 }
 
 // One pass's results on either side, in double.
@@ -128,25 +61,25 @@ std::vector<double> D(const std::vector<T>& v) {
   return std::vector<double>(v.begin(), v.end());
 }
 
-Result CpuDouble(const Problem& p) {
+Result CpuDouble(const ExtProblem& p) {
   ThreadPool pool(2);
   ExtWorkspace ws;
   Result r;
   std::vector<double> out[5];
-  for (int o = 0; o < 5; ++o) out[o].assign(p.n * kOut[o], 0.0);
+  for (int o = 0; o < 5; ++o) out[o].assign(p.n * kExtOut[o], 0.0);
   const bool dec = p.ec.decoder;
   ExtOutputs<double> eo{out[0].data(), out[1].data(), dec ? out[2].data() : nullptr, dec ? out[3].data() : nullptr,
                         dec ? out[4].data() : nullptr};
-  absl::StatusOr<double> kl = ExtendedForward<double>(Model(p, p.d), p.pass, Inputs(p, p.d), eo, pool, ws);
+  absl::StatusOr<double> kl = ExtendedForward<double>(ExtModelOf(p, p.v), p.pass, ExtInputsOf(p, p.v), eo, pool, ws);
   EXPECT_TRUE(kl.ok()) << kl.status();
   r.kl_fwd = kl.value_or(0);
   for (int o = 0; o < 5; ++o) r.out[o] = out[o];
   r.base.assign(p.BL.total, 0), r.ext.assign(p.EL.total(), 0), r.means.assign(p.n * 3, 0);
   r.opacity.assign(p.n, 0), r.scales.assign(p.n * 3, 0), r.rotations.assign(p.n * 4, 0);
-  ExtOutputGrads<double> dg{p.d.w[0].data(), p.d.w[1].data(), p.d.w[2].data(), p.d.w[3].data(), p.d.w[4].data()};
+  ExtOutputGrads<double> dg{p.v.w[0].data(), p.v.w[1].data(), p.v.w[2].data(), p.v.w[3].data(), p.v.w[4].data()};
   ExtInputGrads<double> gi{r.base.data(),    r.ext.data(),    r.means.data(),
                            r.opacity.data(), r.scales.data(), r.rotations.data()};
-  kl = ExtendedBackward<double>(Model(p, p.d), p.pass, Inputs(p, p.d), dg, p.kl_weight, gi, pool, ws);
+  kl = ExtendedBackward<double>(ExtModelOf(p, p.v), p.pass, ExtInputsOf(p, p.v), dg, p.kl_weight, gi, pool, ws);
   EXPECT_TRUE(kl.ok()) << kl.status();
   r.kl_bwd = kl.value_or(0);
   return r;
@@ -160,22 +93,22 @@ VulkanFieldOptions SmallOptions(size_t batch = 65536, bool cas = false) {
   return o;
 }
 
-std::unique_ptr<VulkanExtendedField> MustCreate(const Problem& p, const VulkanFieldOptions& o) {
-  auto f = VulkanExtendedField::Create(Model(p, p.f), o);
+std::unique_ptr<VulkanExtendedField> MustCreate(const ExtProblem& p, const VulkanFieldOptions& o) {
+  auto f = VulkanExtendedField::Create(ExtModelOf(p, p.f), o);
   EXPECT_TRUE(f.ok()) << f.status();
   if (!f.ok()) return nullptr;
   return *std::move(f);
 }
 
 // Forward then backward on the device. `prefill`: the gradient arrays start at this value (+= test).
-Result RunVulkan(VulkanExtendedField& vf, const Problem& p, float prefill = 0.f) {
+Result RunVulkan(VulkanExtendedField& vf, const ExtProblem& p, float prefill = 0.f) {
   Result r;
   std::vector<float> out[5];
-  for (int o = 0; o < 5; ++o) out[o].assign(p.n * kOut[o], std::numeric_limits<float>::quiet_NaN());
+  for (int o = 0; o < 5; ++o) out[o].assign(p.n * kExtOut[o], std::numeric_limits<float>::quiet_NaN());
   const bool dec = p.ec.decoder;
   ExtOutputs<float> eo{out[0].data(), out[1].data(), dec ? out[2].data() : nullptr, dec ? out[3].data() : nullptr,
                        dec ? out[4].data() : nullptr};
-  absl::StatusOr<double> kl = vf.Forward(p.pass, Inputs(p, p.f), eo);
+  absl::StatusOr<double> kl = vf.Forward(p.pass, ExtInputsOf(p, p.f), eo);
   EXPECT_TRUE(kl.ok()) << kl.status();
   r.kl_fwd = kl.value_or(0);
   for (int o = 0; o < 5; ++o) r.out[o] = D(out[o]);
@@ -183,7 +116,7 @@ Result RunVulkan(VulkanExtendedField& vf, const Problem& p, float prefill = 0.f)
   std::vector<float> opacity(p.n, prefill), scales(p.n * 3, prefill), rotations(p.n * 4, prefill);
   ExtOutputGrads<float> dg{p.f.w[0].data(), p.f.w[1].data(), p.f.w[2].data(), p.f.w[3].data(), p.f.w[4].data()};
   ExtInputGrads<float> gi{base.data(), ext.data(), means.data(), opacity.data(), scales.data(), rotations.data()};
-  kl = vf.Backward(p.pass, Inputs(p, p.f), dg, p.kl_weight, gi);
+  kl = vf.Backward(p.pass, ExtInputsOf(p, p.f), dg, p.kl_weight, gi);
   EXPECT_TRUE(kl.ok()) << kl.status();
   r.kl_bwd = kl.value_or(0);
   auto less = [&](const std::vector<float>& v) {
@@ -196,20 +129,9 @@ Result RunVulkan(VulkanExtendedField& vf, const Problem& p, float prefill = 0.f)
   return r;
 }
 
-double RelDiff(const std::vector<double>& a, const std::vector<double>& ref, const std::vector<size_t>& idx) {
-  double num = 0, den = 0;
-  for (size_t i : idx) num += (a[i] - ref[i]) * (a[i] - ref[i]), den += ref[i] * ref[i];
-  return den > 0 ? std::sqrt(num / den) : std::sqrt(num);
-}
-std::vector<size_t> All(size_t n) {
-  std::vector<size_t> v(n);
-  for (size_t i = 0; i < n; ++i) v[i] = i;
-  return v;
-}
-
 // Every output and gradient group of `vk` against the cpu double `ref`; prints one line per
 // group, returns the worst relative error.
-double Compare(const Problem& p, const Result& vk, const Result& ref, const char* tag) {
+double Compare(const ExtProblem& p, const Result& vk, const Result& ref, const char* tag) {
   double worst = 0;
   auto check = [&](const std::string& name, const std::vector<double>& a, const std::vector<double>& b,
                    const std::vector<size_t>& idx, double tol) {
@@ -234,37 +156,10 @@ double Compare(const Problem& p, const Result& vk, const Result& ref, const char
     EXPECT_EQ(vk.kl_fwd, 0.0);
     EXPECT_EQ(vk.kl_bwd, 0.0);
   }
-  std::vector<size_t> sp, tp, mlp;
-  for (const PlaneInfo& pi : p.BL.planes)
-    for (size_t i = 0; i < pi.size(p.BL.channels); ++i) (PlaneHasTime(pi.plane) ? tp : sp).push_back(pi.offset + i);
-  for (size_t i = p.BL.grid_size; i < p.BL.total; ++i) mlp.push_back(i);
-  check("spatial planes", vk.base, ref.base, sp, kGradTol);
-  check("time planes", vk.base, ref.base, tp, kGradTol);
-  check("s3gaussian mlp", vk.base, ref.base, mlp, kGradTol);
-  std::map<std::string, std::vector<size_t>> by_module;
-  for (const nn::NnParamBlock& b : p.EL.params.blocks()) {
-    const std::string mod = b.name.substr(0, b.name.find('.'));
-    for (size_t i = 0; i < b.count; ++i) by_module[mod].push_back(b.offset + i);
-  }
-  for (const auto& [mod, idx] : by_module) check(mod, vk.ext, ref.ext, idx, kGradTol);
-  check("means", vk.means, ref.means, All(p.n * 3), kGradTol);
-  if (p.ec.encoder) {
-    check("opacity logits", vk.opacity, ref.opacity, All(p.n), kGradTol);
-    check("log scales", vk.scales, ref.scales, All(p.n * 3), kGradTol);
-    check("rotations", vk.rotations, ref.rotations, All(p.n * 4), kGradTol);
-  }
+  for (const testing::ExtGroup& g : testing::ExtGroups(p))
+    check(g.name, testing::ArrayOf(vk, g.array), testing::ArrayOf(ref, g.array), g.idx, kGradTol);
   std::printf("[%s] worst %.1e\n", tag, worst);
   return worst;
-}
-
-ExtendedFieldConfig Only(const std::string& module) {
-  ExtendedFieldConfig c = ExtendedFieldConfig::AllOn();  // small sizes
-  absl::StatusOr<ExtendedFieldConfig> only = ExtendedFieldConfig::WithModules(module);
-  EXPECT_TRUE(only.ok());
-  c.encoder = only->encoder, c.vae = only->vae, c.temporal = only->temporal;
-  c.attention = only->attention, c.gru = only->gru, c.decoder = only->decoder;
-  c.vae_dilation = only->vae_dilation;
-  return c;
 }
 
 class VulkanExtendedFieldTest : public ::testing::Test {
@@ -279,7 +174,7 @@ TEST_F(VulkanExtendedFieldTest, EveryModuleMatchesTheCpuDoublePath) {
   for (const char* m : {"none", "encoder", "vae", "vae_dilated", "temporal", "attention", "gru", "decoder", "all",
                         "encoder,vae_dilated,temporal,attention,gru,decoder"}) {
     for (bool training : {true, false}) {
-      Problem p = MakeProblem(Only(m), 40, 0.37, 5);
+      ExtProblem p = MakeExtProblem(OnlyModule(m), 40, 0.37, 5);
       p.pass.training = training;
       auto vf = MustCreate(p, SmallOptions());
       ASSERT_NE(vf, nullptr);
@@ -292,7 +187,7 @@ TEST_F(VulkanExtendedFieldTest, EveryModuleMatchesTheCpuDoublePath) {
 // Every module on near the log's end (token times clamp), spread over 3 batches, with the
 // compare-and-swap scatter; gradients are added to what the arrays held.
 TEST_F(VulkanExtendedFieldTest, BatchesCasAndAccumulation) {
-  Problem p = MakeProblem(ExtendedFieldConfig::AllOn(), 40, 0.85, 9);
+  ExtProblem p = MakeExtProblem(ExtendedFieldConfig::AllOn(), 40, 0.85, 9);
   const Result ref = CpuDouble(p);
   auto one = MustCreate(p, SmallOptions());
   auto three = MustCreate(p, SmallOptions(16, /*cas=*/true));
@@ -310,7 +205,7 @@ TEST_F(VulkanExtendedFieldTest, BatchesCasAndAccumulation) {
 // Same inputs, same bits: outputs, KL, MLP / extension / canonical gradients (the plane
 // gradients come from float atomics, whose order varies: compared to rounding only).
 TEST_F(VulkanExtendedFieldTest, RepeatsGiveTheSameBits) {
-  Problem p = MakeProblem(ExtendedFieldConfig::AllOn(), 40, 0.1, 13);
+  ExtProblem p = MakeExtProblem(ExtendedFieldConfig::AllOn(), 40, 0.1, 13);
   auto vf = MustCreate(p, SmallOptions(16));
   ASSERT_NE(vf, nullptr);
   const Result a = RunVulkan(*vf, p), b = RunVulkan(*vf, p);
@@ -331,12 +226,12 @@ TEST_F(VulkanExtendedFieldTest, RepeatsGiveTheSameBits) {
 // NaN / inf positions: their rows' outputs are what the cpu gives (NaN where the cpu's are); no
 // other row changes a bit; their gradients do not leak into the other rows' mean gradients.
 TEST_F(VulkanExtendedFieldTest, BadPositionsStayInTheirRows) {
-  Problem clean = MakeProblem(ExtendedFieldConfig::AllOn(), 24, 0.2, 17);
-  Problem bad = clean;
+  ExtProblem clean = MakeExtProblem(ExtendedFieldConfig::AllOn(), 24, 0.2, 17);
+  ExtProblem bad = clean;
   const float nan = std::numeric_limits<float>::quiet_NaN(), inf = std::numeric_limits<float>::infinity();
   const std::vector<size_t> bad_rows = {2, 7, 11};
   bad.f.means[2 * 3] = nan, bad.f.means[7 * 3 + 1] = inf, bad.f.means[11 * 3 + 2] = -inf;
-  for (size_t i = 0; i < bad.d.means.size(); ++i) bad.d.means[i] = bad.f.means[i];
+  for (size_t i = 0; i < bad.v.means.size(); ++i) bad.v.means[i] = bad.f.means[i];
   auto vf = MustCreate(clean, SmallOptions());
   ASSERT_NE(vf, nullptr);
   const Result a = RunVulkan(*vf, clean), b = RunVulkan(*vf, bad);
@@ -344,8 +239,8 @@ TEST_F(VulkanExtendedFieldTest, BadPositionsStayInTheirRows) {
   for (int o = 0; o < 5; ++o) {
     for (size_t r = 0; r < bad.n; ++r) {
       const bool is_bad = std::find(bad_rows.begin(), bad_rows.end(), r) != bad_rows.end();
-      for (int k = 0; k < kOut[o]; ++k) {
-        const size_t i = r * kOut[o] + k;
+      for (int k = 0; k < kExtOut[o]; ++k) {
+        const size_t i = r * kExtOut[o] + k;
         if (!is_bad) {
           EXPECT_EQ(a.out[o][i], b.out[o][i]) << kOutName[o] << " row " << r;
         } else {
@@ -388,7 +283,7 @@ TEST_F(VulkanExtendedFieldTest, SpecSizesMatchCpuFloat) {
   for (float& x : scales) x = -1.5f + u(rng) * 2;
   for (float& x : rotations) x = g(rng);
   for (int o = 0; o < 5; ++o) {
-    w[o].resize(n * kOut[o]);
+    w[o].resize(n * kExtOut[o]);
     for (float& x : w[o]) x = g(rng);
   }
   ExtPass pass;
@@ -410,7 +305,7 @@ TEST_F(VulkanExtendedFieldTest, SpecSizesMatchCpuFloat) {
   ExtWorkspace ws;
   for (int k = 0; k < 2; ++k) {
     Side& s = side[k];
-    for (int oi = 0; oi < 5; ++oi) s.out[oi].assign(n * kOut[oi], 0.f);
+    for (int oi = 0; oi < 5; ++oi) s.out[oi].assign(n * kExtOut[oi], 0.f);
     s.base.assign(ef->base().layout().total, 0.f), s.ext.assign(ef->layout().total(), 0.f);
     s.means.assign(n * 3, 0.f), s.opacity.assign(n, 0.f), s.scales.assign(n * 3, 0.f);
     s.rotations.assign(n * 4, 0.f);
@@ -448,16 +343,16 @@ TEST_F(VulkanExtendedFieldTest, SpecSizesMatchCpuFloat) {
 
 // UpdateParams re-uploads both arrays; bad sizes are errors.
 TEST_F(VulkanExtendedFieldTest, UpdateParamsAndErrors) {
-  Problem p = MakeProblem(Only("temporal"), 20, -0.4, 21);
-  Problem q = MakeProblem(Only("temporal"), 20, -0.4, 22);  // other parameters, same inputs
-  q.f.means = p.f.means, q.d.means = p.d.means;
+  ExtProblem p = MakeExtProblem(OnlyModule("temporal"), 20, -0.4, 21);
+  ExtProblem q = MakeExtProblem(OnlyModule("temporal"), 20, -0.4, 22);  // other parameters, same inputs
+  q.f.means = p.f.means, q.v.means = p.v.means;
   auto vf = MustCreate(p, SmallOptions());
   ASSERT_NE(vf, nullptr);
   ASSERT_TRUE(vf->UpdateParams(q.f.base, q.f.ext).ok());
   Compare(q, RunVulkan(*vf, q), CpuDouble(q), "after UpdateParams");
   EXPECT_EQ(vf->UpdateParams(std::vector<float>(3), q.f.ext).code(), absl::StatusCode::kInvalidArgument);
   // The encoder without its inputs.
-  Problem e = MakeProblem(Only("encoder"), 4, 0, 1);
+  ExtProblem e = MakeExtProblem(OnlyModule("encoder"), 4, 0, 1);
   auto ve = MustCreate(e, SmallOptions());
   ASSERT_NE(ve, nullptr);
   std::vector<float> dx(12);
@@ -470,7 +365,7 @@ TEST_F(VulkanExtendedFieldTest, UpdateParamsAndErrors) {
 TEST_F(VulkanExtendedFieldTest, DilatedVarianceBranchAtTwoTexels) {
   ExtendedFieldConfig c = ExtendedFieldConfig::AllOn();
   c.vae_dilation = 2;
-  Problem p = MakeProblem(c, 40, -0.6, 31);
+  ExtProblem p = MakeExtProblem(c, 40, -0.6, 31);
   auto vf = MustCreate(p, SmallOptions(16));
   ASSERT_NE(vf, nullptr);
   Compare(p, RunVulkan(*vf, p), CpuDouble(p), "all, dilation 2, 3 batches");

@@ -19,11 +19,6 @@
 namespace streetsim::train {
 namespace {
 
-using synthetic::kClipUs;
-using synthetic::MovingClusterOptions;
-using synthetic::MovingClusterRun;
-using synthetic::MovingClusterViews;
-
 // |a - b| / |a - init|: how far apart the runs ended compared with how far training moved.
 double Drift(const std::vector<float>& a, const std::vector<float>& b, const std::vector<float>& init) {
   double diff = 0, moved = 0;
@@ -37,15 +32,12 @@ double Drift(const std::vector<float>& a, const std::vector<float>& b, const std
 
 TEST(VulkanExtendedTraining, TracksTheCpuRun) {
   if (ListVulkanDevices().empty()) GTEST_SKIP() << "no Vulkan device";
-  const MovingClusterRun scene = MovingClusterViews();
+  const synthetic::MovingClusterRun scene = synthetic::MovingClusterViews();
   std::vector<float> base[2], ext[2];
   double psnr[2] = {0, 0};
-  TrainOptions opt = MovingClusterOptions(FieldMode::kS3Gaussian);
+  TrainOptions opt = synthetic::MovingClusterOptions(FieldMode::kS3Gaussian, "all");
   opt.iterations = 120;  // 100 static, 20 fine (lavapipe: ~0.6 s per fine iteration with every module)
-  absl::StatusOr<field::ExtendedFieldConfig> ec = field::ExtendedFieldConfig::WithModules("all");
-  ASSERT_TRUE(ec.ok());
-  opt.field.extended = *ec;
-  opt.field.frame_interval_us = kClipUs / 23;  // the training cameras' spacing in time
+  ASSERT_TRUE(opt.field.extended.has_value());
   for (int k = 0; k < 2; ++k) {
     opt.field.device = k == 0 ? FieldDevice::kCpu : FieldDevice::kVulkan;
     const std::string dir = testing::ScratchDir("streetsim_vk_ext_train", k == 0 ? "cpu" : "vulkan");
@@ -68,7 +60,8 @@ TEST(VulkanExtendedTraining, TracksTheCpuRun) {
       field::DeformationField::Create(opt.field.config, AabbOfMeans(scene.start.means), {0, 1}, seed);
   ASSERT_TRUE(init.ok()) << init.status();
   const std::vector<float> base_init = init->params();
-  absl::StatusOr<field::ExtendedField> ext_init = field::ExtendedField::Create(*std::move(init), *ec, seed + 0x9e37);
+  absl::StatusOr<field::ExtendedField> ext_init =
+      field::ExtendedField::Create(*std::move(init), *opt.field.extended, seed + 0x9e37);
   ASSERT_TRUE(ext_init.ok()) << ext_init.status();
   // Adam's normalised steps turn rounding-level differences of near-zero gradients (float atomics
   // on the device, other summation orders) into lr-sized steps, so the runs drift apart slowly; a

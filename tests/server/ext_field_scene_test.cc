@@ -40,20 +40,6 @@ GaussianStore Street(uint64_t seed, size_t n) {
   return MakeSyntheticStreet(o);
 }
 
-// cam_front of kRig at ego x = x_m.
-PinholeCamera FrontCamera(double x_m) {
-  Eigen::Matrix4d m;
-  m << 0, 0, 1, 1.5, -1, 0, 0, 0, 0, -1, 0, 1.65, 0, 0, 0, 1;
-  PinholeCamera cam;
-  cam.width = 128;
-  cam.height = 64;
-  cam.fx = cam.fy = 80;
-  cam.cx = 63.5;
-  cam.cy = 31.5;
-  cam.T_world_from_cam = EgoAt(x_m) * Eigen::Isometry3d(m);
-  return cam;
-}
-
 // The served RAW RGB bytes of `g` rendered here by the cpu engine.
 std::string LocalRgb(const GaussianStore& g, double x_m) {
   absl::StatusOr<std::unique_ptr<Engine>> engine = CreateEngine(Backend::kCpu);

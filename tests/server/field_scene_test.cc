@@ -28,13 +28,6 @@ Eigen::Isometry3d EgoFromLidar() {
   return T;
 }
 
-// cam_front of the scene.json below.
-Eigen::Isometry3d EgoFromCam() {
-  Eigen::Matrix4d m;
-  m << 0, 0, 1, 1.5, -1, 0, 0, 0, 0, -1, 0, 1.65, 0, 0, 0, 1;
-  return Eigen::Isometry3d(m);
-}
-
 class FieldSceneTest : public ServerTest {
  protected:
   void SetUp() override {
@@ -118,13 +111,7 @@ TEST_F(FieldSceneTest, ServedRenderEqualsLocalRenderOfTheDeformedScene) {
   ASSERT_TRUE(engine.ok());
   absl::StatusOr<std::unique_ptr<DeviceScene>> dev = (*engine)->Upload(LocalDeformed(t));
   ASSERT_TRUE(dev.ok()) << dev.status();
-  PinholeCamera cam;
-  cam.width = 128;
-  cam.height = 64;
-  cam.fx = cam.fy = 80;
-  cam.cx = 63.5;
-  cam.cy = 31.5;
-  cam.T_world_from_cam = EgoAt(8) * EgoFromCam();
+  const PinholeCamera cam = FrontCamera(8);  // cam_front of the scene.json below
   RenderOptions opt;
   opt.want_alpha = false;
   RenderOutput out;

@@ -1,6 +1,7 @@
 // Shared by the dynamic-scene server tests: a small field over a scene's Gaussians whose time
 // planes and output heads are scaled so that Gaussians move by up to ~2 m and change colour over
-// [start_us, end_us] (every time renders differently), and an ego pose along x.
+// [start_us, end_us] (every time renders differently), an ego pose along x and the tests' front
+// camera.
 #pragma once
 
 #include <cstdint>
@@ -10,6 +11,7 @@
 #include <Eigen/Geometry>
 #include <gtest/gtest.h>
 
+#include "render/camera.h"
 #include "scene/field/deformation_field.h"
 #include "scene/gaussians/gaussian_store.h"
 #include "scene/train/dynamic_stage.h"
@@ -47,6 +49,21 @@ inline Eigen::Isometry3d EgoAt(double x_m) {
   Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
   T.translation() = Eigen::Vector3d(x_m, 0.0, 0.0);
   return T;
+}
+
+// cam_front of the dynamic-scene tests' scene.json (128 x 64, f 80, 1.5 m ahead of the ego and
+// 1.65 m up, looking along ego x) at ego x = x_m.
+inline PinholeCamera FrontCamera(double x_m) {
+  Eigen::Matrix4d T_ego_from_cam;
+  T_ego_from_cam << 0, 0, 1, 1.5, -1, 0, 0, 0, 0, -1, 0, 1.65, 0, 0, 0, 1;
+  PinholeCamera cam;
+  cam.width = 128;
+  cam.height = 64;
+  cam.fx = cam.fy = 80;
+  cam.cx = 63.5;
+  cam.cy = 31.5;
+  cam.T_world_from_cam = EgoAt(x_m) * Eigen::Isometry3d(T_ego_from_cam);
+  return cam;
 }
 
 }  // namespace streetsim::testing

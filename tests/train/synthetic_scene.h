@@ -144,8 +144,9 @@ inline MovingClusterRun MovingClusterViews() {
 
 // The spec's hyper-parameters, but 500 iterations (100 static), deterministic, no depth loss or
 // checkpoints, and a small field with test-scale learning rates (30x the spec's, which are tuned
-// for 50 000 fine iterations).
-inline TrainOptions MovingClusterOptions(FieldMode mode) {
+// for 50 000 fine iterations). With `extended_modules` (ExtendedFieldConfig::WithModules), the
+// extended field with those modules, its frame interval the training cameras' spacing in time.
+inline TrainOptions MovingClusterOptions(FieldMode mode, const char* extended_modules = nullptr) {
   TrainOptions opt;
   opt.iterations = 500;
   opt.seed = 5;
@@ -164,6 +165,12 @@ inline TrainOptions MovingClusterOptions(FieldMode mode) {
   opt.field.hyper.grid_lr_final *= 30;
   opt.field.hyper.deformation_lr_init *= 30;
   opt.field.hyper.deformation_lr_final *= 30;
+  if (extended_modules) {
+    absl::StatusOr<field::ExtendedFieldConfig> ec = field::ExtendedFieldConfig::WithModules(extended_modules);
+    EXPECT_TRUE(ec.ok()) << ec.status();
+    if (ec.ok()) opt.field.extended = *ec;
+    opt.field.frame_interval_us = kClipUs / 23;
+  }
   return opt;
 }
 

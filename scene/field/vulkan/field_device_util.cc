@@ -26,16 +26,46 @@ void AddInto(float* dst, const float* src, size_t n) {
 
 }  // namespace
 
-double ReadBatchTimestampsMs(const vk::Context& ctx, VkQueryPool pool) {
-  if (pool == VK_NULL_HANDLE) return 0;
+FieldFrame::~FieldFrame() {
+  if (ctx == nullptr) return;
+  VkDevice dev = ctx->device();
+  vkDeviceWaitIdle(dev);
+  if (query_pool != VK_NULL_HANDLE) vkDestroyQueryPool(dev, query_pool, nullptr);
+  if (fence != VK_NULL_HANDLE) vkDestroyFence(dev, fence, nullptr);
+  if (cmd != VK_NULL_HANDLE) vkFreeCommandBuffers(dev, ctx->command_pool(), 1, &cmd);
+}
+
+absl::Status FieldFrame::Create(const vk::Context& c) {
+  ctx = &c;  // first: on an error, what was made is destroyed with the frame
+  arena = std::make_unique<vk::DescriptorArena>(c.device());
+  return vk::CreateFrameObjects(c, 2, &cmd, &fence, &query_pool, &profiler);
+}
+
+absl::Status FieldFrame::Begin(vk::Recorder& rec) {
+  if (auto s = vk::BeginFrameCommands(cmd, *arena); !s.ok()) return s;
+  vk::AttachProfiler(rec, profiler.get());
+  if (query_pool != VK_NULL_HANDLE) vkCmdResetQueryPool(cmd, query_pool, 0, 2);
+  return absl::OkStatus();
+}
+
+void FieldFrame::WriteTimestamp(uint32_t query) const {
+  if (query_pool != VK_NULL_HANDLE) vkCmdWriteTimestamp(cmd, VK_PIPELINE_STAGE_BOTTOM_OF_PIPE_BIT, query_pool, query);
+}
+
+absl::Status FieldFrame::SubmitAndWait(vk::Recorder& rec, vk::Buffer& readback) const {
+  return vk::SubmitFrameAndWait(*ctx, rec, fence, readback, profiler.get());
+}
+
+double FieldFrame::ReadTimestampsMs() const {
+  if (query_pool == VK_NULL_HANDLE) return 0;
   uint64_t ticks[2] = {0, 0};
-  if (vkGetQueryPoolResults(ctx.device(), pool, 0, 2, sizeof(ticks), ticks, 8,
+  if (vkGetQueryPoolResults(ctx->device(), query_pool, 0, 2, sizeof(ticks), ticks, 8,
                             VK_QUERY_RESULT_64_BIT | VK_QUERY_RESULT_WAIT_BIT) != VK_SUCCESS) {
     return 0;
   }
-  const uint32_t bits = ctx.timestamp_valid_bits();
+  const uint32_t bits = ctx->timestamp_valid_bits();
   const uint64_t mask = bits >= 64 ? ~uint64_t{0} : ((uint64_t{1} << bits) - 1);
-  return static_cast<double>((ticks[1] - ticks[0]) & mask) * ctx.timestamp_period_ns() * 1e-6;
+  return static_cast<double>((ticks[1] - ticks[0]) & mask) * ctx->timestamp_period_ns() * 1e-6;
 }
 
 absl::Status DownloadAdd(const vk::Context& ctx, const vk::Buffer& src, size_t floats, vk::Buffer* readback,
@@ -61,14 +91,6 @@ absl::Status DownloadAdd(const vk::Context& ctx, const vk::Buffer& src, size_t f
   if (auto s = readback->InvalidateForHost(); !s.ok()) return s;
   AddInto(dst, static_cast<const float*>(readback->mapped()), floats);
   return absl::OkStatus();
-}
-
-void DestroyFrameObjects(const vk::Context& ctx, VkCommandBuffer cmd, VkFence fence, VkQueryPool pool) {
-  VkDevice dev = ctx.device();
-  vkDeviceWaitIdle(dev);
-  if (pool != VK_NULL_HANDLE) vkDestroyQueryPool(dev, pool, nullptr);
-  if (fence != VK_NULL_HANDLE) vkDestroyFence(dev, fence, nullptr);
-  if (cmd != VK_NULL_HANDLE) vkFreeCommandBuffers(dev, ctx.command_pool(), 1, &cmd);
 }
 
 }  // namespace streetsim::field

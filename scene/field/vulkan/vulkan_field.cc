@@ -39,9 +39,6 @@ using vkgemm::LinearPush;
 using vkgemm::ReducePush;
 
 uint32_t DivUp(uint64_t a, uint64_t b) { return static_cast<uint32_t>((a + b - 1) / b); }
-double MsSince(std::chrono::steady_clock::time_point t0) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
-}
 
 absl::Status MakeBuffer(const vk::Context& ctx, vk::Buffer* out, size_t bytes, vk::Buffer::Kind kind,
                         const std::string& name) {
@@ -86,16 +83,8 @@ struct VulkanField::Impl {
   vk::Buffer g_dx, g_dsh, d_pos_hidden, d_sh_hidden, d_act, d_features, d_means, partials;
   vk::Buffer staging, readback, grad_readback;
 
-  VkCommandBuffer cmd = VK_NULL_HANDLE;
-  VkFence fence = VK_NULL_HANDLE;
-  VkQueryPool query_pool = VK_NULL_HANDLE;
-  std::unique_ptr<vk::Profiler> profiler;
-  std::unique_ptr<vk::DescriptorArena> arena;
+  FieldFrame frame;  // after the buffers: its destructor waits for the device first
   VulkanFieldTimings last_forward, last_backward;
-
-  ~Impl() {
-    if (ctx != nullptr) DestroyFrameObjects(*ctx, cmd, fence, query_pool);
-  }
 
   const vk::Buffer* PlaneBuf(int g) const { return &planes[std::min<int>(g, planes.size() - 1)]; }
   const vk::Buffer* GradBuf(int g) const { return &grads[std::min<int>(g, grads.size() - 1)]; }
@@ -105,9 +94,6 @@ struct VulkanField::Impl {
   absl::Status Upload(std::span<const float> params);
   absl::Status EnsureBackwardBuffers();
   SamplePush MakeSamplePush(const FieldQuery& q, size_t rows) const;
-  void TimestampStart();
-  void TimestampEnd();
-  double ReadTimestamps() const;
 
   void Linear(vk::Recorder& rec, const vk::Buffer& x, const vk::Buffer& y, const vk::Buffer* mask, uint32_t rows,
               uint32_t K, uint32_t N, const DenseInfo& d, uint32_t flags) const {
@@ -221,8 +207,7 @@ absl::Status VulkanField::Impl::Init(std::span<const float> params) {
        sizeof(SamplePush), sizes},
   };
   if (auto s = vk::CreatePipelines(c, specs); !s.ok()) return s;
-  arena = std::make_unique<vk::DescriptorArena>(c.device());
-  if (auto s = vk::CreateFrameObjects(c, 2, &cmd, &fence, &query_pool, &profiler); !s.ok()) return s;
+  if (auto s = frame.Create(c); !s.ok()) return s;
   return Upload(params);
 }
 
@@ -271,17 +256,6 @@ SamplePush VulkanField::Impl::MakeSamplePush(const FieldQuery& q, size_t rows) c
   return SamplePush{a[0], a[1], a[2], b[0], b[1], b[2], static_cast<float>(q.time_coord),
                     static_cast<uint32_t>(rows), static_cast<uint32_t>(layout.time_resolution)};
 }
-
-void VulkanField::Impl::TimestampStart() {
-  if (query_pool == VK_NULL_HANDLE) return;
-  // Bottom of pipe: written once the uploads before it have finished.
-  vkCmdWriteTimestamp(cmd, VK_PIPELINE_STAGE_BOTTOM_OF_PIPE_BIT, query_pool, 0);
-}
-void VulkanField::Impl::TimestampEnd() {
-  if (query_pool == VK_NULL_HANDLE) return;
-  vkCmdWriteTimestamp(cmd, VK_PIPELINE_STAGE_BOTTOM_OF_PIPE_BIT, query_pool, 1);
-}
-double VulkanField::Impl::ReadTimestamps() const { return ReadBatchTimestampsMs(*ctx, query_pool); }
 
 namespace {
 
@@ -344,28 +318,26 @@ absl::Status VulkanField::Forward(const FieldQuery& query, std::span<const float
     const size_t bn = std::min(m.batch, n - b0);
     const uint32_t rows = static_cast<uint32_t>(bn);
     std::memcpy(m.staging.mapped(), means_in.data() + b0 * 3, bn * 3 * sizeof(float));
-    if (auto s = vk::BeginFrameCommands(m.cmd, *m.arena); !s.ok()) return s;
-    vk::Recorder rec(*m.ctx, m.cmd, m.arena.get());
-    vk::AttachProfiler(rec, m.profiler.get());  // STREETSIM_VK_PROFILE=1: per-kernel times in the log
-    if (m.query_pool != VK_NULL_HANDLE) vkCmdResetQueryPool(m.cmd, m.query_pool, 0, 2);
+    vk::Recorder rec(*m.ctx, m.frame.cmd, m.frame.arena.get());
+    if (auto s = m.frame.Begin(rec); !s.ok()) return s;
     rec.Copy(m.staging, 0, m.means, 0, bn * 3 * sizeof(float));
     rec.Barrier();
-    m.TimestampStart();
+    m.frame.WriteTimestamp(0);
     m.RecordHidden(rec, query, bn, true, dsh_out != nullptr);
     rec.Barrier();
     m.Linear(rec, m.pos_hidden, m.dx, nullptr, rows, W, 3, L.pos2, kBias);
     if (dsh_out) m.Linear(rec, m.sh_hidden, m.dsh, nullptr, rows, W, kShOutputs, L.sh2, kBias);
     rec.Barrier();
-    m.TimestampEnd();
+    m.frame.WriteTimestamp(1);
     rec.Copy(m.dx, 0, m.readback, 0, bn * 3 * sizeof(float));
     if (dsh_out) rec.Copy(m.dsh, 0, m.readback, m.batch * 3 * sizeof(float), bn * kShOutputs * sizeof(float));
-    if (auto s = vk::SubmitFrameAndWait(*m.ctx, rec, m.fence, m.readback, m.profiler.get()); !s.ok()) return s;
+    if (auto s = m.frame.SubmitAndWait(rec, m.readback); !s.ok()) return s;
     const float* out = static_cast<const float*>(m.readback.mapped());
     std::memcpy(dx_out->data() + b0 * 3, out, bn * 3 * sizeof(float));
     if (dsh_out) {
       std::memcpy(dsh_out->data() + b0 * kShOutputs, out + m.batch * 3, bn * kShOutputs * sizeof(float));
     }
-    timings.device_ms += m.ReadTimestamps();
+    timings.device_ms += m.frame.ReadTimestampsMs();
     ++timings.batches;
   }
   timings.wall_ms = MsSince(t0);
@@ -416,10 +388,8 @@ absl::Status VulkanField::Backward(const FieldQuery& query, std::span<const floa
     std::memcpy(in, means_in.data() + b0 * 3, bn * 3 * sizeof(float));
     if (has_dx) std::memcpy(in + B * 3, d_dx.data() + b0 * 3, bn * 3 * sizeof(float));
     if (has_dsh) std::memcpy(in + B * 6, d_dsh.data() + b0 * kShOutputs, bn * kShOutputs * sizeof(float));
-    if (auto s = vk::BeginFrameCommands(m.cmd, *m.arena); !s.ok()) return s;
-    vk::Recorder rec(*m.ctx, m.cmd, m.arena.get());
-    vk::AttachProfiler(rec, m.profiler.get());  // STREETSIM_VK_PROFILE=1: per-kernel times in the log
-    if (m.query_pool != VK_NULL_HANDLE) vkCmdResetQueryPool(m.cmd, m.query_pool, 0, 2);
+    vk::Recorder rec(*m.ctx, m.frame.cmd, m.frame.arena.get());
+    if (auto s = m.frame.Begin(rec); !s.ok()) return s;
     if (b0 == 0) {
       for (const vk::Buffer& g : m.grads) rec.Fill(g, 0, VK_WHOLE_SIZE, 0);
       rec.Fill(m.d_mlp, 0, VK_WHOLE_SIZE, 0);
@@ -430,7 +400,7 @@ absl::Status VulkanField::Backward(const FieldQuery& query, std::span<const floa
     if (has_dx) rec.Copy(m.staging, B * 3 * sizeof(float), m.g_dx, 0, bn * 3 * sizeof(float));
     if (has_dsh) rec.Copy(m.staging, B * 6 * sizeof(float), m.g_dsh, 0, bn * kShOutputs * sizeof(float));
     rec.Barrier();
-    m.TimestampStart();
+    m.frame.WriteTimestamp(0);
     // The forward again (the activations are not kept between calls).
     m.RecordHidden(rec, query, bn, has_dx, has_dsh);
     rec.Barrier();
@@ -467,15 +437,15 @@ absl::Status VulkanField::Backward(const FieldQuery& query, std::span<const floa
                         static_cast<uint32_t>(m.mlp_total), 0};
     rec.Dispatch(*m.reduce, {&m.partials, &m.d_mlp}, rp, vk::GridFor(DivUp(m.mlp_total, kWg)));
     rec.Barrier();
-    m.TimestampEnd();
+    m.frame.WriteTimestamp(1);
     if (!d_means_out.empty()) rec.Copy(m.d_means, 0, m.readback, 0, bn * 3 * sizeof(float));
-    if (auto s = vk::SubmitFrameAndWait(*m.ctx, rec, m.fence, m.readback, m.profiler.get()); !s.ok()) return s;
+    if (auto s = m.frame.SubmitAndWait(rec, m.readback); !s.ok()) return s;
     if (!d_means_out.empty()) {
       const float* out = static_cast<const float*>(m.readback.mapped());
       float* dm = d_means_out.data() + b0 * 3;
       for (size_t i = 0; i < bn * 3; ++i) dm[i] += out[i];
     }
-    timings.device_ms += m.ReadTimestamps();
+    timings.device_ms += m.frame.ReadTimestampsMs();
     ++timings.batches;
   }
   // The gradients, one buffer at a time, added into the caller's array.

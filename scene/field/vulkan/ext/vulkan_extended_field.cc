@@ -33,10 +33,6 @@ namespace {
 
 constexpr uint32_t kGeom = kEncoderGeometryInputs;
 
-double MsSince(std::chrono::steady_clock::time_point t0) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
-}
-
 absl::Status CheckModel(const ExtModel<float>& m) {
   if (!m.base_layout || !m.base_params || !m.config || !m.layout || (m.layout->total() > 0 && !m.ext_params)) {
     return absl::InvalidArgumentError("vulkan extended field: incomplete model");
@@ -82,16 +78,8 @@ struct VulkanExtendedField::Impl {
   size_t st_geom = 0, st_eps = 0, st_times = 0, st_gout = 0;
   size_t rb_kl = 0, rb_dmeans = 0, rb_dgeom = 0;
   vk::Buffer staging, readback, grad_readback;
-  VkCommandBuffer cmd = VK_NULL_HANDLE;
-  VkFence fence = VK_NULL_HANDLE;
-  VkQueryPool query_pool = VK_NULL_HANDLE;
-  std::unique_ptr<vk::Profiler> profiler;
-  std::unique_ptr<vk::DescriptorArena> arena;
+  FieldFrame frame;  // after the buffers: its destructor waits for the device first
   VulkanFieldTimings last_forward, last_backward;
-
-  ~Impl() {
-    if (ctx != nullptr) DestroyFrameObjects(*ctx, cmd, fence, query_pool);
-  }
 
   absl::Status Init(std::span<const float> base_params, std::span<const float> ext_params);
   absl::Status Upload(std::span<const float> base_params, std::span<const float> ext_params);
@@ -145,8 +133,7 @@ absl::Status VulkanExtendedField::Impl::Init(std::span<const float> base_params,
     if (!nb.ok()) return nb.status();
     *buf = *std::move(nb);
   }
-  arena = std::make_unique<vk::DescriptorArena>(c.device());
-  if (auto st = vk::CreateFrameObjects(c, 2, &cmd, &fence, &query_pool, &profiler); !st.ok()) return st;
+  if (auto st = frame.Create(c); !st.ok()) return st;
   return Upload(base_params, ext_params);
 }
 
@@ -211,10 +198,8 @@ absl::Status VulkanExtendedField::Impl::RunBatch(const ExtPass& pass, const ExtI
       std::memcpy(st + size_t{batch} * kOutCol0[o], g[o] + b0 * kOutCols[o], bn * kOutCols[o] * sizeof(float));
     }
   }
-  if (auto s = vk::BeginFrameCommands(cmd, *arena); !s.ok()) return s;
-  vk::Recorder rec(*ctx, cmd, arena.get());
-  vk::AttachProfiler(rec, profiler.get());  // STREETSIM_VK_PROFILE=1: per-kernel times in the log
-  if (query_pool != VK_NULL_HANDLE) vkCmdResetQueryPool(cmd, query_pool, 0, 2);
+  vk::Recorder rec(*ctx, frame.cmd, frame.arena.get());
+  if (auto s = frame.Begin(rec); !s.ok()) return s;
   if (zero_grads) {
     sampler->RecordZeroGrads(rec);
     rec.Fill(d_mlp, 0, VK_WHOLE_SIZE, 0);
@@ -234,7 +219,7 @@ absl::Status VulkanExtendedField::Impl::RunBatch(const ExtPass& pass, const ExtI
     }
   }
   rec.Barrier();
-  if (query_pool != VK_NULL_HANDLE) vkCmdWriteTimestamp(cmd, VK_PIPELINE_STAGE_BOTTOM_OF_PIPE_BIT, query_pool, 0);
+  frame.WriteTimestamp(0);
   const vk::Buffer& means = net->buf("means");
   VkTokenSampler::SView s_view;
   if (config.encoder) s_view = {&net->buf("xenc"), kGeom, kGeom + D, &net->buf("geom"), kGeom};
@@ -248,7 +233,7 @@ absl::Status VulkanExtendedField::Impl::RunBatch(const ExtPass& pass, const ExtI
     sampler->RecordBackward(rec, rows, means, ds_view, net->dftok(), net->dsdil(), net->buf("d_means"));
     rec.Barrier();
   }
-  if (query_pool != VK_NULL_HANDLE) vkCmdWriteTimestamp(cmd, VK_PIPELINE_STAGE_BOTTOM_OF_PIPE_BIT, query_pool, 1);
+  frame.WriteTimestamp(1);
   if (!backward) {
     for (int o = 0; o < kOutputs; ++o) {
       if (flags[o]) {
@@ -263,13 +248,14 @@ absl::Status VulkanExtendedField::Impl::RunBatch(const ExtPass& pass, const ExtI
       std::vector<VkBufferCopy> regions(bn);
       for (size_t r = 0; r < bn; ++r) regions[r] = {r * (kGeom + D) * 4, (rb_dgeom + r * kGeom) * 4, kGeom * 4};
       if (rec.status().ok()) {
-        vkCmdCopyBuffer(cmd, net->buf("dxenc").handle(), readback.handle(), static_cast<uint32_t>(bn), regions.data());
+        vkCmdCopyBuffer(frame.cmd, net->buf("dxenc").handle(), readback.handle(), static_cast<uint32_t>(bn),
+                        regions.data());
       }
     }
   }
   if (config.vae) rec.Copy(net->buf("kl"), 0, readback, rb_kl * 4, bn * 4);
-  if (auto s = vk::SubmitFrameAndWait(*ctx, rec, fence, readback, profiler.get()); !s.ok()) return s;
-  timings->device_ms += ReadBatchTimestampsMs(*ctx, query_pool);
+  if (auto s = frame.SubmitAndWait(rec, readback); !s.ok()) return s;
+  timings->device_ms += frame.ReadTimestampsMs();
   ++timings->batches;
   return absl::OkStatus();
 }

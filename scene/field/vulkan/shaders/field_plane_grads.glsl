@@ -3,9 +3,8 @@
 // (field_sample_backward.glsl) and the extended field's token backward
 // (scene/field/vulkan/ext/shaders/ext_sample_backward.glsl). Float atomicAdd
 // (VK_EXT_shader_atomic_float) unless CAS_ATOMICS is defined, then a compare-and-swap loop.
-// Include after field_planes.glsl and after declaring `d_means` (dL/d(mean), [rows * 3]), the
-// push constants `pc` (ax, ay, az, rows) and LANES; the including shader enables
-// GL_EXT_shader_atomic_float itself (an #extension must precede every declaration).
+// Include after field_sample_backward_head.glsl (atomics, `means`, `d_means`, LANES) and the push
+// constants `pc` (ax, ay, az, bx, by, bz, rows).
 #ifndef STREETSIM_FIELD_PLANE_GRADS_GLSL_
 #define STREETSIM_FIELD_PLANE_GRADS_GLSL_
 
@@ -41,6 +40,12 @@ void AddGrad(uint group, uint i, float v) {
     case 2u: ATOMIC_ADD_F(grads2, i, v); break;
     default: ATOMIC_ADD_F(grads3, i, v); break;
   }
+}
+
+// Gaussian g's sampling coordinates p = a * mean + b.
+float[3] SampleCoords(uint g) {
+  return float[3](pc.ax * means[g * 3u] + pc.bx, pc.ay * means[g * 3u + 1u] + pc.by,
+                  pc.az * means[g * 3u + 2u] + pc.bz);
 }
 
 // The 4 texel values of one sample (v00, v01, v10, v11) and the sample itself.

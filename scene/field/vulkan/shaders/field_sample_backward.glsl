@@ -10,18 +10,9 @@
 // its share of the coordinate gradient; the 32 shares are summed in shared memory (fixed order:
 // d_means is deterministic, the plane gradients are not, their atomics land in any order).
 #extension GL_GOOGLE_include_directive : require
-#ifndef CAS_ATOMICS
-#extension GL_EXT_shader_atomic_float : require
-#endif
-#include "field_common.glsl"
-#include "field_planes.glsl"
+#include "field_sample_backward_head.glsl"
 
-#define LANES 32u
-
-layout(local_size_x = 256) in;
-layout(std430, binding = 5) readonly buffer Means { float means[]; };       // [rows * 3]
 layout(std430, binding = 6) readonly buffer DFeatures { float d_features[]; };  // [rows * D]
-layout(std430, binding = 7) writeonly buffer DMeans { float d_means[]; };   // [rows * 3]
 SAMPLE_PUSH
 #include "field_plane_grads.glsl"
 
@@ -33,8 +24,7 @@ void main() {
   const uint g = linear_group_id() * (FIELD_WG / LANES) + tid / LANES;
   float dp[3] = float[3](0.0, 0.0, 0.0);
   if (g < pc.rows) {
-    const float p[3] = float[3](pc.ax * means[g * 3u] + pc.bx, pc.ay * means[g * 3u + 1u] + pc.by,
-                                pc.az * means[g * 3u + 2u] + pc.bz);
+    const float p[3] = SampleCoords(g);
     const Tap tt = MakeTap(pc.time_coord, pc.time_res);
     for (uint d = lane; d < D; d += LANES) {
       const float df = d_features[g * D + d];

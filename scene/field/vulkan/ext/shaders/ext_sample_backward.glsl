@@ -11,19 +11,10 @@
 // registers); then the spatial samples take dL/dS times the other two; with a dilation, the 12
 // dilated samples take dL/dS_dil (binding 13) through their plane means.
 #extension GL_GOOGLE_include_directive : require
-#ifndef CAS_ATOMICS
-#extension GL_EXT_shader_atomic_float : require
-#endif
-#include "../../shaders/field_common.glsl"
-#include "../../shaders/field_planes.glsl"
+#include "../../shaders/field_sample_backward_head.glsl"
 #include "ext_common.glsl"
 
-#define LANES 32u
-
-layout(local_size_x = 256) in;
-layout(std430, binding = 5) readonly buffer Means { float means[]; };   // [rows * 3]
 layout(std430, binding = 6) readonly buffer DFtok { float d_ftok[]; };  // [rows * K * D]
-layout(std430, binding = 7) writeonly buffer DMeans { float d_means[]; };  // [rows * 3] (written)
 layout(std430, binding = 12) readonly buffer DS { float d_s[]; };       // [rows * s_stride]
 layout(std430, binding = 13) readonly buffer DSDil { float d_sdil[]; };  // [rows * D] (dilation > 0)
 #include "../../shaders/field_plane_grads.glsl"
@@ -37,8 +28,7 @@ void main() {
   const uint g = linear_group_id() * (FIELD_WG / LANES) + tid / LANES;
   float dp[3] = float[3](0.0, 0.0, 0.0);
   if (g < pc.rows) {
-    const float p[3] = float[3](pc.ax * means[g * 3u] + pc.bx, pc.ay * means[g * 3u + 1u] + pc.by,
-                                pc.az * means[g * 3u + 2u] + pc.bz);
+    const float p[3] = SampleCoords(g);
     for (uint d = lane; d < D; d += LANES) {
       float dS = pc.s_stride > 0u ? d_s[g * pc.s_stride + pc.s_base + d] : 0.0;
       const float dSd = pc.dilation > 0u ? d_sdil[g * D + d] : 0.0;
