@@ -38,7 +38,7 @@ void PrintUsage(FILE* out) {
                "              [--checkpoint-every N] [--no-sky] [--exposure] [--no-depth] [--deterministic]\n"
                "              [--lidar-weight W] [--lidar-every K] [--no-lidar-loss] [--backend cpu|vulkan|auto]\n"
                "              [--field static|s3gaussian|extended] [--static-iterations N] [--field-modules LIST]\n"
-               "              [--field-device auto|cpu|vulkan] [--clip-frames N]\n"
+               "              [--field-device auto|cpu|vulkan] [--field-init zero-heads|spec] [--clip-frames N]\n"
                "              (default field: s3gaussian when --iterations > the 5000-iteration warm-up, else static)\n"
                "  eval      metrics of a trained scene: streetsim eval --scene DIR --log PATH [--split test|train] [--no-lidar]\n"
                "              [--decomposition DIR] [--video OUT.avi|OUT.mp4] [--video-fps F]\n"

@@ -68,7 +68,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
       argv, {{"log"}, {"out"}, {"iterations"}, {"resolution-scale"}, {"holdout-every"}, {"seed"}, {"resume", false},
              {"checkpoint-every"}, {"no-sky", false}, {"exposure", false}, {"no-depth", false},
              {"deterministic", false}, {"backend"}, {"voxel"}, {"field"}, {"static-iterations"}, {"field-size"},
-             {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"field-modules"}, {"field-device"}});
+             {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"field-modules"}, {"field-device"}, {"field-init"}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
@@ -121,14 +121,12 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
       opt.field.extended = *ec;
     }
   }
+  bool default_field_notice = false;  // said once the log has opened (bad input stays one line)
   if (!args->Get("field")) {
     absl::StatusOr<train::FieldMode> m = DefaultFieldMode(*args, opt.iterations, opt.field.static_iterations, *out);
     if (!m.ok()) return Fail(2, m.status());
     opt.field.mode = *m;
-    if (*m == train::FieldMode::kS3Gaussian) {
-      std::fprintf(stderr, "streetsim train: --field s3gaussian (the default for runs with a fine stage; "
-                           "--field static for a static model)\n");
-    }
+    default_field_notice = *m == train::FieldMode::kS3Gaussian;
   }
   if (args->Get("field-modules") && !opt.field.extended) {
     return Fail(2, absl::InvalidArgumentError("--field-modules needs --field extended"));
@@ -159,6 +157,15 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     } else if (*v != "spec") {
       return Fail(2, absl::InvalidArgumentError("--field-size must be spec or small"));
     }
+  }
+  // The heads' init (docs/training.md "Field init"): zero-heads (the default: the fine stage starts
+  // from the static model, FieldConfig::zero_init_heads) or spec (S3Gaussian's).
+  opt.field.config.zero_init_heads = true;
+  if (auto v = args->Get("field-init")) {
+    if (*v != "spec" && *v != "zero-heads") {
+      return Fail(2, absl::InvalidArgumentError(absl::StrCat("--field-init must be spec or zero-heads, not '", *v, "'")));
+    }
+    opt.field.config.zero_init_heads = *v == "zero-heads";
   }
   // Where S3Gaussian's field runs (auto: Vulkan with --backend vulkan on a GPU, else the cpu).
   if (auto v = args->Get("field-device")) {
@@ -195,6 +202,10 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
 
   absl::StatusOr<DriveLog> log = OpenLog(*log_path);
   if (!log.ok()) return Fail(absl::IsInternal(log.status()) ? 1 : 2, log.status());
+  if (default_field_notice) {
+    std::fprintf(stderr, "streetsim train: --field s3gaussian (the default for runs with a fine stage; "
+                         "--field static for a static model)\n");
+  }
   if (opt.field.extended && log->frames.size() >= 2) {
     // The token window's Δ: one frame (the median interval of the log's frames).
     std::vector<int64_t> dt;

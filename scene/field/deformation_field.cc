@@ -49,6 +49,13 @@ void InitFieldParams(const FieldConfig& config, const FieldLayout& L, uint64_t s
     for (size_t i = 0; i < static_cast<size_t>(d->out) * d->in; ++i) (*params)[d->w_offset + i] = static_cast<T>(uw(rng));
     for (int i = 0; i < d->out; ++i) (*params)[d->b_offset + i] = static_cast<T>(ub(rng));
   }
+  if (config.zero_init_heads) {
+    // After the draws, so that every other parameter keeps its spec value for the same seed.
+    for (const DenseInfo* d : {&L.pos2, &L.sh2}) {
+      std::fill_n(params->data() + d->w_offset, static_cast<size_t>(d->out) * d->in, T(0));
+      std::fill_n(params->data() + d->b_offset, d->out, T(0));
+    }
+  }
 }
 template void InitFieldParams<float>(const FieldConfig&, const FieldLayout&, uint64_t, std::vector<float>*);
 template void InitFieldParams<double>(const FieldConfig&, const FieldLayout&, uint64_t, std::vector<double>*);
