@@ -10,7 +10,10 @@
 //   regularisers and the field's Adam step, for Gaussians of the procedural street.
 //   field_bench [--serve 500000] [--train 139000,300000] [--repeats 5] [--samples 50]
 //               [--dynamic-fraction 0.1] [--threads 0] [--row-order (no Morton order when serving)]
-//               [--ext-modules "all;encoder,vae,attention,gru,decoder"]
+//               [--ext-modules "all;encoder,vae,attention,gru,decoder"] [--serve-vulkan]
+//   --serve-vulkan adds serving rows with the field on Vulkan (the server's --field-device vulkan,
+//   scene/field/vulkan/vulkan_serving.h; a GPU when there is one, else lavapipe, which is slower
+//   than the cpu for the field). Their first (warm-up) timestamp creates the device field.
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -27,6 +30,7 @@
 #include "scene/field/extended/extended_serving.h"
 #include "scene/field/field_regularizers.h"
 #include "scene/field/static_skip.h"
+#include "scene/field/vulkan/vulkan_serving.h"
 #include "scene/gaussians/synthetic_street.h"
 
 using namespace streetsim;
@@ -97,7 +101,10 @@ void TimeServe(size_t n, const std::string& name, field::ServedScene& sf, double
     absl::StatusOr<const GaussianStore*> s = sf.At(100'000 * (r + 1), pool);  // distinct timestamps
     const double ms = Ms(t1), cms = CpuMs() - c1;
     if (!s.ok()) std::exit(1);
-    if (r > 0) total += ms, cpu += cms;  // the first call warms the workspace
+    if (r > 0) total += ms, cpu += cms;  // the first call warms the workspace (creates a device field)
+  }
+  if (sf.device() == "cpu" && name.find("vulkan") != std::string::npos) {
+    std::printf("      (the Vulkan field failed: these are cpu times, see the log)\n");
   }
   std::printf("serve %8zu %-13s dynamic %7zu (%5.1f %%)  setup %8.0f ms  per timestamp %7.1f ms wall, %7.1f ms cpu\n",
               n, name.c_str(), sf.num_dynamic(), 100.0 * sf.num_dynamic() / n, setup_ms, total / repeats,
@@ -128,7 +135,7 @@ ExtendedField BenchExtension(const DeformationField& base, const std::string& mo
 }
 
 void BenchServe(size_t n, int repeats, int samples, double dyn_fraction, bool order,
-                const std::vector<std::string>& ext_modules, ThreadPool& pool) {
+                const std::vector<std::string>& ext_modules, bool vulkan, ThreadPool& pool) {
   FieldAabb box;
   box.min[0] = -100; box.min[1] = -100; box.min[2] = -5;
   box.max[0] = 100;  box.max[1] = 100;  box.max[2] = 15;
@@ -139,10 +146,12 @@ void BenchServe(size_t n, int repeats, int samples, double dyn_fraction, bool or
   const GaussianStore g = RandomInBox(n, box, 2);
   struct Mode {
     const char* name;
-    bool skip, cache;
+    bool skip, cache, vulkan;
   };
-  for (const Mode& mode : {Mode{"no-skip", false, false}, Mode{"no-skip+cache", false, true},
-                           Mode{"skip+cache", true, true}}) {
+  std::vector<Mode> modes = {{"no-skip", false, false, false}, {"no-skip+cache", false, true, false},
+                             {"skip+cache", true, true, false}};
+  if (vulkan) modes.insert(modes.end(), {{"no-skip vulkan", false, false, true}, {"skip vulkan", true, false, true}});
+  for (const Mode& mode : modes) {
     const bool skip = mode.skip;
     StaticSkipOptions o;
     o.enabled = skip;
@@ -156,12 +165,14 @@ void BenchServe(size_t n, int repeats, int samples, double dyn_fraction, bool or
       std::fprintf(stderr, "%s\n", std::string(sf.status().message()).c_str());
       std::exit(1);
     }
+    if (mode.vulkan) ServeOnVulkan(*sf);
     TimeServe(n, mode.name, *sf, setup_ms, repeats, pool);
   }
   // The extended field (ExtServingField: no spatial-feature cache, ExtendedForward per timestamp).
   for (const std::string& modules : ext_modules) {
     std::printf("extended field, modules %s:\n", modules.c_str());
-    for (bool skip : {false, true}) {
+    for (int row = 0; row < (vulkan ? 4 : 2); ++row) {
+      const bool skip = row % 2 == 1, on_vulkan = row >= 2;
       StaticSkipOptions o;
       o.enabled = skip;
       o.num_samples = samples;
@@ -174,7 +185,9 @@ void BenchServe(size_t n, int repeats, int samples, double dyn_fraction, bool or
         std::fprintf(stderr, "%s\n", std::string(sf.status().message()).c_str());
         std::exit(1);
       }
-      TimeServe(n, skip ? "ext skip" : "ext no-skip", **sf, setup_ms, repeats, pool);
+      if (on_vulkan) ServeOnVulkan(**sf);
+      TimeServe(n, std::string(skip ? "ext skip" : "ext no-skip") + (on_vulkan ? " vulkan" : ""), **sf, setup_ms,
+                repeats, pool);
     }
   }
 }
@@ -276,7 +289,7 @@ int main(int argc, char** argv) {
   std::string serve = "500000", train = "139000,300000", ext = "all;encoder,vae,attention,gru,decoder";
   int repeats = 5, samples = 50, threads = 0;
   double dyn = 0.1;
-  bool order = true;
+  bool order = true, vulkan = false;
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--serve") && i + 1 < argc) serve = argv[++i];
     else if (!std::strcmp(argv[i], "--train") && i + 1 < argc) train = argv[++i];
@@ -286,10 +299,11 @@ int main(int argc, char** argv) {
     else if (!std::strcmp(argv[i], "--threads") && i + 1 < argc) threads = std::atoi(argv[++i]);
     else if (!std::strcmp(argv[i], "--row-order")) order = false;
     else if (!std::strcmp(argv[i], "--ext-modules") && i + 1 < argc) ext = argv[++i];
+    else if (!std::strcmp(argv[i], "--serve-vulkan")) vulkan = true;
     else {
       std::fprintf(stderr,
                    "usage: field_bench [--serve N,...] [--train N,...] [--repeats R] [--samples S] "
-                   "[--dynamic-fraction F] [--threads T] [--row-order] [--ext-modules 'LIST;LIST']\n");
+                   "[--dynamic-fraction F] [--threads T] [--row-order] [--ext-modules 'LIST;LIST'] [--serve-vulkan]\n");
       return 2;
     }
   }
@@ -297,7 +311,7 @@ int main(int argc, char** argv) {
   std::printf("field: spec sizes (35.7M plane parameters), %d threads, times averaged over %d repeats\n",
               pool.num_threads(), repeats);
   const std::vector<std::string> ext_modules = absl::StrSplit(ext, ';', absl::SkipEmpty());
-  for (size_t n : ParseSizes(serve)) BenchServe(n, repeats, samples, dyn, order, ext_modules, pool);
+  for (size_t n : ParseSizes(serve)) BenchServe(n, repeats, samples, dyn, order, ext_modules, vulkan, pool);
   for (size_t n : ParseSizes(train)) BenchTrain(n, repeats, pool);
   return 0;
 }

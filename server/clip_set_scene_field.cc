@@ -63,6 +63,7 @@ FieldStats ClipSetSceneField::stats() const {
     sum.has_field = sum.has_field || s.has_field;
     sum.num_dynamic += s.num_dynamic;
     sum.field_evaluations += s.field_evaluations;
+    if (!s.device.empty()) sum.device = sum.device.empty() || sum.device == s.device ? s.device : "mixed";
   }
   return sum;
 }
@@ -107,7 +108,8 @@ absl::StatusOr<SceneManifest> ReadClipSetManifest(const std::string& dir) {
   return out;
 }
 
-absl::StatusOr<std::shared_ptr<LoadedScene>> LoadClipSet(const std::string& dir, const SceneUploader& upload) {
+absl::StatusOr<std::shared_ptr<LoadedScene>> LoadClipSet(const std::string& dir, const SceneUploader& upload,
+                                                         const SceneLoadOptions& load) {
   absl::StatusOr<train::ClipSet> set = ReadSet(dir);
   if (!set.ok()) return set.status();
   auto loaded = std::make_shared<LoadedScene>();
@@ -118,7 +120,8 @@ absl::StatusOr<std::shared_ptr<LoadedScene>> LoadClipSet(const std::string& dir,
     if (!path.ok()) return InClip(clip, path.status());
     absl::StatusOr<SceneManifest> m = ReadSceneDirManifest((fs::path(*path) / "scene.json").string());
     if (!m.ok()) return InClip(clip, m.status());
-    absl::StatusOr<std::shared_ptr<LoadedScene>> one = LoadSceneFile((fs::path(*path) / "scene.ply").string(), upload);
+    absl::StatusOr<std::shared_ptr<LoadedScene>> one =
+        LoadSceneFile((fs::path(*path) / "scene.ply").string(), upload, load);
     if (!one.ok()) return InClip(clip, one.status());
     loaded->num_gaussians += (*one)->num_gaussians;
     if ((*one)->num_gaussians > 0) {

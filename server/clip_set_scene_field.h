@@ -34,7 +34,8 @@ class ClipSetSceneField : public SceneField {
   absl::StatusOr<const DeviceScene*> At(int64_t time_us, Engine& engine) const override;
   absl::StatusOr<std::shared_ptr<const HostScene>> HostAt(int64_t time_us) const override;
   size_t num_gaussians() const override;  // sum over the clips
-  FieldStats stats() const override;      // sums; has_field when any clip has one
+  FieldStats stats() const override;      // sums; has_field when any clip has one; device: the
+                                          // clips' when they agree, else "mixed"
   std::optional<Eigen::Vector3f> BackgroundAt(int64_t time_us) const override;
 
   int ClipAt(int64_t time_us) const { return train::PickClip(set_, time_us); }
@@ -53,6 +54,7 @@ absl::StatusOr<SceneManifest> ReadClipSetManifest(const std::string& dir);
 
 // Every clip of DIR loaded by LoadSceneFile (a clip that fails fails the set, with its name and
 // the single-scene error code), as one LoadedScene: Gaussians summed, bounds the union.
-absl::StatusOr<std::shared_ptr<LoadedScene>> LoadClipSet(const std::string& dir, const SceneUploader& upload);
+absl::StatusOr<std::shared_ptr<LoadedScene>> LoadClipSet(const std::string& dir, const SceneUploader& upload,
+                                                         const SceneLoadOptions& load = {});
 
 }  // namespace streetsim::server

@@ -2,6 +2,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "scene/field/extended/extended_serving.h"
+#include "scene/field/vulkan/vulkan_serving.h"
 
 namespace streetsim::server {
 
@@ -22,24 +23,27 @@ absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Begin(
 
 absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
     field::DeformationField field, GaussianStore canonical, std::optional<std::vector<float>> reflectance,
-    const field::StaticSkipOptions& options, const SceneUploader& upload) {
+    const field::StaticSkipOptions& options, const SceneUploader& upload, bool on_vulkan) {
   absl::StatusOr<std::unique_ptr<DynamicSceneField>> f = Begin(canonical, std::move(reflectance));
   if (!f.ok()) return f.status();
   absl::StatusOr<field::ServingField> serving =
       field::ServingField::Create(std::move(field), std::move(canonical), options, *(*f)->pool_);
   if (!serving.ok()) return serving.status();
-  (*f)->serving_ = std::make_unique<field::ServingField>(std::move(*serving));
+  auto s3 = std::make_unique<field::ServingField>(std::move(*serving));
+  if (on_vulkan) field::ServeOnVulkan(*s3);
+  (*f)->serving_ = std::move(s3);
   return Finish(std::move(*f), upload);
 }
 
 absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
     field::ExtendedField field, GaussianStore canonical, std::optional<std::vector<float>> reflectance,
-    const field::StaticSkipOptions& options, const SceneUploader& upload) {
+    const field::StaticSkipOptions& options, const SceneUploader& upload, bool on_vulkan) {
   absl::StatusOr<std::unique_ptr<DynamicSceneField>> f = Begin(canonical, std::move(reflectance));
   if (!f.ok()) return f.status();
   absl::StatusOr<std::unique_ptr<field::ExtServingField>> serving =
       field::ExtServingField::Create(std::move(field), std::move(canonical), options, *(*f)->pool_);
   if (!serving.ok()) return serving.status();
+  if (on_vulkan) field::ServeOnVulkan(**serving);
   (*f)->serving_ = std::move(*serving);
   return Finish(std::move(*f), upload);
 }
@@ -55,6 +59,8 @@ absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Finish(std
   f->device_ = std::move(*device);
   f->device_evaluation_ = f->serving_->field_evaluations();
   f->evaluations_.store(f->serving_->field_evaluations());
+  f->device_name_ = f->serving_->device();
+  f->on_device_.store(f->serving_->device() != "cpu");
   return f;
 }
 
@@ -62,6 +68,7 @@ absl::StatusOr<const GaussianStore*> DynamicSceneField::EvaluateLocked(int64_t t
   // Clamps to the log's range; a repeated time coordinate is free.
   absl::StatusOr<const GaussianStore*> store = serving_->At(time_us, *pool_);
   evaluations_.store(serving_->field_evaluations());
+  on_device_.store(serving_->device() != "cpu");
   return store;
 }
 
@@ -94,6 +101,8 @@ absl::StatusOr<std::shared_ptr<const HostScene>> DynamicSceneField::HostAt(int64
   return host_;
 }
 
-FieldStats DynamicSceneField::stats() const { return {true, num_dynamic_, evaluations_.load()}; }
+FieldStats DynamicSceneField::stats() const {
+  return {true, num_dynamic_, evaluations_.load(), on_device_.load() ? device_name_ : std::string("cpu")};
+}
 
 }  // namespace streetsim::server

@@ -3,7 +3,8 @@
 // DIR/field_ext.bin by the extended field through field::ExtServingField (static Gaussians baked
 // once at load, the dynamic ones evaluated once per new timestamp). The deformed Gaussians
 // of the last timestamp are kept on the device and on the host, so every camera and the LiDAR of
-// one step share one field evaluation.
+// one step share one field evaluation. With `on_vulkan` the dynamic Gaussians are evaluated on a
+// Vulkan device (field::ServeOnVulkan; the cpu after a device failure).
 #pragma once
 
 #include <atomic>
@@ -28,11 +29,11 @@ class DynamicSceneField : public SceneField {
   // uploads the baked Gaussians through `upload`. `canonical` must have SH degree 3.
   static absl::StatusOr<std::unique_ptr<DynamicSceneField>> Create(
       field::DeformationField field, GaussianStore canonical, std::optional<std::vector<float>> reflectance,
-      const field::StaticSkipOptions& options, const SceneUploader& upload);
+      const field::StaticSkipOptions& options, const SceneUploader& upload, bool on_vulkan = false);
   // The same with an extended field (--field extended: field.bin + field_ext.bin).
   static absl::StatusOr<std::unique_ptr<DynamicSceneField>> Create(
       field::ExtendedField field, GaussianStore canonical, std::optional<std::vector<float>> reflectance,
-      const field::StaticSkipOptions& options, const SceneUploader& upload);
+      const field::StaticSkipOptions& options, const SceneUploader& upload, bool on_vulkan = false);
 
   absl::StatusOr<const DeviceScene*> At(int64_t time_us, Engine& engine) const override;
   absl::StatusOr<std::shared_ptr<const HostScene>> HostAt(int64_t time_us) const override;
@@ -62,6 +63,9 @@ class DynamicSceneField : public SceneField {
   size_t num_dynamic_ = 0;
   // A copy of serving_'s count that GetScene reads without waiting for an evaluation in progress.
   mutable std::atomic<int64_t> evaluations_{0};
+  // Whether serving_ still evaluates on its device (GetScene reads it the same way).
+  std::string device_name_ = "cpu";
+  mutable std::atomic<bool> on_device_{false};
 };
 
 }  // namespace streetsim::server

@@ -32,6 +32,7 @@ struct FieldStats {
   bool has_field = false;
   size_t num_dynamic = 0;         // Gaussians evaluated per timestamp
   int64_t field_evaluations = 0;  // how often the field ran
+  std::string device;             // where the field runs now: "cpu" or "vulkan" (empty: no field)
 };
 
 class SceneField {

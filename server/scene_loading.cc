@@ -35,7 +35,8 @@ absl::StatusOr<SceneManifest> ReadSceneDirManifest(const std::string& manifest_p
   return m;
 }
 
-absl::StatusOr<std::shared_ptr<LoadedScene>> LoadSceneFile(const std::string& path, const SceneUploader& upload) {
+absl::StatusOr<std::shared_ptr<LoadedScene>> LoadSceneFile(const std::string& path, const SceneUploader& upload,
+                                                           const SceneLoadOptions& load) {
   absl::StatusOr<GaussianStore> store = ReadGaussianPly(path);
   if (!store.ok()) return store.status();
   auto loaded = std::make_shared<LoadedScene>();
@@ -58,14 +59,15 @@ absl::StatusOr<std::shared_ptr<LoadedScene>> LoadSceneFile(const std::string& pa
     const fs::path ext_path = fs::path(path).parent_path() / field::kExtendedFieldFileName;
     const bool extended = fs::exists(ext_path, ec);
     absl::StatusOr<std::unique_ptr<DynamicSceneField>> dynamic;
+    const bool on_vulkan = load.field_device == train::FieldDevice::kVulkan;
     if (extended) {
       absl::StatusOr<field::ExtendedField> ext = field::LoadExtendedField(ext_path.string(), std::move(*f));
       if (!ext.ok()) return ext.status();
       dynamic = DynamicSceneField::Create(std::move(*ext), std::move(*store), std::move(*reflectance),
-                                          field::StaticSkipOptions{}, upload);
+                                          field::StaticSkipOptions{}, upload, on_vulkan);
     } else {
       dynamic = DynamicSceneField::Create(std::move(*f), std::move(*store), std::move(*reflectance),
-                                          field::StaticSkipOptions{}, upload);
+                                          field::StaticSkipOptions{}, upload, on_vulkan);
     }
     if (!dynamic.ok()) {
       const fs::path& named = extended ? ext_path : field_path;

@@ -9,6 +9,7 @@
 #include <Eigen/Core>
 
 #include "absl/status/statusor.h"
+#include "scene/train/dynamic_stage.h"
 #include "server/scene_field.h"
 #include "server/scene_manifest.h"
 
@@ -21,6 +22,13 @@ struct LoadedScene {
   double load_time_s = 0;  // PLY, field.bin, static analysis and upload
 };
 
+struct SceneLoadOptions {
+  // Where a dynamic scene's field runs, resolved (kCpu or kVulkan: Server::Start resolves the
+  // server's --field-device against its engine, train::ResolveFieldDevice). kVulkan falls back to
+  // the cpu with a warning when the device fails (scene/field/vulkan/vulkan_serving.h).
+  train::FieldDevice field_device = train::FieldDevice::kCpu;
+};
+
 // The manifest of a scene: `manifest_path` (DIR/scene.json; absent: the default rig; empty: a bare
 // .ply, the default rig) plus the learned background of DIR/train_meta.json when present.
 // Errors: a malformed scene.json (InvalidArgument) or train_meta.json (DataLoss), naming the file.
@@ -31,6 +39,7 @@ absl::StatusOr<SceneManifest> ReadSceneDirManifest(const std::string& manifest_p
 // extended run), else a StaticSceneField; uploads through `upload`.
 // Errors: a PLY, field.bin or field_ext.bin that cannot be read, or a field_ext.bin of another
 // field.bin (DataLoss naming the file), upload failures.
-absl::StatusOr<std::shared_ptr<LoadedScene>> LoadSceneFile(const std::string& ply_path, const SceneUploader& upload);
+absl::StatusOr<std::shared_ptr<LoadedScene>> LoadSceneFile(const std::string& ply_path, const SceneUploader& upload,
+                                                           const SceneLoadOptions& load = {});
 
 }  // namespace streetsim::server

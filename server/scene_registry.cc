@@ -26,8 +26,10 @@ std::string Canonical(const std::string& p) {
 
 }  // namespace
 
-SceneRegistry::SceneRegistry(std::string data_root, std::string job_scenes_dir, RenderCore* core)
-    : data_root_(std::move(data_root)), job_scenes_dir_(std::move(job_scenes_dir)), core_(core) {
+SceneRegistry::SceneRegistry(std::string data_root, std::string job_scenes_dir, RenderCore* core,
+                             SceneLoadOptions load)
+    : data_root_(std::move(data_root)), job_scenes_dir_(std::move(job_scenes_dir)), core_(core),
+      load_options_(load) {
   std::lock_guard<std::mutex> lock(mu_);
   RescanLocked();
 }
@@ -178,6 +180,7 @@ void SceneRegistry::FillScene(const Entry& e, bool with_trajectory, v1::Scene* o
     out->set_has_field(field_stats.has_field);
     out->set_num_dynamic_gaussians(field_stats.num_dynamic);
     out->set_field_evaluations(field_stats.field_evaluations);
+    out->set_field_device(field_stats.device);
   }
 }
 
@@ -238,7 +241,8 @@ void SceneRegistry::StartLoadLocked(Entry* e) {
     const auto t0 = std::chrono::steady_clock::now();
     const SceneUploader upload = [this](const GaussianStore& g) { return core_->Upload(g); };
     absl::StatusOr<std::shared_ptr<LoadedScene>> result =
-        clip_set ? LoadClipSet(fs::path(path).parent_path().string(), upload) : LoadSceneFile(path, upload);
+        clip_set ? LoadClipSet(fs::path(path).parent_path().string(), upload, load_options_)
+                 : LoadSceneFile(path, upload, load_options_);
     std::lock_guard<std::mutex> lock(mu_);
     auto it = entries_.find(name);
     if (it == entries_.end() || it->second.generation != generation) return;  // unloaded meanwhile
@@ -249,7 +253,9 @@ void SceneRegistry::StartLoadLocked(Entry* e) {
       it->second.state = v1::SCENE_STATE_READY;
       const FieldStats field_stats = it->second.loaded->field->stats();
       const std::string dynamic =
-          field_stats.has_field ? absl::StrCat(", field: ", field_stats.num_dynamic, " dynamic") : std::string();
+          field_stats.has_field
+              ? absl::StrCat(", field: ", field_stats.num_dynamic, " dynamic on ", field_stats.device)
+              : std::string();
       LOG(INFO) << "scene " << name << " loaded (" << it->second.loaded->num_gaussians << " Gaussians" << dynamic
                 << ", " << load_s << " s)";
     } else {

@@ -41,7 +41,7 @@ struct SceneHandle {
 
 class SceneRegistry {
  public:
-  SceneRegistry(std::string data_root, std::string job_scenes_dir, RenderCore* core);
+  SceneRegistry(std::string data_root, std::string job_scenes_dir, RenderCore* core, SceneLoadOptions load = {});
   ~SceneRegistry();
 
   std::vector<v1::Scene> List();
@@ -80,6 +80,7 @@ class SceneRegistry {
   const std::string data_root_;
   const std::string job_scenes_dir_;
   RenderCore* core_;
+  const SceneLoadOptions load_options_;
   std::mutex mu_;
   std::condition_variable cv_;
   std::map<std::string, Entry> entries_;

@@ -82,11 +82,13 @@ absl::StatusOr<std::unique_ptr<Server>> Server::Start(const ServerOptions& optio
 
   absl::StatusOr<std::unique_ptr<Engine>> engine = CreateEngine(options.backend);
   if (!engine.ok()) return engine.status();
+  SceneLoadOptions load;
+  load.field_device = train::ResolveFieldDevice(options.field_device, (*engine)->backend());
   s->core_ = std::make_unique<RenderCore>(std::move(*engine), deps.limits, options.debug_render_delay_ms);
   deps.core = s->core_.get();
   s->job_store_ = std::make_unique<JobStore>(state_dir);
   if (absl::Status st = s->job_store_->Init(); !st.ok()) return st;
-  s->scenes_ = std::make_unique<SceneRegistry>(data_root, s->job_store_->scenes_dir(), s->core_.get());
+  s->scenes_ = std::make_unique<SceneRegistry>(data_root, s->job_store_->scenes_dir(), s->core_.get(), load);
   deps.scenes = s->scenes_.get();
   s->sessions_ = std::make_unique<SessionManager>(&deps);
   deps.sessions = s->sessions_.get();
@@ -116,7 +118,8 @@ absl::StatusOr<std::unique_ptr<Server>> Server::Start(const ServerOptions& optio
   }
   s->jobs_->Start();
   SetHealth(s->server_.get(), true);
-  LOG(INFO) << "streetsim server on " << s->address() << " (" << s->core_->device_name() << ", data root "
+  LOG(INFO) << "streetsim server on " << s->address() << " (" << s->core_->device_name() << ", field on "
+            << (load.field_device == train::FieldDevice::kVulkan ? "vulkan" : "cpu") << ", data root "
             << data_root << ", state " << state_dir << (deps.tls ? ", TLS" : "")
             << (deps.auth.enabled() ? ", bearer token" : "") << ")";
   return s;

@@ -9,6 +9,7 @@
 
 #include "absl/status/statusor.h"
 #include "render/engine.h"
+#include "scene/train/dynamic_stage.h"
 #include "server/limits.h"
 
 namespace grpc {
@@ -23,6 +24,9 @@ struct ServerOptions {
   std::string data_root = "./data";
   std::string state_dir = "./state";
   Backend backend = Backend::kAuto;
+  // Where dynamic scenes evaluate their field (docs/server.md "Field device"): kAuto = Vulkan when
+  // the engine is vulkan on a GPU (never lavapipe: slower than the cpu there), else the cpu.
+  train::FieldDevice field_device = train::FieldDevice::kAuto;
   std::string tls_cert_file;   // both or neither
   std::string tls_key_file;
   std::string auth_token_file;  // bearer token; empty: no auth

@@ -7,6 +7,7 @@
 #include "absl/strings/str_split.h"
 #include "client/cli/args.h"
 #include "client/cli/commands.h"
+#include "scene/train/dynamic_stage.h"
 #include "server/server_main.h"
 
 namespace streetsim {
@@ -32,7 +33,7 @@ int RunServeCommand(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(
       argv, {{"listen"}, {"data-root"}, {"state-dir"}, {"backend"}, {"tls-cert"}, {"tls-key"},
              {"auth-token-file"}, {"max-sessions"}, {"max-queued-renders"}, {"max-image-side"},
-             {"session-lease-s"}, {"max-message-mb"}, {"init-command"}});
+             {"session-lease-s"}, {"max-message-mb"}, {"init-command"}, {"field-device"}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
@@ -45,6 +46,10 @@ int RunServeCommand(const std::vector<std::string>& argv) {
   absl::StatusOr<Backend> backend = ParseBackend(args->Get("backend").value_or("auto"));
   if (!backend.ok()) return Fail(2, backend.status());
   o.backend = *backend;
+  absl::StatusOr<train::FieldDevice> field_device =
+      train::ParseFieldDevice(args->Get("field-device").value_or("auto"));
+  if (!field_device.ok()) return Fail(2, field_device.status());
+  o.field_device = *field_device;
   o.tls_cert_file = args->Get("tls-cert").value_or("");
   o.tls_key_file = args->Get("tls-key").value_or("");
   o.auth_token_file = args->Get("auth-token-file").value_or("");

@@ -5,6 +5,7 @@
 #include <limits>
 
 #include "absl/strings/str_cat.h"
+#include "render/common/log.h"
 #include "scene/field/spatial_order.h"
 
 namespace streetsim::field {
@@ -52,6 +53,11 @@ bool MotionAndColourStatic(const DeltaRanges& r, size_t row, int sh_values, cons
   double box2 = 0;
   for (int k = 0; k < 3; ++k) box2 += double(r.range(row, k)) * r.range(row, k);
   return std::sqrt(box2) < o.motion_threshold_m && r.max_range(row, 3, sh_values) < o.sh_threshold;
+}
+
+void ServedScene::DeviceFailed(const absl::Status& why) {
+  LOG(WARNING) << "field evaluation on " << device_ << " failed, evaluating on the cpu from now on: " << why;
+  device_ = "cpu";
 }
 
 absl::StatusOr<StaticAnalysis> AnalyseStatic(const DeformationField& field, const GaussianStore& g,
@@ -124,6 +130,7 @@ absl::StatusOr<ServingField> ServingField::Create(DeformationField field, Gaussi
   // Evaluation order along a Morton curve: neighbouring rows share texels (cache), see spatial_order.h.
   if (options.spatial_order) sf.dynamic_rows_ = SpatialOrder(field.aabb(), canonical.means.data(), sf.dynamic_rows_.size(),
                                   sf.dynamic_rows_.data(), pool);
+  sf.cache_spatial_ = options.cache_spatial_features;
   if (options.cache_spatial_features) {
     sf.spatial_.resize(sf.dynamic_rows_.size() * field.layout().feature_dim());
     SpatialFeatures<float>(field.layout(), field.params().data(), field.QueryAtCoordinate(0), canonical.means.data(),
@@ -135,6 +142,34 @@ absl::StatusOr<ServingField> ServingField::Create(DeformationField field, Gaussi
   return sf;
 }
 
+void ServingField::SetDevice(std::string device, FieldDeviceForward forward) {
+  device_ = std::move(device);
+  device_forward_ = std::move(forward);
+  device_means_.resize(dynamic_rows_.size() * 3);
+  for (size_t r = 0; r < dynamic_rows_.size(); ++r) {
+    std::copy_n(&canonical_.means[dynamic_rows_[r] * 3], 3, &device_means_[r * 3]);
+  }
+  std::vector<float>().swap(spatial_);  // 512 B per dynamic Gaussian the device does not need
+}
+
+void ServingField::ForwardOnCpu(double coord, ThreadPool& pool) {
+  const size_t nd = dynamic_rows_.size();
+  float* dsh = canonical_.sh_coeffs() > 0 ? dsh_.data() : nullptr;
+  if (cache_spatial_ && spatial_.empty() && nd > 0) {  // freed for a device that has since failed
+    spatial_.resize(nd * field_.layout().feature_dim());
+    SpatialFeatures<float>(field_.layout(), field_.params().data(), field_.QueryAtCoordinate(0),
+                           canonical_.means.data(), dynamic_rows_.data(), nd, spatial_.data(), pool);
+  }
+  if (spatial_.empty()) {
+    FieldForward<float>(field_.layout(), field_.params().data(), field_.QueryAtCoordinate(coord),
+                        canonical_.means.data(), dynamic_rows_.data(), nd, dx_.data(), dsh, pool, *ws_);
+  } else {
+    FieldForwardCached<float>(field_.layout(), field_.params().data(), field_.QueryAtCoordinate(coord),
+                              canonical_.means.data(), dynamic_rows_.data(), spatial_.data(), nd, dx_.data(), dsh,
+                              pool, *ws_);
+  }
+}
+
 absl::StatusOr<const GaussianStore*> ServingField::At(int64_t time_us, ThreadPool& pool) {
   const double coord = field_.TimeCoordinate(time_us);
   if (have_current_ && coord == last_coord_) return &current_;
@@ -142,15 +177,24 @@ absl::StatusOr<const GaussianStore*> ServingField::At(int64_t time_us, ThreadPoo
   const int K3 = canonical_.sh_coeffs() * 3;
   dx_.resize(nd * 3);
   dsh_.resize(nd * kShOutputs);
-  if (spatial_.empty()) {
-    FieldForward<float>(field_.layout(), field_.params().data(), field_.QueryAtCoordinate(coord),
-                        canonical_.means.data(), dynamic_rows_.data(), nd, dx_.data(), K3 > 0 ? dsh_.data() : nullptr,
-                        pool, *ws_);
-  } else {
-    FieldForwardCached<float>(field_.layout(), field_.params().data(), field_.QueryAtCoordinate(coord),
-                              canonical_.means.data(), dynamic_rows_.data(), spatial_.data(), nd, dx_.data(),
-                              K3 > 0 ? dsh_.data() : nullptr, pool, *ws_);
+  bool done = false;
+  if (device_forward_ && nd > 0) {
+    absl::Status s = device_forward_(field_, field_.QueryAtCoordinate(coord), device_means_, &dx_,
+                                     K3 > 0 ? &dsh_ : nullptr);
+    // The device may resize what it fills; anything else than the cpu's sizes is a failure too.
+    if (s.ok() && (dx_.size() != nd * 3 || (K3 > 0 && dsh_.size() != nd * kShOutputs))) {
+      s = absl::InternalError("the device returned outputs of the wrong size");
+    }
+    done = s.ok();
+    if (!done) {
+      DeviceFailed(s);
+      device_forward_ = nullptr;
+      std::vector<float>().swap(device_means_);
+      dx_.resize(nd * 3);
+      dsh_.resize(nd * kShOutputs);
+    }
   }
+  if (!done) ForwardOnCpu(coord, pool);
   ++evaluations_;
   pool.ParallelFor(static_cast<int64_t>(nd), 8192, [&](int64_t b, int64_t e, int) {
     for (int64_t r = b; r < e; ++r) {

@@ -6,7 +6,10 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <initializer_list>
+#include <span>
+#include <string>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -90,12 +93,28 @@ class ServedScene {
   virtual size_t num_dynamic() const = 0;           // Gaussians evaluated per timestamp
   virtual int64_t field_evaluations() const = 0;    // how often the field ran
   virtual const DeformationField& field() const = 0;  // S3Gaussian's (an extended field's base)
+  // Where At evaluates the field: "cpu", or the device of SetDevice (the subclasses'), until that
+  // device fails.
+  const std::string& device() const { return device_; }
 
  protected:
   ServedScene() = default;
   ServedScene(const ServedScene&) = default;
   ServedScene& operator=(const ServedScene&) = default;
+  // A device evaluation failed (no device, device lost, out of memory): a warning, and the cpu
+  // from now on; the caller then evaluates this timestamp on the cpu, so no request fails.
+  void DeviceFailed(const absl::Status& why);
+
+  std::string device_ = "cpu";
 };
+
+// S3Gaussian's field evaluated on a device for ServingField (scene/field/vulkan/vulkan_serving.h):
+// Δx (*dx, n * 3) and ΔSH (*dsh, n * 48; null: not wanted) of the compact `means` (n * 3) at
+// `query`, as FieldForward<float>. `field` is the serving field's own (the device may upload its
+// parameters on the first call).
+using FieldDeviceForward = std::function<absl::Status(const DeformationField& field, const FieldQuery& query,
+                                                      std::span<const float> means, std::vector<float>* dx,
+                                                      std::vector<float>* dsh)>;
 
 class ServingField : public ServedScene {
  public:
@@ -109,7 +128,15 @@ class ServingField : public ServedScene {
   const DeformationField& field() const override { return field_; }
   int64_t field_evaluations() const override { return evaluations_; }
 
+  // Evaluates the dynamic Gaussians with `forward` on `device` from the next At on (the static
+  // ones keep their baked values); a failing call falls back to the cpu for good (DeviceFailed).
+  // Frees the cpu's spatial-feature cache meanwhile (rebuilt on a fall-back).
+  void SetDevice(std::string device, FieldDeviceForward forward);
+
  private:
+  // The cpu's evaluation of the dynamic rows at `coord` into dx_ / dsh_.
+  void ForwardOnCpu(double coord, ThreadPool& pool);
+
   DeformationField field_;
   GaussianStore canonical_;
   GaussianStore baked_;    // static Gaussians with their mean deformation, dynamic ones canonical
@@ -117,6 +144,9 @@ class ServingField : public ServedScene {
   std::vector<uint32_t> dynamic_rows_;  // in spatial (Morton) order
   std::vector<float> dx_, dsh_;  // compact, per dynamic row
   std::vector<float> spatial_;   // [dynamic rows * feature_dim] or empty (not cached)
+  bool cache_spatial_ = false;   // StaticSkipOptions::cache_spatial_features
+  FieldDeviceForward device_forward_;  // null: the cpu
+  std::vector<float> device_means_;    // [dynamic rows * 3], rows in dynamic_rows_ order (device only)
   double last_coord_ = 0;
   bool have_current_ = false;
   int64_t evaluations_ = 0;

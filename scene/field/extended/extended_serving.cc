@@ -137,6 +137,11 @@ absl::Status ExtServingField::Analyse(const StaticSkipOptions& o, ThreadPool& po
   return absl::OkStatus();
 }
 
+void ExtServingField::SetDevice(std::string device, ExtDeviceForward forward) {
+  device_ = std::move(device);
+  device_forward_ = std::move(forward);
+}
+
 absl::StatusOr<const GaussianStore*> ExtServingField::At(int64_t time_us, ThreadPool& pool) {
   const double coord = field_.base().TimeCoordinate(time_us);
   if (have_current_ && coord == last_coord_) return &current_;
@@ -152,8 +157,19 @@ absl::StatusOr<const GaussianStore*> ExtServingField::At(int64_t time_us, Thread
     pass.time_coord = coord;
     const ExtOutputs<float> out{dx_.data(), dsh_.data(), dec ? dscale_.data() : nullptr,
                                 dec ? drot_.data() : nullptr, dec ? dopacity_.data() : nullptr};
-    absl::StatusOr<double> kl = ExtendedForward<float>(ModelOf(field_), pass, inputs_.view(), out, pool, *ws_);
-    if (!kl.ok()) return kl.status();
+    bool done = false;
+    if (device_forward_) {
+      absl::StatusOr<double> kl = device_forward_(field_, pass, inputs_.view(), out);
+      done = kl.ok();
+      if (!done) {
+        DeviceFailed(kl.status());
+        device_forward_ = nullptr;
+      }
+    }
+    if (!done) {
+      absl::StatusOr<double> kl = ExtendedForward<float>(ModelOf(field_), pass, inputs_.view(), out, pool, *ws_);
+      if (!kl.ok()) return kl.status();
+    }
   }
   ++evaluations_;
   const GaussianStore& c = canonical_;

@@ -6,7 +6,9 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <memory>
+#include <string>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -28,6 +30,13 @@ struct ExtCompactInputs {
   }
 };
 
+// The extended field evaluated on a device for ExtServingField (scene/field/vulkan/vulkan_serving.h):
+// as ExtendedForward<float> with `field`'s parameters (inference pass: z = μ). `field` is the
+// serving field's own (the device may upload its parameters on the first call).
+using ExtDeviceForward = std::function<absl::StatusOr<double>(const ExtendedField& field, const ExtPass& pass,
+                                                              const ExtInputs<float>& in,
+                                                              const ExtOutputs<float>& out)>;
+
 class ExtServingField : public ServedScene {
  public:
   // `canonical` must have SH degree 3. With options.enabled false every Gaussian is evaluated at
@@ -41,6 +50,11 @@ class ExtServingField : public ServedScene {
   int64_t field_evaluations() const override { return evaluations_; }
   const DeformationField& field() const override { return field_.base(); }
   const ExtendedField& extended() const { return field_; }
+
+  // Evaluates the dynamic Gaussians with `forward` on `device` from the next At on (the static
+  // ones keep their baked values; the static analysis stays on the cpu); a failing call falls
+  // back to the cpu for good (DeviceFailed).
+  void SetDevice(std::string device, ExtDeviceForward forward);
 
  private:
   explicit ExtServingField(ExtendedField field) : field_(std::move(field)) {}
@@ -56,6 +70,7 @@ class ExtServingField : public ServedScene {
   double last_coord_ = 0;
   bool have_current_ = false;
   int64_t evaluations_ = 0;
+  ExtDeviceForward device_forward_;  // null: the cpu
   std::unique_ptr<ExtWorkspace> ws_ = std::make_unique<ExtWorkspace>();
 };
 

@@ -1,0 +1,51 @@
+#include "scene/field/vulkan/vulkan_serving.h"
+
+#include <memory>
+
+#include "render/common/log.h"
+#include "scene/field/vulkan/ext/vulkan_extended_field.h"
+
+namespace streetsim::field {
+
+namespace {
+
+// The device field behind a scene's hook: std::function wants a copyable callable, the field is
+// created on the first call.
+template <typename DeviceField>
+using LazyDevice = std::shared_ptr<std::unique_ptr<DeviceField>>;
+
+template <typename DeviceField, typename Source>
+absl::Status EnsureCreated(const LazyDevice<DeviceField>& device, const Source& field,
+                           const VulkanFieldOptions& options) {
+  if (*device) return absl::OkStatus();
+  absl::StatusOr<std::unique_ptr<DeviceField>> created = DeviceField::Create(field, options);
+  if (!created.ok()) return created.status();
+  *device = std::move(*created);
+  LOG(INFO) << "serving the field on Vulkan (" << (*device)->device_description() << ")";
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+void ServeOnVulkan(ServingField& scene, const VulkanFieldOptions& options) {
+  auto device = std::make_shared<std::unique_ptr<VulkanField>>();
+  scene.SetDevice(kVulkanServingDevice,
+                  [device, options](const DeformationField& field, const FieldQuery& query,
+                                    std::span<const float> means, std::vector<float>* dx,
+                                    std::vector<float>* dsh) -> absl::Status {
+                    if (absl::Status s = EnsureCreated(device, field, options); !s.ok()) return s;
+                    return (*device)->Forward(query, means, dx, dsh);
+                  });
+}
+
+void ServeOnVulkan(ExtServingField& scene, const VulkanFieldOptions& options) {
+  auto device = std::make_shared<std::unique_ptr<VulkanExtendedField>>();
+  scene.SetDevice(kVulkanServingDevice,
+                  [device, options](const ExtendedField& field, const ExtPass& pass, const ExtInputs<float>& in,
+                                    const ExtOutputs<float>& out) -> absl::StatusOr<double> {
+                    if (absl::Status s = EnsureCreated(device, field, options); !s.ok()) return s;
+                    return (*device)->Forward(pass, in, out);
+                  });
+}
+
+}  // namespace streetsim::field

@@ -1,0 +1,24 @@
+// The served scenes' field on a Vulkan device (the server's --field-device, docs/server.md
+// "Field device"): ServingField (S3Gaussian's field, VulkanField) and ExtServingField (the
+// extended field, VulkanExtendedField, inference z = μ) evaluate their dynamic Gaussians on the
+// device; the static skip, the baked Gaussians and the deformed store on the host are unchanged.
+//
+// The device field is created on the scene's first evaluation with a dynamic Gaussian (a scene
+// whose Gaussians are all static never touches the device), is owned by the scene and released
+// with it. Creation or evaluation errors (no device, device lost, out of memory) move the scene
+// to the cpu for good with a warning (ServedScene::DeviceFailed): the request is answered.
+#pragma once
+
+#include "scene/field/extended/extended_serving.h"
+#include "scene/field/static_skip.h"
+#include "scene/field/vulkan/vulkan_field.h"
+
+namespace streetsim::field {
+
+inline constexpr char kVulkanServingDevice[] = "vulkan";  // ServedScene::device() while on Vulkan
+
+// VulkanFieldOptions::device picks the device (kGpu: a GPU, else lavapipe).
+void ServeOnVulkan(ServingField& scene, const VulkanFieldOptions& options = {});
+void ServeOnVulkan(ExtServingField& scene, const VulkanFieldOptions& options = {});
+
+}  // namespace streetsim::field

@@ -1,0 +1,406 @@
+// The served field on a Vulkan device (serve --field-device, docs/server.md "Field device"): with
+// the device forced to Vulkan (lavapipe here) the deformed scenes and the served renders equal the
+// cpu's within float rounding, for S3Gaussian's field and the extended one, with and without the
+// static skip; a device that fails at creation or mid-serving leaves the scene on the cpu with
+// the cpu's exact results and no failed request; bad --field-device values exit 2.
+#include <unistd.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdlib>
+#include <cstring>
+#include <fstream>
+
+#include "render/vulkan/vulkan_engine.h"
+#include "scene/field/extended/extended_io.h"
+#include "scene/field/extended/extended_serving.h"
+#include "scene/field/field_eval.h"
+#include "scene/field/field_io.h"
+#include "scene/field/static_skip.h"
+#include "scene/field/vulkan/vulkan_serving.h"
+#include "tests/common/cli_runner.h"
+#include "tests/common/scratch_dir.h"
+#include "tests/server/moving_extension.h"
+#include "tests/server/moving_field.h"
+#include "tests/server/server_fixture.h"
+
+namespace streetsim::testing {
+namespace {
+
+constexpr int64_t kLogEndUs = 2'000'000;  // the fields' time range is [0, kLogEndUs]
+const int64_t kTimesUs[] = {0, 700'000, 1'300'000, kLogEndUs};
+
+// The bound on |vulkan - cpu| / (1 + |cpu|) of every deformed parameter. Both sides evaluate the
+// same float formulas; the device sums the MLP's dot products (tiled GEMMs) and the plane
+// products in another order. Over the ~100-term sums of these fields that is a few float ulps of
+// the Δs (tests/field's Vulkan tests bound the Δs' relative error by 1e-5); the deformed
+// parameters add the canonical value, so 1e-5 of (1 + |value|) holds with margin and a wrong
+// plane, head or row order (errors of 1e-2 and more) fails it.
+constexpr double kParamTol = 1e-5;
+
+bool HaveVulkan() { return !ListVulkanDevices().empty(); }
+
+// A 60 m street of SH degree 3 Gaussians (a field needs degree 3).
+GaussianStore Street(uint64_t seed, size_t n) {
+  return MakeSyntheticStreet({.num_gaussians = n, .seed = seed, .sh_degree = 3, .street_length_m = 60});
+}
+
+// MovingField with the space-time planes held constant in time over the lower 3/4 of each
+// spatial axis: the Gaussians there do not move and the static skip bakes them.
+field::DeformationField PartlyStaticField(const GaussianStore& g) {
+  field::DeformationField f = MovingField(g, 0, kLogEndUs);
+  const field::FieldLayout& L = f.layout();
+  std::vector<float>& p = f.mutable_params();
+  for (const field::PlaneInfo& pi : L.planes) {
+    if (!field::PlaneHasTime(pi.plane)) continue;
+    for (int v = 1; v < pi.height; ++v) {
+      for (int u = 0; u < pi.width * 3 / 4; ++u) {
+        std::copy_n(&p[pi.offset + static_cast<size_t>(u) * L.channels], L.channels,
+                    &p[pi.offset + (static_cast<size_t>(v) * pi.width + u) * L.channels]);
+      }
+    }
+  }
+  return f;
+}
+
+double WorstRelDiff(const std::vector<float>& a, const std::vector<float>& b) {
+  EXPECT_EQ(a.size(), b.size());
+  double worst = 0;
+  for (size_t i = 0; i < std::min(a.size(), b.size()); ++i) {
+    worst = std::max(worst, std::abs(double(a[i]) - b[i]) / (1.0 + std::abs(double(b[i]))));
+  }
+  return worst;
+}
+
+void ExpectStoresClose(const GaussianStore& vk, const GaussianStore& cpu, const std::string& tag) {
+  EXPECT_LT(WorstRelDiff(vk.means, cpu.means), kParamTol) << tag;
+  EXPECT_LT(WorstRelDiff(vk.sh, cpu.sh), kParamTol) << tag;
+  EXPECT_LT(WorstRelDiff(vk.log_scales, cpu.log_scales), kParamTol) << tag;
+  EXPECT_LT(WorstRelDiff(vk.rotations, cpu.rotations), kParamTol) << tag;
+  EXPECT_LT(WorstRelDiff(vk.opacity_logits, cpu.opacity_logits), kParamTol) << tag;
+}
+
+void ExpectStoresEqual(const GaussianStore& a, const GaussianStore& b, const std::string& tag) {
+  EXPECT_TRUE(a.means == b.means && a.sh == b.sh && a.log_scales == b.log_scales && a.rotations == b.rotations &&
+              a.opacity_logits == b.opacity_logits)
+      << tag;
+}
+
+field::VulkanFieldOptions Lavapipe() {
+  field::VulkanFieldOptions o;
+  o.device = VulkanDevicePreference::kLavapipe;
+  return o;
+}
+
+// Both serving fields side by side, cpu and Vulkan, over kTimesUs.
+template <typename Make>
+void CompareCpuAndVulkan(const Make& make, const std::string& name, bool expect_static = true) {
+  ThreadPool pool(0);
+  for (bool skip : {true, false}) {
+    field::StaticSkipOptions o;
+    o.enabled = skip;
+    auto cpu = make(o, pool);
+    auto vk = make(o, pool);
+    field::ServeOnVulkan(*vk, Lavapipe());
+    const std::string tag = name + (skip ? " skip" : " no-skip");
+    if (skip && expect_static) {
+      EXPECT_GT(vk->size() - vk->num_dynamic(), 0u) << tag << ": nothing static, the skip is not tested";
+    }
+    EXPECT_GT(vk->num_dynamic(), 0u) << tag;
+    GaussianStore first;
+    for (int64_t t : kTimesUs) {
+      absl::StatusOr<const GaussianStore*> a = vk->At(t, pool);
+      absl::StatusOr<const GaussianStore*> b = cpu->At(t, pool);
+      ASSERT_TRUE(a.ok() && b.ok()) << tag << " " << a.status() << " " << b.status();
+      EXPECT_EQ(vk->device(), field::kVulkanServingDevice) << tag << ": the device failed";
+      ExpectStoresClose(**a, **b, tag + " t=" + std::to_string(t));
+      if (t == kTimesUs[0]) first = **a;
+    }
+    EXPECT_EQ(vk->field_evaluations(), cpu->field_evaluations()) << tag;
+    EXPECT_NE(first.means, (*vk->At(kTimesUs[2], pool))->means) << tag << ": the field does not move";
+  }
+}
+
+TEST(ServedFieldOnVulkan, S3GaussianEqualsTheCpuWithAndWithoutTheSkip) {
+  if (!HaveVulkan()) GTEST_SKIP() << "no Vulkan device";
+  const GaussianStore g = Street(1, 3000);
+  const field::DeformationField f = PartlyStaticField(g);
+  CompareCpuAndVulkan(
+      [&](const field::StaticSkipOptions& o, ThreadPool& pool) {
+        absl::StatusOr<field::ServingField> sf = field::ServingField::Create(f, g, o, pool);
+        EXPECT_TRUE(sf.ok()) << sf.status();
+        return std::make_unique<field::ServingField>(std::move(*sf));
+      },
+      "s3gaussian");
+}
+
+// Every module but the Fourier time tokens, which move every Gaussian (nothing is static with them).
+field::ExtendedFieldConfig NoFourierTime() {
+  field::ExtendedFieldConfig c = field::ExtendedFieldConfig::AllOn();
+  c.temporal = false;
+  return c;
+}
+
+TEST(ServedFieldOnVulkan, ExtendedEqualsTheCpuWithAndWithoutTheSkip) {
+  if (!HaveVulkan()) GTEST_SKIP() << "no Vulkan device";
+  const GaussianStore g = Street(2, 2000);
+  for (bool temporal : {true, false}) {
+    const field::ExtendedField f =
+        MovingExtension(PartlyStaticField(g), 3, temporal ? field::ExtendedFieldConfig::AllOn() : NoFourierTime());
+    CompareCpuAndVulkan(
+        [&](const field::StaticSkipOptions& o, ThreadPool& pool) {
+          absl::StatusOr<std::unique_ptr<field::ExtServingField>> sf = field::ExtServingField::Create(f, g, o, pool);
+          EXPECT_TRUE(sf.ok()) << sf.status();
+          return std::move(*sf);
+        },
+        temporal ? "extended, every module" : "extended, no Fourier time", /*expect_static=*/!temporal);
+  }
+}
+
+// A device that answers `good_calls` times (with the cpu's formulas on the compact rows, standing in
+// for a device) and then fails as a lost device does: the failing timestamp and every later one
+// are the cpu's, bit for bit, and no call fails.
+TEST(ServedFieldOnVulkan, ADeviceThatFailsFallsBackToTheCpu) {
+  const GaussianStore g = Street(3, 1500);
+  const field::DeformationField f = PartlyStaticField(g);
+  ThreadPool pool(0);
+  for (int good_calls : {0, 1}) {
+    absl::StatusOr<field::ServingField> cpu = field::ServingField::Create(f, g, {}, pool);
+    absl::StatusOr<field::ServingField> dev = field::ServingField::Create(f, g, {}, pool);
+    ASSERT_TRUE(cpu.ok() && dev.ok());
+    auto calls = std::make_shared<int>(0);
+    auto ws = std::make_shared<field::FieldWorkspace>();
+    dev->SetDevice("test-device", [calls, good_calls, ws, &pool](
+                                      const field::DeformationField& field, const field::FieldQuery& q,
+                                      std::span<const float> means, std::vector<float>* dx, std::vector<float>* dsh) {
+      if ((*calls)++ >= good_calls) return absl::UnavailableError("device lost (simulated)");
+      const size_t n = means.size() / 3;
+      dx->resize(n * 3);
+      if (dsh) dsh->resize(n * field::kShOutputs);
+      field::FieldForward<float>(field.layout(), field.params().data(), q, means.data(), nullptr, n, dx->data(),
+                                 dsh ? dsh->data() : nullptr, pool, *ws);
+      return absl::OkStatus();
+    });
+    EXPECT_EQ(dev->device(), "test-device");
+    for (int64_t t : kTimesUs) {
+      absl::StatusOr<const GaussianStore*> a = dev->At(t, pool);
+      absl::StatusOr<const GaussianStore*> b = cpu->At(t, pool);
+      ASSERT_TRUE(a.ok() && b.ok()) << a.status();
+      if (*calls > good_calls) ExpectStoresEqual(**a, **b, "after the failure, t=" + std::to_string(t));
+    }
+    EXPECT_EQ(*calls, good_calls + 1) << "the failed device was called again";
+    EXPECT_EQ(dev->device(), "cpu");
+  }
+  // The extended field's hook the same way (failing at once).
+  const field::ExtendedField ext = MovingExtension(f, 4);
+  absl::StatusOr<std::unique_ptr<field::ExtServingField>> cpu = field::ExtServingField::Create(ext, g, {}, pool);
+  absl::StatusOr<std::unique_ptr<field::ExtServingField>> dev = field::ExtServingField::Create(ext, g, {}, pool);
+  ASSERT_TRUE(cpu.ok() && dev.ok());
+  (*dev)->SetDevice("test-device", [](const field::ExtendedField&, const field::ExtPass&,
+                                      const field::ExtInputs<float>&,
+                                      const field::ExtOutputs<float>&) -> absl::StatusOr<double> {
+    return absl::ResourceExhaustedError("out of device memory (simulated)");
+  });
+  for (int64_t t : kTimesUs) {
+    absl::StatusOr<const GaussianStore*> a = (*dev)->At(t, pool);
+    absl::StatusOr<const GaussianStore*> b = (*cpu)->At(t, pool);
+    ASSERT_TRUE(a.ok() && b.ok()) << a.status();
+    ExpectStoresEqual(**a, **b, "extended t=" + std::to_string(t));
+  }
+  EXPECT_EQ((*dev)->device(), "cpu");
+}
+
+constexpr char kRig[] = R"({"cameras": [
+  {"sensor_id": "cam_front", "width": 128, "height": 64, "fx": 80, "fy": 80, "cx": 63.5, "cy": 31.5,
+   "T_ego_from_cam": [0,0,1,1.5, -1,0,0,0, 0,-1,0,1.65, 0,0,0,1]}]})";
+
+// Two servers over one data root ("dyn": S3Gaussian's field, "ext": the extended one, both partly
+// static): cpu_ with the default --field-device auto on the cpu engine, and a second one started
+// by the test with its own options.
+class FieldDeviceServerTest : public ServerTest {
+ protected:
+  void SetUp() override {
+    ServerTest::SetUp();
+    const GaussianStore g = Street(5, 3000);
+    const field::DeformationField f = PartlyStaticField(g);
+    WriteScene("dyn", g, f, nullptr);
+    const field::ExtendedField ext = MovingExtension(PartlyStaticField(g), 6, NoFourierTime());
+    WriteScene("ext", g, ext.base(), &ext);
+    StartServer();  // the cpu one: client_
+  }
+
+  void WriteScene(const std::string& name, const GaussianStore& g, const field::DeformationField& f,
+                  const field::ExtendedField* ext) {
+    const std::string dir = data_root_ + "/" + name;
+    fs::create_directories(dir);
+    ASSERT_TRUE(WriteGaussianPly(g, dir + "/scene.ply").ok());
+    ASSERT_TRUE(field::SaveField(f, dir + "/" + field::kFieldFileName).ok());
+    if (ext) ASSERT_TRUE(field::SaveExtendedField(*ext, dir + "/" + field::kExtendedFieldFileName).ok());
+    std::ofstream(dir + "/scene.json") << kRig;
+  }
+
+  // A second server forced to `device`, and its client.
+  void StartOther(train::FieldDevice device) {
+    server::ServerOptions o = TestOptions(data_root_, state_dir_ + "/other");
+    o.field_device = device;
+    absl::StatusOr<std::unique_ptr<server::Server>> s = server::Server::Start(o);
+    ASSERT_TRUE(s.ok()) << s.status();
+    other_server_ = std::move(*s);
+    client::ClientOptions co;
+    co.target = other_server_->address();
+    co.timeout_s = 60;
+    absl::StatusOr<std::unique_ptr<client::Client>> c = client::Client::Connect(co);
+    ASSERT_TRUE(c.ok()) << c.status();
+    other_ = std::move(*c);
+  }
+
+  void TearDown() override {
+    other_.reset();
+    other_server_.reset();
+    ServerTest::TearDown();
+  }
+
+  static v1::RenderResponse Render(client::Client& c, const std::string& scene, int64_t time_us) {
+    v1::RenderRequest req;
+    req.set_scene(scene);
+    req.set_time_us(time_us);
+    *req.mutable_t_world_from_ego() = client::ToPose(EgoAt(8));
+    req.mutable_outputs()->set_rgb(true);
+    req.mutable_outputs()->set_depth(true);
+    absl::StatusOr<v1::RenderResponse> r = c.Render(req);
+    EXPECT_TRUE(r.ok()) << scene << " " << r.status();
+    EXPECT_TRUE(!r.ok() || r->frames_size() == 1);
+    return r.ok() ? *r : v1::RenderResponse{};
+  }
+
+  static std::string FieldDevice(client::Client& c, const std::string& scene) {
+    absl::StatusOr<v1::Scene> s = c.GetScene(scene);
+    EXPECT_TRUE(s.ok()) << s.status();
+    return s.ok() ? s->field_device() : "";
+  }
+
+  std::unique_ptr<server::Server> other_server_;
+  std::unique_ptr<client::Client> other_;
+};
+
+// The largest difference of two RAW RGB images in 8-bit levels, and the fraction of bytes that differ.
+struct ByteDiff {
+  int max = 0;
+  double fraction = 0;
+};
+ByteDiff CompareRgb(const std::string& a, const std::string& b) {
+  EXPECT_EQ(a.size(), b.size());
+  ByteDiff d;
+  const size_t n = std::min(a.size(), b.size());
+  for (size_t i = 0; i < n; ++i) {
+    const int e = std::abs(int(uint8_t(a[i])) - int(uint8_t(b[i])));
+    d.max = std::max(d.max, e);
+    d.fraction += e > 0;
+  }
+  d.fraction /= std::max<size_t>(n, 1);
+  return d;
+}
+
+// Of two F32 depth images (metres): the largest |a - b| / (1 + |b|), and the fraction of pixels
+// where it exceeds 1e-4.
+struct DepthDiff {
+  double max = 0, fraction = 0;
+};
+DepthDiff CompareDepth(const std::string& a, const std::string& b) {
+  EXPECT_EQ(a.size(), b.size());
+  const size_t n = std::min(a.size(), b.size()) / sizeof(float);
+  std::vector<float> x(n), y(n);
+  std::memcpy(x.data(), a.data(), n * sizeof(float));
+  std::memcpy(y.data(), b.data(), n * sizeof(float));
+  DepthDiff d;
+  for (size_t i = 0; i < n; ++i) {
+    const double e = std::abs(double(x[i]) - y[i]) / (1.0 + std::abs(double(y[i])));
+    d.max = std::max(d.max, e);
+    d.fraction += e > 1e-4;
+  }
+  d.fraction /= std::max<size_t>(n, 1);
+  return d;
+}
+
+// Served renders: the Gaussians differ by float rounding (kParamTol), which moves a pixel by far
+// less than one 8-bit level (~1e-5 relative in depth), except where a Gaussian sits at one of the
+// renderer's discrete thresholds (alpha < 1/255 skipped, transmittance < 1e-4 stops): there it
+// enters or leaves the blend with alpha ~1/255, moving that pixel's colour by up to ~1 level
+// (2 with the byte rounding) and its depth by up to 1/255 of the depth contrast behind it.
+// Asserted: RGB within 2 levels with under 1 % of the bytes differing; depth within 1e-2 relative
+// with under 1 % of the pixels beyond 1e-4 (measured here: RGB max 1 level on <= 0.01 % of the
+// bytes, depth max 1.3e-5; 2.6e-3 on one pixel with the Fourier time tokens on). A field that did
+// not run, or ran at another time, changes whole regions by tens of levels and metres.
+TEST_F(FieldDeviceServerTest, ForcedVulkanServesTheCpuRendersWithinRounding) {
+  if (!HaveVulkan()) GTEST_SKIP() << "no Vulkan device";
+  StartOther(train::FieldDevice::kVulkan);
+  for (const std::string scene : {"dyn", "ext"}) {
+    ASSERT_TRUE(client_->LoadScene(scene, true).ok());
+    ASSERT_TRUE(other_->LoadScene(scene, true).ok());
+    absl::StatusOr<v1::Scene> info = other_->GetScene(scene);
+    ASSERT_TRUE(info.ok());
+    EXPECT_LT(info->num_dynamic_gaussians(), info->num_gaussians()) << scene << ": the static skip baked nothing";
+    std::string previous;
+    for (int64_t t : kTimesUs) {
+      const v1::RenderResponse vk = Render(*other_, scene, t);
+      const v1::RenderResponse cpu = Render(*client_, scene, t);
+      if (vk.frames_size() != 1 || cpu.frames_size() != 1) continue;
+      const std::string tag = scene + " t=" + std::to_string(t);
+      const ByteDiff rgb = CompareRgb(vk.frames(0).rgb().data(), cpu.frames(0).rgb().data());
+      EXPECT_LE(rgb.max, 2) << tag;
+      EXPECT_LT(rgb.fraction, 0.01) << tag;
+      const DepthDiff depth = CompareDepth(vk.frames(0).depth().data(), cpu.frames(0).depth().data());
+      EXPECT_LT(depth.max, 1e-2) << tag;
+      EXPECT_LT(depth.fraction, 0.01) << tag;
+      std::printf("%s: RGB max %d levels (%.4f %% of bytes), depth max %.2e (%.4f %% of pixels > 1e-4)\n", tag.c_str(),
+                  rgb.max, 100 * rgb.fraction, depth.max, 100 * depth.fraction);
+      EXPECT_GT(vk.frames(0).num_visible_gaussians(), 50u) << tag;
+      if (!previous.empty()) EXPECT_GT(CompareRgb(previous, vk.frames(0).rgb().data()).max, 5) << tag << ": no motion";
+      previous = vk.frames(0).rgb().data();
+    }
+    EXPECT_EQ(FieldDevice(*other_, scene), "vulkan") << scene << ": the device failed";
+    // --field-device auto with the cpu engine: the cpu.
+    EXPECT_EQ(FieldDevice(*client_, scene), "cpu") << scene;
+  }
+}
+
+// No Vulkan device for the field (STREETSIM_VK_DEVICE naming none: Vulkan's own "no such device"
+// error, as on a machine without Vulkan): a forced-vulkan server loads and serves every scene on
+// the cpu, renders equal to the cpu server's bit for bit.
+TEST_F(FieldDeviceServerTest, ForcedVulkanWithoutADeviceFallsBackToTheCpu) {
+  const char* saved = std::getenv("STREETSIM_VK_DEVICE");
+  const std::string saved_value = saved ? saved : "";
+  setenv("STREETSIM_VK_DEVICE", "no-such-device-for-this-test", 1);
+  StartOther(train::FieldDevice::kVulkan);
+  for (const std::string scene : {"dyn", "ext"}) {
+    absl::StatusOr<v1::Scene> loaded = other_->LoadScene(scene, true);
+    ASSERT_TRUE(loaded.ok()) << loaded.status();
+    EXPECT_EQ(loaded->state(), v1::SCENE_STATE_READY) << loaded->error();
+    for (int64_t t : {kTimesUs[1], kTimesUs[2]}) {
+      const v1::RenderResponse a = Render(*other_, scene, t);
+      const v1::RenderResponse b = Render(*client_, scene, t);
+      if (a.frames_size() != 1 || b.frames_size() != 1) continue;
+      EXPECT_TRUE(a.frames(0).rgb().data() == b.frames(0).rgb().data()) << scene << " t=" << t;
+    }
+    EXPECT_EQ(FieldDevice(*other_, scene), "cpu") << scene;
+  }
+  if (saved) {
+    setenv("STREETSIM_VK_DEVICE", saved_value.c_str(), 1);
+  } else {
+    unsetenv("STREETSIM_VK_DEVICE");
+  }
+}
+
+TEST(ServeFieldDeviceFlag, BadValuesExit2) {
+  const std::string dir = ScratchDir("field_device", "bad_flag");
+  for (const std::string bad : {"gpu", "VULKAN", "cpu,vulkan"}) {
+    const cli_test::Result r = cli_test::RunStreetsim("serve --listen 127.0.0.1:0 --data-root " + dir +
+                                                          " --state-dir " + dir + "/state --field-device '" + bad + "'",
+                                                      dir + "/out.txt", dir + "/err.txt");
+    EXPECT_EQ(r.code, 2) << bad << ": " << r.err;
+    EXPECT_NE(r.err.find("--field-device"), std::string::npos) << r.err;
+  }
+}
+
+}  // namespace
+}  // namespace streetsim::testing
