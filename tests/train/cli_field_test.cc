@@ -94,6 +94,7 @@ TEST(CliField, BadValuesExitTwoWithOneLine) {
            train + " --iterations 100 --field s3gaussian",     // the default 5000 static iterations
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-size huge",
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-device gpu",
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-init random",
            render + " --scene /tmp --ply /tmp/x.ply",
            render + " --ply /tmp/x.ply --time-us 5",
            render + " --scene /tmp --time-us soon",
