@@ -13,6 +13,7 @@
 #include "scene/log/open_log.h"
 #include "scene/log/scene_manifest.h"
 #include "scene/train/clip_training.h"
+#include "scene/train/dynamic_stage.h"
 #include "scene/train/train_state.h"
 #include "scene/train/trainer.h"
 
@@ -43,17 +44,12 @@ absl::StatusOr<train::FieldMode> DefaultFieldMode(const ParsedArgs& args, int64_
   const fs::path ckpt = fs::path(out_dir) / "checkpoint.bin";
   std::error_code ec;
   if (args.Has("resume") && fs::exists(ckpt, ec)) {
-    bool field_ckpt = false, ext_ckpt = false;
-    for (const fs::directory_entry& e : fs::directory_iterator(out_dir, ec)) {
-      const std::string name = e.path().filename().string();
-      if (name.rfind("checkpoint_field_", 0) != 0) continue;
-      (name.size() > 8 && name.compare(name.size() - 8, 8, "_ext.bin") == 0 ? ext_ckpt : field_ckpt) = true;
-    }
-    if (ext_ckpt) {
+    const train::FieldCheckpointsFound found = train::FindFieldCheckpoints(out_dir);
+    if (found.extended) {
       return absl::FailedPreconditionError(
           absl::StrCat(out_dir, " holds a --field extended run: resume it with --field extended and its --field-modules"));
     }
-    if (field_ckpt) return train::FieldMode::kS3Gaussian;
+    if (found.base) return train::FieldMode::kS3Gaussian;
     absl::StatusOr<int64_t> done = train::PeekCheckpointIteration(ckpt.string());
     if (!done.ok()) return done.status();
     if (*done > static_iterations) return train::FieldMode::kStatic;

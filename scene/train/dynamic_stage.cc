@@ -256,8 +256,25 @@ absl::StatusOr<double> DynamicStage::Backward(const TrainState& st, int active_d
   return dl->weighted + reg;
 }
 
+namespace {
+constexpr char kFieldCheckpointPrefix[] = "checkpoint_field_";
+bool IsFieldCheckpointName(const std::string& name) { return name.rfind(kFieldCheckpointPrefix, 0) == 0; }
+}  // namespace
+
 std::string FieldCheckpointPath(const std::string& out_dir, int64_t iteration) {
-  return (std::filesystem::path(out_dir) / absl::StrCat("checkpoint_field_", iteration, ".bin")).string();
+  return (std::filesystem::path(out_dir) / absl::StrCat(kFieldCheckpointPrefix, iteration, ".bin")).string();
+}
+
+FieldCheckpointsFound FindFieldCheckpoints(const std::string& out_dir) {
+  FieldCheckpointsFound found;
+  std::error_code ec;
+  for (const auto& e : std::filesystem::directory_iterator(out_dir, ec)) {
+    const std::string path = e.path().string();
+    if (!IsFieldCheckpointName(e.path().filename().string())) continue;
+    // ExtendedCheckpointPath's suffix.
+    (path.size() > 8 && path.compare(path.size() - 8, 8, "_ext.bin") == 0 ? found.extended : found.base) = true;
+  }
+  return found;
 }
 
 void RemoveFieldCheckpoints(const std::string& out_dir, int64_t keep_iteration) {
@@ -266,7 +283,7 @@ void RemoveFieldCheckpoints(const std::string& out_dir, int64_t keep_iteration) 
   std::vector<std::filesystem::path> doomed;
   for (const auto& e : std::filesystem::directory_iterator(out_dir, ec)) {
     const std::string name = e.path().filename().string();
-    if (name.rfind("checkpoint_field_", 0) == 0 && e.path().string() != keep &&
+    if (IsFieldCheckpointName(name) && e.path().string() != keep &&
         (keep.empty() || e.path().string() != ExtendedCheckpointPath(keep))) {
       doomed.push_back(e.path());
     }

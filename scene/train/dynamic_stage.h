@@ -148,6 +148,12 @@ std::string ExtendedCheckpointPath(const std::string& field_checkpoint_path);
 std::string FieldCheckpointPath(const std::string& out_dir, int64_t iteration);
 // Removes the directory's field checkpoints other than `keep_iteration`'s (-1: all).
 void RemoveFieldCheckpoints(const std::string& out_dir, int64_t keep_iteration);
+// Which field checkpoints a run directory holds: S3Gaussian's (checkpoint_field_N.bin) and the
+// extension's (checkpoint_field_N_ext.bin) — how the CLI tells a run's field on --resume.
+struct FieldCheckpointsFound {
+  bool base = false, extended = false;
+};
+FieldCheckpointsFound FindFieldCheckpoints(const std::string& out_dir);
 
 // The scene to render for a view: canonical (static scene) or deformed at the view's time.
 using SceneForView = std::function<absl::StatusOr<const DeviceScene*>(const View&)>;
