@@ -7,6 +7,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstring>
+#include <limits>
 #include <tuple>
 #include <vector>
 
@@ -32,6 +33,12 @@ using vkext::kOutTotal;
 namespace {
 
 constexpr uint32_t kGeom = kEncoderGeometryInputs;
+
+// One row of the encoder's geometry inputs (extended_field.cc's NetForward, in float).
+void EncoderGeometryRow(const float* a, const float* b, const ExtInputs<float>& in, size_t g, float* row) {
+  for (int k = 0; k < 3; ++k) row[k] = a[k] * in.means[g * 3 + k] + b[k];
+  internal::GeometryInputs(in.opacity_logits[g], in.log_scales + g * 3, in.rotations + g * 4, row + 3);
+}
 
 absl::Status CheckModel(const ExtModel<float>& m) {
   if (!m.base_layout || !m.base_params || !m.config || !m.layout || (m.layout->total() > 0 && !m.ext_params)) {
@@ -85,6 +92,7 @@ struct VulkanExtendedField::Impl {
   absl::Status Upload(std::span<const float> base_params, std::span<const float> ext_params);
   // Fills the staging buffer's inputs for rows [b0, b0 + bn).
   void StageInputs(const ExtPass& pass, const ExtInputs<float>& in, size_t b0, size_t bn) const;
+  void PoisonNonFiniteRows(const ExtInputs<float>& in, size_t b0, size_t bn, float* const dst[kOutputs]) const;
   // One batch [b0, b0 + bn): stage, record, submit, wait. Forward (d_out null): the outputs in
   // `flags` to the readback buffer; backward: flags = the outputs with a gradient, parameter
   // gradients accumulated on the device (zeroed first with zero_grads), dL/d(means) and
@@ -151,6 +159,23 @@ absl::Status VulkanExtendedField::Impl::Upload(std::span<const float> base_param
   return vk::UploadBytes(*ctx, ext, ext_params.data(), ext_params.size() * 4);
 }
 
+// A non-finite encoder input (position, opacity, scale, rotation) makes the cpu's whole row NaN
+// through the encoder's Linear. GPU compilers need not keep NaN through max/min/clamp (NVIDIA's
+// relu turns it into 0, seen on an H100), so the device's row would be finite garbage that looks
+// like a motion; the rule is made explicit on the host so both devices give NaN there.
+void VulkanExtendedField::Impl::PoisonNonFiniteRows(const ExtInputs<float>& in, size_t b0, size_t bn,
+                                                    float* const dst[kOutputs]) const {
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  float row[kGeom];
+  for (size_t r = 0; r < bn; ++r) {
+    EncoderGeometryRow(sampler->nm_a(), sampler->nm_b(), in, b0 + r, row);
+    if (std::all_of(row, row + kGeom, [](float v) { return std::isfinite(v); })) continue;
+    for (int o = 0; o < kOutputs; ++o) {
+      if (dst[o]) std::fill_n(dst[o] + (b0 + r) * kOutCols[o], kOutCols[o], nan);
+    }
+  }
+}
+
 void VulkanExtendedField::Impl::StageInputs(const ExtPass& pass, const ExtInputs<float>& in, size_t b0,
                                             size_t bn) const {
   float* st = static_cast<float*>(staging.mapped());
@@ -160,12 +185,7 @@ void VulkanExtendedField::Impl::StageInputs(const ExtPass& pass, const ExtInputs
     const float* a = sampler->nm_a();
     const float* b = sampler->nm_b();
     float* geom = st + st_geom;
-    for (size_t r = 0; r < bn; ++r) {
-      const size_t g = b0 + r;
-      float* row = geom + r * kGeom;
-      for (int k = 0; k < 3; ++k) row[k] = a[k] * in.means[g * 3 + k] + b[k];
-      internal::GeometryInputs(in.opacity_logits[g], in.log_scales + g * 3, in.rotations + g * 4, row + 3);
-    }
+    for (size_t r = 0; r < bn; ++r) EncoderGeometryRow(a, b, in, b0 + r, geom + r * kGeom);
   }
   if (config.vae && pass.training) {
     const int L = layout.vae.latent;
@@ -323,6 +343,7 @@ absl::StatusOr<double> VulkanExtendedField::Forward(const ExtPass& pass, const E
         std::memcpy(dst[o] + b0 * kOutCols[o], rb + size_t{m.batch} * kOutCol0[o], bn * kOutCols[o] * sizeof(float));
       }
     }
+    if (m.config.encoder) m.PoisonNonFiniteRows(in, b0, bn, dst);
     kl += m.SumKl(bn);
   }
   timings.wall_ms = MsSince(t0);
