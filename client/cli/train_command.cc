@@ -32,8 +32,8 @@ std::string Duration(double s) {
 // --field's default (issue 5: "the best measured"; docs/training.md "Default field"): S3Gaussian's
 // field when the run is longer than its static warm-up (--static-iterations, 5000), static
 // otherwise: a run too short for a fine stage gains nothing from the field. A resumed run keeps the
-// field it was trained with, read from its directory: field checkpoints mark a dynamic run; a
-// checkpoint past the warm-up without one, a static run.
+// field it was trained with, as its checkpoint.json records; in directories without one, field
+// checkpoints mark a dynamic run, and a checkpoint past the warm-up without one a static run.
 absl::StatusOr<train::FieldMode> DefaultFieldMode(const ParsedArgs& args, int64_t iterations, int static_iterations,
                                                   const std::string& out_dir) {
   if (args.Get("static-iterations")) {
@@ -44,6 +44,16 @@ absl::StatusOr<train::FieldMode> DefaultFieldMode(const ParsedArgs& args, int64_
   const fs::path ckpt = fs::path(out_dir) / "checkpoint.bin";
   std::error_code ec;
   if (args.Has("resume") && fs::exists(ckpt, ec)) {
+    if (absl::StatusOr<std::string> recorded = train::ReadCheckpointField(out_dir); recorded.ok()) {
+      if (*recorded == "extended") {
+        return absl::FailedPreconditionError(absl::StrCat(
+            out_dir, " holds a --field extended run: resume it with --field extended and its --field-modules"));
+      }
+      return train::ParseFieldMode(*recorded);
+    } else if (!absl::IsNotFound(recorded.status())) {
+      return recorded.status();
+    }
+    // Directories from before checkpoint.json: inferred from their files.
     const train::FieldCheckpointsFound found = train::FindFieldCheckpoints(out_dir);
     if (found.extended) {
       return absl::FailedPreconditionError(

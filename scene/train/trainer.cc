@@ -141,6 +141,21 @@ field::FieldTimeRange ViewsTimeRange(const std::vector<View>& a, const std::vect
 
 }  // namespace
 
+absl::StatusOr<std::string> ReadCheckpointField(const std::string& dir) {
+  const std::string path = (std::filesystem::path(dir) / kCheckpointRunFile).string();
+  std::ifstream f(path);
+  if (!f) return absl::NotFoundError(absl::StrCat("no ", path));
+  try {
+    const std::string field = nlohmann::json::parse(f).at("field").get<std::string>();
+    if (field != "static" && field != "s3gaussian" && field != "extended") {
+      return absl::DataLossError(absl::StrCat(path, ": unknown field '", field, "'"));
+    }
+    return field;
+  } catch (const std::exception& e) {
+    return absl::DataLossError(absl::StrCat(path, ": ", e.what()));
+  }
+}
+
 absl::StatusOr<SceneMeta> ReadSceneMeta(const std::string& dir) {
   SceneMeta meta;
   const std::string path = (std::filesystem::path(dir) / "train_meta.json").string();
@@ -307,7 +322,12 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     }
     if (absl::Status s = SaveCheckpoint(st, ckpt_path); !s.ok()) return s;
     RemoveFieldCheckpoints(out_dir, stage ? st.iteration : -1);
-    return absl::OkStatus();
+    // Which field wrote these checkpoints, for a resume that does not say (ReadCheckpointField).
+    nlohmann::json run;
+    run["iteration"] = st.iteration;
+    run["field"] = !dynamic ? "static" : opt.field.extended ? "extended" : "s3gaussian";
+    if (dynamic) run["static_iterations"] = static_its;
+    return WriteText((std::filesystem::path(out_dir) / kCheckpointRunFile).string(), run.dump(2) + "\n");
   };
 
   // LiDAR losses (lidar_stage.h) on every stage.

@@ -110,6 +110,12 @@ absl::StatusOr<EvalResult> EvaluateSceneDir(Engine& engine, const std::string& d
                                             const std::vector<View>& views, const Eigen::Vector3f& background,
                                             const EvalFrameSink& sink = nullptr);
 
+// DIR/checkpoint.json, written with every checkpoint: the field of the run that wrote it ("static",
+// "s3gaussian" or "extended"), so that a resume without --field keeps it. NotFound where a run
+// directory predates the file; DataLoss where it is damaged.
+inline constexpr char kCheckpointRunFile[] = "checkpoint.json";
+absl::StatusOr<std::string> ReadCheckpointField(const std::string& dir);
+
 // DIR/train_meta.json written by Train: the background colour and the resolution scale.
 struct SceneMeta {
   Eigen::Vector3f background = Eigen::Vector3f::Zero();

@@ -115,6 +115,7 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_FALSE(std::filesystem::exists(short_dir + "/field.bin"));  // 6 <= the 5000-iteration warm-up
   EXPECT_EQ(nlohmann::json::parse(Slurp(short_dir + "/train_meta.json"))["field"], "static");
+  EXPECT_EQ(nlohmann::json::parse(Slurp(short_dir + "/checkpoint.json"))["field"], "static");
 
   const std::string staged_dir = streetsim::testing::ScratchDir("streetsim_cli_field_default", "staged");
   r = RunCli("train --log " + kKitti + " --out " + staged_dir + " --iterations 10 --static-iterations 6" + common);
@@ -122,6 +123,10 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
   EXPECT_NE(r.err.find("--field s3gaussian (the default"), std::string::npos) << r.err;
   EXPECT_TRUE(std::filesystem::exists(staged_dir + "/field.bin"));
   EXPECT_EQ(nlohmann::json::parse(Slurp(staged_dir + "/train_meta.json"))["field"], "s3gaussian");
+  const nlohmann::json staged_run = nlohmann::json::parse(Slurp(staged_dir + "/checkpoint.json"));
+  EXPECT_EQ(staged_run["field"], "s3gaussian");
+  EXPECT_EQ(staged_run["iteration"], 10);
+  EXPECT_EQ(staged_run["static_iterations"], 6);
 
   // Resume without --field: the directory decides. The checkpoints here are headers only (magic +
   // iteration), so every resume then fails loading it; what is checked is the field picked first.
@@ -148,6 +153,31 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
   r = RunCli(resume);
   EXPECT_EQ(r.code, 2) << r.err;
   EXPECT_NE(r.err.find("--field extended"), std::string::npos) << r.err;
+
+  // checkpoint.json (written with every checkpoint) decides over the files: a static run stopped
+  // inside the warm-up stays static (the files alone would make it a staged run).
+  std::filesystem::remove(dir + "/checkpoint_field_6000.bin");
+  std::filesystem::remove(dir + "/checkpoint_field_6000_ext.bin");
+  header(3000);
+  auto record = [&](const std::string& text) { std::ofstream(dir + "/checkpoint.json") << text; };
+  record(R"({"iteration": 3000, "field": "static"})");
+  r = RunCli(resume);
+  EXPECT_EQ(r.err.find("--field s3gaussian (the default"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("corrupt checkpoint"), std::string::npos) << r.err;
+  record(R"({"iteration": 3000, "field": "s3gaussian", "static_iterations": 2000})");
+  r = RunCli(resume);
+  EXPECT_NE(r.err.find("--field s3gaussian (the default"), std::string::npos) << r.err;
+  record(R"({"iteration": 3000, "field": "extended"})");
+  r = RunCli(resume);
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_NE(r.err.find("--field extended"), std::string::npos) << r.err;
+  for (const char* damaged : {"{\"field\": ", R"({"field": "dynamic"})", R"({"iteration": 3})"}) {
+    record(damaged);
+    r = RunCli(resume);
+    EXPECT_EQ(r.code, 2) << damaged << ": " << r.err;
+    EXPECT_NE(r.err.find("checkpoint.json"), std::string::npos) << damaged << ": " << r.err;
+    EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << damaged << ": " << r.err;
+  }
 }
 
 }  // namespace
