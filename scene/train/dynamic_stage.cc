@@ -1,12 +1,14 @@
 #include "scene/train/dynamic_stage.h"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <filesystem>
 #include <limits>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "render/common/log.h"
 #include "render/vulkan/vulkan_engine.h"
 #include "scene/field/field_io.h"
@@ -19,17 +21,26 @@ namespace {
 
 // The base field's plane regularizers (their gradient added into d_field) and its Adam step, as
 // both the S3Gaussian and the extended stage take them; returns the regularizers' weighted loss.
+using Clock = std::chrono::steady_clock;
+double MsSince(Clock::time_point t0) {
+  return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+}
+
 double RegularizeAndStepBaseField(const field::FieldHyper& hyper, int64_t fine_iteration, double extent,
                                   ThreadPool& pool, field::DeformationField& base, std::vector<float>& d_field,
-                                  field::FieldAdamState* adam) {
+                                  field::FieldAdamState* adam, FineStageTimings* timings) {
   field::RegularizerWeights w;
   w.plane_tv = hyper.plane_tv_weight;
   w.time_smoothness = hyper.time_smoothness_weight;
   w.l1_time_planes = hyper.l1_time_planes;
+  auto t0 = Clock::now();
   const field::RegularizerLosses reg =
       field::PlaneRegularizers<float>(base.layout(), base.params().data(), w, d_field.data(), pool);
+  timings->regularizers_ms += MsSince(t0);
+  t0 = Clock::now();
   field::FieldAdamStep(base.layout(), base.mutable_params().data(), d_field.data(), adam,
                        field::FieldLearningRates(hyper, fine_iteration, extent), pool);
+  timings->adam_ms += MsSince(t0);
   return reg.weighted;
 }
 
@@ -208,6 +219,14 @@ std::shared_ptr<const field::DeformationField> DynamicStage::SceneField() const 
   return std::make_shared<const field::DeformationField>(field_);
 }
 
+std::string FineStageTimings::Summary() const {
+  const double n = static_cast<double>(std::max<int64_t>(iterations, 1));
+  return absl::StrFormat(
+      "fine stage: %d iterations, ms per iteration: field forward %.1f, field backward %.1f, plane "
+      "regularisers %.1f, field Adam %.1f, parameter upload %.1f",
+      iterations, deform_ms / n, backward_ms / n, regularizers_ms / n, adam_ms / n, upload_ms / n);
+}
+
 std::string ExtendedCheckpointPath(const std::string& field_checkpoint_path) {
   std::string p = field_checkpoint_path;
   if (p.size() >= 4 && p.compare(p.size() - 4, 4, ".bin") == 0) p.resize(p.size() - 4);
@@ -216,7 +235,15 @@ std::string ExtendedCheckpointPath(const std::string& field_checkpoint_path) {
 
 absl::StatusOr<GaussianParamsView> DynamicStage::Deform(const TrainState& st, int active_degree, int64_t time_us,
                                                         ThreadPool& pool) {
-  if (ext_) return DeformExtended(st, active_degree, time_us, pool);
+  const auto t0 = Clock::now();
+  absl::StatusOr<GaussianParamsView> view =
+      ext_ ? DeformExtended(st, active_degree, time_us, pool) : DeformBase(st, active_degree, time_us, pool);
+  timings_.deform_ms += MsSince(t0);
+  return view;
+}
+
+absl::StatusOr<GaussianParamsView> DynamicStage::DeformBase(const TrainState& st, int active_degree, int64_t time_us,
+                                                            ThreadPool& pool) {
   field::CanonicalView c{st.size(), st.params.means.data(), st.params.sh.data()};
   if (use_vulkan_ && !vk_) {  // here, after Begin/Resume/prior have set the parameters
     absl::StatusOr<std::unique_ptr<field::VulkanField>> vk = field::VulkanField::Create(field_);
@@ -235,8 +262,10 @@ absl::StatusOr<GaussianParamsView> DynamicStage::Deform(const TrainState& st, in
 
 absl::StatusOr<double> DynamicStage::Backward(const TrainState& st, int active_degree, int64_t fine_iteration,
                                               GaussianGrads* grads, ThreadPool& pool) {
+  ++timings_.iterations;
   if (ext_) return BackwardExtended(st, active_degree, fine_iteration, grads, pool);
   field::CanonicalView c{st.size(), st.params.means.data(), st.params.sh.data()};
+  auto t0 = Clock::now();
   if (deformed_.dx.size() != c.n * 3) return absl::InternalError("DynamicStage::Backward without a matching Deform");
   if (d_field_.size() == field_.layout().total) {
     std::fill(d_field_.begin(), d_field_.end(), 0.0f);
@@ -248,10 +277,13 @@ absl::StatusOr<double> DynamicStage::Backward(const TrainState& st, int active_d
                                         &vk_scratch_)
           : field::DeformBackward(field_, c, deformed_, active_degree, hyper_, pool, *ws_, grads, &d_field_);
   if (!dl.ok()) return dl.status();
+  timings_.backward_ms += MsSince(t0);
   const double reg =
-      RegularizeAndStepBaseField(hyper_, fine_iteration, st.extent, pool, field_, d_field_, &adam_);
+      RegularizeAndStepBaseField(hyper_, fine_iteration, st.extent, pool, field_, d_field_, &adam_, &timings_);
   if (vk_) {
+    t0 = Clock::now();
     if (absl::Status s = vk_->UpdateParams(field_.params()); !s.ok()) return s;
+    timings_.upload_ms += MsSince(t0);
   }
   return dl->weighted + reg;
 }
@@ -406,16 +438,22 @@ absl::StatusOr<double> DynamicStage::BackwardExtended(const TrainState& st, int 
     d_field_.clear();  // DeformBackwardExt allocates it on huge pages
   }
   std::fill(d_ext_.begin(), d_ext_.end(), 0.0f);
+  auto t0 = Clock::now();
   absl::StatusOr<field::ExtDeformLosses> dl =
       field::DeformBackwardExt(*ext_, c, ext_deformed_, active_degree, hyper_,
                                field::ExtKlBeta(ext_->config(), fine_iteration), pool, *ext_ws_, grads, &d_field_,
                                &d_ext_, ext_eval_);
   if (!dl.ok()) return dl.status();
-  const double reg = RegularizeAndStepBaseField(hyper_, fine_iteration, st.extent, pool, base, d_field_, &adam_);
+  timings_.backward_ms += MsSince(t0);
+  const double reg = RegularizeAndStepBaseField(hyper_, fine_iteration, st.extent, pool, base, d_field_, &adam_, &timings_);
+  t0 = Clock::now();
   field::ExtAdamStep(ext_->mutable_params().data(), d_ext_.data(), d_ext_.size(), &ext_adam_,
                      field::ExtNetworkLr(ext_hyper_, fine_iteration));
+  timings_.adam_ms += MsSince(t0);
   if (vk_ext_) {
+    t0 = Clock::now();
     if (absl::Status s = vk_ext_->UpdateParams(base.params(), ext_->params()); !s.ok()) return s;
+    timings_.upload_ms += MsSince(t0);
   }
   return dl->weighted + reg;
 }

@@ -76,6 +76,19 @@ struct FieldOptions {
 // box (S3Gaussian takes the LiDAR cloud's), padded 1 % (at least 1 cm) on every axis.
 field::FieldAabb AabbOfMeans(const std::vector<float>& means);
 
+// Where a fine iteration's time goes (milliseconds summed over `iterations`), printed at the end of
+// a run: on a GPU the field's own kernels are a small part of it (docs/benchmarks.md "Vulkan on a
+// GPU"); the host-side regularisers, Adam and the parameter upload are what to move next.
+struct FineStageTimings {
+  int64_t iterations = 0;
+  double deform_ms = 0;        // the field's forward for the view (and the deformed scene)
+  double backward_ms = 0;      // the field's backward, its gradients on the host
+  double regularizers_ms = 0;  // plane TV / time smoothness / time-plane L1 (host)
+  double adam_ms = 0;          // the field's Adam (host)
+  double upload_ms = 0;        // the stepped parameters back to the device (Vulkan field)
+  std::string Summary() const;  // one line, ms per iteration
+};
+
 class DynamicStage {
  public:
   // Starts the fine stage on `st`: a new field over the Gaussians' AABB and a fresh field Adam;
@@ -108,6 +121,7 @@ class DynamicStage {
   std::shared_ptr<const field::DeformationField> SceneField() const;
   // The means of the last Deform (what the camera rendered; the LiDAR step renders them too).
   const std::vector<float>& deformed_means() const { return ext_ ? ext_deformed_.means : deformed_.means; }
+  const FineStageTimings& timings() const { return timings_; }
 
  private:
   DynamicStage(field::DeformationField f, field::FieldAdamState adam, const FieldOptions& options);
@@ -120,9 +134,12 @@ class DynamicStage {
   // The Vulkan field (FieldOptions::device), created at the first Deform from field_'s
   // parameters and re-uploaded after every Adam step.
   bool use_vulkan_ = false;
+  FineStageTimings timings_;
   std::unique_ptr<field::VulkanField> vk_;
   std::vector<float> vk_scratch_;
   // --field extended (field_ is moved into ext_).
+  absl::StatusOr<GaussianParamsView> DeformBase(const TrainState& st, int active_degree, int64_t time_us,
+                                                ThreadPool& pool);
   absl::StatusOr<GaussianParamsView> DeformExtended(const TrainState& st, int active_degree, int64_t time_us,
                                                     ThreadPool& pool);
   absl::StatusOr<double> BackwardExtended(const TrainState& st, int active_degree, int64_t fine_iteration,

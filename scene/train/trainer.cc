@@ -509,6 +509,9 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
   if (absl::Status s = save_checkpoint(); !s.ok()) return s;
   result.iterations = st.iteration;
   result.gaussians = st.size();
+  if (stage && stage->timings().iterations > 0) {
+    LOG(INFO) << stage->timings().Summary();
+  }
   if (lidar_stage && lidar_stage->steps() > 0) {
     LOG(INFO) << "LiDAR step: " << lidar_stage->steps() << " steps, "
               << lidar_stage->total_ms() / lidar_stage->steps() << " ms each";

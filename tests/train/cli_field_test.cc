@@ -121,6 +121,8 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
   r = RunCli("train --log " + kKitti + " --out " + staged_dir + " --iterations 10 --static-iterations 6" + common);
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_NE(r.err.find("--field s3gaussian (the default"), std::string::npos) << r.err;
+  // Where the fine stage's time went, once at the end (docs/training.md "Fine-stage timings").
+  EXPECT_NE(r.err.find("fine stage: 4 iterations, ms per iteration: field forward"), std::string::npos) << r.err;
   EXPECT_TRUE(std::filesystem::exists(staged_dir + "/field.bin"));
   EXPECT_EQ(nlohmann::json::parse(Slurp(staged_dir + "/train_meta.json"))["field"], "s3gaussian");
   const nlohmann::json staged_run = nlohmann::json::parse(Slurp(staged_dir + "/checkpoint.json"));
