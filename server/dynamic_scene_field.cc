@@ -26,11 +26,12 @@ absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
     const field::StaticSkipOptions& options, const SceneUploader& upload, bool on_vulkan) {
   absl::StatusOr<std::unique_ptr<DynamicSceneField>> f = Begin(canonical, std::move(reflectance));
   if (!f.ok()) return f.status();
-  absl::StatusOr<field::ServingField> serving =
-      field::ServingField::Create(std::move(field), std::move(canonical), options, *(*f)->pool_);
+  // On Vulkan the static analysis runs on the device too (50 evaluations of every Gaussian).
+  const field::ServingField::Device vk = on_vulkan ? field::VulkanFieldForward() : field::ServingField::Device{};
+  absl::StatusOr<field::ServingField> serving = field::ServingField::Create(
+      std::move(field), std::move(canonical), options, *(*f)->pool_, on_vulkan ? &vk : nullptr);
   if (!serving.ok()) return serving.status();
   auto s3 = std::make_unique<field::ServingField>(std::move(*serving));
-  if (on_vulkan) field::ServeOnVulkan(*s3);
   (*f)->serving_ = std::move(s3);
   return Finish(std::move(*f), upload);
 }
@@ -40,10 +41,11 @@ absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
     const field::StaticSkipOptions& options, const SceneUploader& upload, bool on_vulkan) {
   absl::StatusOr<std::unique_ptr<DynamicSceneField>> f = Begin(canonical, std::move(reflectance));
   if (!f.ok()) return f.status();
-  absl::StatusOr<std::unique_ptr<field::ExtServingField>> serving =
-      field::ExtServingField::Create(std::move(field), std::move(canonical), options, *(*f)->pool_);
+  const field::ExtServingField::Device vk =
+      on_vulkan ? field::VulkanExtFieldForward() : field::ExtServingField::Device{};
+  absl::StatusOr<std::unique_ptr<field::ExtServingField>> serving = field::ExtServingField::Create(
+      std::move(field), std::move(canonical), options, *(*f)->pool_, on_vulkan ? &vk : nullptr);
   if (!serving.ok()) return serving.status();
-  if (on_vulkan) field::ServeOnVulkan(**serving);
   (*f)->serving_ = std::move(*serving);
   return Finish(std::move(*f), upload);
 }

@@ -61,7 +61,8 @@ void ServedScene::DeviceFailed(const absl::Status& why) {
 }
 
 absl::StatusOr<StaticAnalysis> AnalyseStatic(const DeformationField& field, const GaussianStore& g,
-                                             const StaticSkipOptions& o, ThreadPool& pool) {
+                                             const StaticSkipOptions& o, ThreadPool& pool,
+                                             const FieldDeviceForward* device) {
   if (absl::Status s = g.Validate(); !s.ok()) return s;
   if (o.num_samples < 2 || o.num_samples > 100000) {
     return absl::InvalidArgumentError(absl::StrCat("static skip: ", o.num_samples, " samples, want 2..100000"));
@@ -81,14 +82,27 @@ absl::StatusOr<StaticAnalysis> AnalyseStatic(const DeformationField& field, cons
     dsh.resize(cn * kShOutputs);
     ranges.Reset(cn, 3 + K3);  // Δx then ΔSH
     // The spatial planes do not depend on time: sampled once per chunk, not once per sample.
-    spatial.resize(cn * field.layout().feature_dim());
-    SpatialFeatures<float>(field.layout(), field.params().data(), field.QueryAtCoordinate(0),
-                           g.means.data() + c0 * 3, nullptr, cn, spatial.data(), pool);
+    if (!device) {
+      spatial.resize(cn * field.layout().feature_dim());
+      SpatialFeatures<float>(field.layout(), field.params().data(), field.QueryAtCoordinate(0),
+                             g.means.data() + c0 * 3, nullptr, cn, spatial.data(), pool);
+    }
     for (int s = 0; s < S; ++s) {
       const double coord = field.NormalisedTime(static_cast<double>(s) / (S - 1));
-      FieldForwardCached<float>(field.layout(), field.params().data(), field.QueryAtCoordinate(coord),
-                                g.means.data() + c0 * 3, nullptr, spatial.data(), cn, dx.data(), dsh.data(), pool,
-                                ws);
+      if (device) {
+        if (absl::Status st = (*device)(field, field.QueryAtCoordinate(coord),
+                                        std::span<const float>(g.means.data() + c0 * 3, cn * 3), &dx, &dsh);
+            !st.ok()) {
+          return st;
+        }
+        if (dx.size() != cn * 3 || dsh.size() != cn * kShOutputs) {
+          return absl::InternalError("static skip: the device returned the wrong number of outputs");
+        }
+      } else {
+        FieldForwardCached<float>(field.layout(), field.params().data(), field.QueryAtCoordinate(coord),
+                                  g.means.data() + c0 * 3, nullptr, spatial.data(), cn, dx.data(), dsh.data(),
+                                  pool, ws);
+      }
       ranges.Add({{dx.data(), 3, 3}, {dsh.data(), kShOutputs, K3}}, pool);
     }
     for (size_t i = 0; i < cn; ++i) {
@@ -103,7 +117,8 @@ absl::StatusOr<StaticAnalysis> AnalyseStatic(const DeformationField& field, cons
 }
 
 absl::StatusOr<ServingField> ServingField::Create(DeformationField field, GaussianStore canonical,
-                                                  const StaticSkipOptions& options, ThreadPool& pool) {
+                                                  const StaticSkipOptions& options, ThreadPool& pool,
+                                                  const Device* device) {
   if (canonical.size() > std::numeric_limits<uint32_t>::max()) {
     return absl::InvalidArgumentError("ServingField: more than 2^32 Gaussians");
   }
@@ -111,8 +126,16 @@ absl::StatusOr<ServingField> ServingField::Create(DeformationField field, Gaussi
   const size_t n = canonical.size();
   const int K3 = canonical.sh_coeffs() * 3;
   sf.baked_ = canonical;
+  bool device_ok = device != nullptr;
   if (options.enabled) {
-    absl::StatusOr<StaticAnalysis> a = AnalyseStatic(field, canonical, options, pool);
+    absl::StatusOr<StaticAnalysis> a =
+        AnalyseStatic(field, canonical, options, pool, device ? &device->forward : nullptr);
+    if (!a.ok() && device) {
+      sf.device_ = device->name;
+      sf.DeviceFailed(a.status());
+      device_ok = false;
+      a = AnalyseStatic(field, canonical, options, pool);
+    }
     if (!a.ok()) return a.status();
     sf.dynamic_rows_ = std::move(a->dynamic_rows);
     std::vector<uint8_t> dynamic(n, 0);
@@ -131,7 +154,7 @@ absl::StatusOr<ServingField> ServingField::Create(DeformationField field, Gaussi
   if (options.spatial_order) sf.dynamic_rows_ = SpatialOrder(field.aabb(), canonical.means.data(), sf.dynamic_rows_.size(),
                                   sf.dynamic_rows_.data(), pool);
   sf.cache_spatial_ = options.cache_spatial_features;
-  if (options.cache_spatial_features) {
+  if (options.cache_spatial_features && !device_ok) {  // on a device: built only if it fails later
     sf.spatial_.resize(sf.dynamic_rows_.size() * field.layout().feature_dim());
     SpatialFeatures<float>(field.layout(), field.params().data(), field.QueryAtCoordinate(0), canonical.means.data(),
                            sf.dynamic_rows_.data(), sf.dynamic_rows_.size(), sf.spatial_.data(), pool);
@@ -139,6 +162,7 @@ absl::StatusOr<ServingField> ServingField::Create(DeformationField field, Gaussi
   sf.field_ = std::move(field);
   sf.canonical_ = std::move(canonical);
   sf.current_ = sf.baked_;
+  if (device_ok) sf.SetDevice(device->name, device->forward);
   return sf;
 }
 

@@ -78,8 +78,19 @@ class DeltaRanges {
 // motion_threshold_m and each of the next `sh_values` channels (ΔSH) varies by less than sh_threshold.
 bool MotionAndColourStatic(const DeltaRanges& r, size_t row, int sh_values, const StaticSkipOptions& o);
 
+// S3Gaussian's field evaluated on a device for ServingField (scene/field/vulkan/vulkan_serving.h):
+// Δx (*dx, n * 3) and ΔSH (*dsh, n * 48; null: not wanted) of the compact `means` (n * 3) at
+// `query`, as FieldForward<float>. `field` is the serving field's own (the device may upload its
+// parameters on the first call).
+using FieldDeviceForward = std::function<absl::Status(const DeformationField& field, const FieldQuery& query,
+                                                      std::span<const float> means, std::vector<float>* dx,
+                                                      std::vector<float>* dsh)>;
+
+// `device` (optional): each sample's evaluation through it instead of the cpu (the same rows and
+// query; an error of the device is returned, the caller decides whether to retry on the cpu).
 absl::StatusOr<StaticAnalysis> AnalyseStatic(const DeformationField& field, const GaussianStore& canonical,
-                                             const StaticSkipOptions& options, ThreadPool& pool);
+                                             const StaticSkipOptions& options, ThreadPool& pool,
+                                             const FieldDeviceForward* device = nullptr);
 
 // A scene deformed at the requested time, evaluated once per time coordinate: what the server
 // renders from (ServingField below; the extended field's ExtServingField, extended_serving.h).
@@ -108,18 +119,18 @@ class ServedScene {
   std::string device_ = "cpu";
 };
 
-// S3Gaussian's field evaluated on a device for ServingField (scene/field/vulkan/vulkan_serving.h):
-// Δx (*dx, n * 3) and ΔSH (*dsh, n * 48; null: not wanted) of the compact `means` (n * 3) at
-// `query`, as FieldForward<float>. `field` is the serving field's own (the device may upload its
-// parameters on the first call).
-using FieldDeviceForward = std::function<absl::Status(const DeformationField& field, const FieldQuery& query,
-                                                      std::span<const float> means, std::vector<float>* dx,
-                                                      std::vector<float>* dsh)>;
-
 class ServingField : public ServedScene {
  public:
+  // With `device` (a name and its forward, e.g. vulkan_serving.h's VulkanFieldForward): the static
+  // analysis and then every timestamp are evaluated there; if the device fails during the analysis
+  // the scene moves to the cpu (DeviceFailed) and the analysis is redone there.
+  struct Device {
+    std::string name;
+    FieldDeviceForward forward;
+  };
   static absl::StatusOr<ServingField> Create(DeformationField field, GaussianStore canonical,
-                                             const StaticSkipOptions& options, ThreadPool& pool);
+                                             const StaticSkipOptions& options, ThreadPool& pool,
+                                             const Device* device = nullptr);
 
   absl::StatusOr<const GaussianStore*> At(int64_t time_us, ThreadPool& pool) override;
 

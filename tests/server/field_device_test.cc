@@ -92,32 +92,51 @@ field::VulkanFieldOptions Lavapipe() {
   return o;
 }
 
-// Both serving fields side by side, cpu and Vulkan, over kTimesUs.
+// A device hook that counts its calls.
+template <typename Device>
+Device Counted(Device d, std::shared_ptr<int> calls) {
+  d.forward = [f = std::move(d.forward), calls](const auto&... args) {
+    ++*calls;
+    return f(args...);
+  };
+  return d;
+}
+
+// Both serving fields side by side, cpu and Vulkan, over kTimesUs. make(options, pool, device):
+// device null for the cpu one; the Vulkan one gets its hook at creation (the static analysis runs
+// on the device: counted) or, with `late`, after it (ServeOnVulkan).
 template <typename Make>
 void CompareCpuAndVulkan(const Make& make, const std::string& name, bool expect_static = true) {
   ThreadPool pool(0);
   for (bool skip : {true, false}) {
-    field::StaticSkipOptions o;
-    o.enabled = skip;
-    auto cpu = make(o, pool);
-    auto vk = make(o, pool);
-    field::ServeOnVulkan(*vk, Lavapipe());
-    const std::string tag = name + (skip ? " skip" : " no-skip");
-    if (skip && expect_static) {
-      EXPECT_GT(vk->size() - vk->num_dynamic(), 0u) << tag << ": nothing static, the skip is not tested";
+    for (bool late : {false, true}) {
+      field::StaticSkipOptions o;
+      o.enabled = skip;
+      auto cpu = make(o, pool, nullptr);
+      auto calls = std::make_shared<int>(0);
+      auto vk = late ? make(o, pool, nullptr) : make(o, pool, &calls);
+      if (late) field::ServeOnVulkan(*vk, Lavapipe());
+      const std::string tag = name + (skip ? " skip" : " no-skip") + (late ? " late" : "");
+      if (skip && !late) {
+        EXPECT_GE(*calls, 2) << tag << ": the static analysis did not run on the device";
+      }
+      EXPECT_EQ(vk->num_dynamic(), cpu->num_dynamic()) << tag;
+      if (skip && expect_static) {
+        EXPECT_GT(vk->size() - vk->num_dynamic(), 0u) << tag << ": nothing static, the skip is not tested";
+      }
+      EXPECT_GT(vk->num_dynamic(), 0u) << tag;
+      GaussianStore first;
+      for (int64_t t : kTimesUs) {
+        absl::StatusOr<const GaussianStore*> a = vk->At(t, pool);
+        absl::StatusOr<const GaussianStore*> b = cpu->At(t, pool);
+        ASSERT_TRUE(a.ok() && b.ok()) << tag << " " << a.status() << " " << b.status();
+        EXPECT_EQ(vk->device(), field::kVulkanServingDevice) << tag << ": the device failed";
+        ExpectStoresClose(**a, **b, tag + " t=" + std::to_string(t));
+        if (t == kTimesUs[0]) first = **a;
+      }
+      EXPECT_EQ(vk->field_evaluations(), cpu->field_evaluations()) << tag;
+      EXPECT_NE(first.means, (*vk->At(kTimesUs[2], pool))->means) << tag << ": the field does not move";
     }
-    EXPECT_GT(vk->num_dynamic(), 0u) << tag;
-    GaussianStore first;
-    for (int64_t t : kTimesUs) {
-      absl::StatusOr<const GaussianStore*> a = vk->At(t, pool);
-      absl::StatusOr<const GaussianStore*> b = cpu->At(t, pool);
-      ASSERT_TRUE(a.ok() && b.ok()) << tag << " " << a.status() << " " << b.status();
-      EXPECT_EQ(vk->device(), field::kVulkanServingDevice) << tag << ": the device failed";
-      ExpectStoresClose(**a, **b, tag + " t=" + std::to_string(t));
-      if (t == kTimesUs[0]) first = **a;
-    }
-    EXPECT_EQ(vk->field_evaluations(), cpu->field_evaluations()) << tag;
-    EXPECT_NE(first.means, (*vk->At(kTimesUs[2], pool))->means) << tag << ": the field does not move";
   }
 }
 
@@ -126,8 +145,10 @@ TEST(ServedFieldOnVulkan, S3GaussianEqualsTheCpuWithAndWithoutTheSkip) {
   const GaussianStore g = Street(1, 3000);
   const field::DeformationField f = PartlyStaticField(g);
   CompareCpuAndVulkan(
-      [&](const field::StaticSkipOptions& o, ThreadPool& pool) {
-        absl::StatusOr<field::ServingField> sf = field::ServingField::Create(f, g, o, pool);
+      [&](const field::StaticSkipOptions& o, ThreadPool& pool, std::shared_ptr<int>* calls) {
+        const field::ServingField::Device d =
+            calls ? Counted(field::VulkanFieldForward(Lavapipe()), *calls) : field::ServingField::Device{};
+        absl::StatusOr<field::ServingField> sf = field::ServingField::Create(f, g, o, pool, calls ? &d : nullptr);
         EXPECT_TRUE(sf.ok()) << sf.status();
         return std::make_unique<field::ServingField>(std::move(*sf));
       },
@@ -148,8 +169,11 @@ TEST(ServedFieldOnVulkan, ExtendedEqualsTheCpuWithAndWithoutTheSkip) {
     const field::ExtendedField f =
         MovingExtension(PartlyStaticField(g), 3, temporal ? field::ExtendedFieldConfig::AllOn() : NoFourierTime());
     CompareCpuAndVulkan(
-        [&](const field::StaticSkipOptions& o, ThreadPool& pool) {
-          absl::StatusOr<std::unique_ptr<field::ExtServingField>> sf = field::ExtServingField::Create(f, g, o, pool);
+        [&](const field::StaticSkipOptions& o, ThreadPool& pool, std::shared_ptr<int>* calls) {
+          const field::ExtServingField::Device d =
+              calls ? Counted(field::VulkanExtFieldForward(Lavapipe()), *calls) : field::ExtServingField::Device{};
+          absl::StatusOr<std::unique_ptr<field::ExtServingField>> sf =
+              field::ExtServingField::Create(f, g, o, pool, calls ? &d : nullptr);
           EXPECT_TRUE(sf.ok()) << sf.status();
           return std::move(*sf);
         },
@@ -190,6 +214,25 @@ TEST(ServedFieldOnVulkan, ADeviceThatFailsFallsBackToTheCpu) {
     }
     EXPECT_EQ(*calls, good_calls + 1) << "the failed device was called again";
     EXPECT_EQ(dev->device(), "cpu");
+  }
+  // A device that fails during the static analysis: the analysis is redone on the cpu and the
+  // scene stays there, bit for bit the cpu's.
+  {
+    auto calls = std::make_shared<int>(0);
+    const field::ServingField::Device failing{
+        "test-device", [calls](const field::DeformationField&, const field::FieldQuery&, std::span<const float>,
+                               std::vector<float>*, std::vector<float>*) {
+          ++*calls;
+          return absl::UnavailableError("device lost (simulated)");
+        }};
+    absl::StatusOr<field::ServingField> cpu = field::ServingField::Create(f, g, {}, pool);
+    absl::StatusOr<field::ServingField> dev = field::ServingField::Create(f, g, {}, pool, &failing);
+    ASSERT_TRUE(cpu.ok() && dev.ok()) << dev.status();
+    EXPECT_EQ(*calls, 1);
+    EXPECT_EQ(dev->device(), "cpu");
+    EXPECT_EQ(dev->num_dynamic(), cpu->num_dynamic());
+    for (int64_t t : kTimesUs) ExpectStoresEqual(**dev->At(t, pool), **cpu->At(t, pool), "analysis failure");
+    EXPECT_EQ(*calls, 1) << "the failed device was called again";
   }
   // The extended field's hook the same way (failing at once).
   const field::ExtendedField ext = MovingExtension(f, 4);

@@ -31,7 +31,7 @@ void ExtCompactInputs::Gather(const GaussianStore& g, const uint32_t* rows, size
 
 absl::StatusOr<std::unique_ptr<ExtServingField>> ExtServingField::Create(ExtendedField field, GaussianStore canonical,
                                                                          const StaticSkipOptions& o,
-                                                                         ThreadPool& pool) {
+                                                                         ThreadPool& pool, const Device* device) {
   if (absl::Status s = canonical.Validate(); !s.ok()) return s;
   if (canonical.sh_degree != 3) {
     return absl::InvalidArgumentError(
@@ -44,6 +44,7 @@ absl::StatusOr<std::unique_ptr<ExtServingField>> ExtServingField::Create(Extende
     return absl::InvalidArgumentError(absl::StrCat("static skip: ", o.num_samples, " samples, want 2..100000"));
   }
   std::unique_ptr<ExtServingField> sf(new ExtServingField(std::move(field)));
+  if (device) sf->SetDevice(device->name, device->forward);
   sf->canonical_ = std::move(canonical);
   sf->baked_ = sf->canonical_;
   const size_t n = sf->canonical_.size();
@@ -102,7 +103,7 @@ absl::Status ExtServingField::Analyse(const StaticSkipOptions& o, ThreadPool& po
       pass.time_coord = field_.base().NormalisedTime(static_cast<double>(s) / (S - 1));
       const ExtOutputs<float> out{dx.data(), dsh.data(), dec ? dscale.data() : nullptr, dec ? drot.data() : nullptr,
                                   dec ? dop.data() : nullptr};
-      absl::StatusOr<double> kl = ExtendedForward<float>(ModelOf(field_), pass, in.view(), out, pool, *ws_);
+      absl::StatusOr<double> kl = Evaluate(pass, in.view(), out, pool);
       if (!kl.ok()) return kl.status();
       if (dec) {
         ranges.Add({{dx.data(), 3, 3},
@@ -137,6 +138,17 @@ absl::Status ExtServingField::Analyse(const StaticSkipOptions& o, ThreadPool& po
   return absl::OkStatus();
 }
 
+absl::StatusOr<double> ExtServingField::Evaluate(const ExtPass& pass, const ExtInputs<float>& in,
+                                                 const ExtOutputs<float>& out, ThreadPool& pool) {
+  if (device_forward_) {
+    absl::StatusOr<double> kl = device_forward_(field_, pass, in, out);
+    if (kl.ok()) return kl;
+    DeviceFailed(kl.status());
+    device_forward_ = nullptr;
+  }
+  return ExtendedForward<float>(ModelOf(field_), pass, in, out, pool, *ws_);
+}
+
 void ExtServingField::SetDevice(std::string device, ExtDeviceForward forward) {
   device_ = std::move(device);
   device_forward_ = std::move(forward);
@@ -157,19 +169,8 @@ absl::StatusOr<const GaussianStore*> ExtServingField::At(int64_t time_us, Thread
     pass.time_coord = coord;
     const ExtOutputs<float> out{dx_.data(), dsh_.data(), dec ? dscale_.data() : nullptr,
                                 dec ? drot_.data() : nullptr, dec ? dopacity_.data() : nullptr};
-    bool done = false;
-    if (device_forward_) {
-      absl::StatusOr<double> kl = device_forward_(field_, pass, inputs_.view(), out);
-      done = kl.ok();
-      if (!done) {
-        DeviceFailed(kl.status());
-        device_forward_ = nullptr;
-      }
-    }
-    if (!done) {
-      absl::StatusOr<double> kl = ExtendedForward<float>(ModelOf(field_), pass, inputs_.view(), out, pool, *ws_);
-      if (!kl.ok()) return kl.status();
-    }
+    absl::StatusOr<double> kl = Evaluate(pass, inputs_.view(), out, pool);
+    if (!kl.ok()) return kl.status();
   }
   ++evaluations_;
   const GaussianStore& c = canonical_;

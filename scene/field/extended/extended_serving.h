@@ -41,8 +41,16 @@ class ExtServingField : public ServedScene {
  public:
   // `canonical` must have SH degree 3. With options.enabled false every Gaussian is evaluated at
   // every timestamp (then At equals ExtDeformedStore up to float rounding: other row batches).
+  // With `device` (vulkan_serving.h's VulkanExtFieldForward): the static analysis and then every
+  // timestamp are evaluated there; a device failure during the analysis moves the scene to the cpu
+  // (DeviceFailed), which finishes the analysis.
+  struct Device {
+    std::string name;
+    ExtDeviceForward forward;
+  };
   static absl::StatusOr<std::unique_ptr<ExtServingField>> Create(ExtendedField field, GaussianStore canonical,
-                                                                 const StaticSkipOptions& options, ThreadPool& pool);
+                                                                 const StaticSkipOptions& options, ThreadPool& pool,
+                                                                 const Device* device = nullptr);
 
   absl::StatusOr<const GaussianStore*> At(int64_t time_us, ThreadPool& pool) override;
   size_t size() const override { return baked_.size(); }
@@ -52,13 +60,16 @@ class ExtServingField : public ServedScene {
   const ExtendedField& extended() const { return field_; }
 
   // Evaluates the dynamic Gaussians with `forward` on `device` from the next At on (the static
-  // ones keep their baked values; the static analysis stays on the cpu); a failing call falls
-  // back to the cpu for good (DeviceFailed).
+  // ones keep their baked values; an analysis already done stays as it is: pass the device to
+  // Create to have it run there too); a failing call falls back to the cpu for good (DeviceFailed).
   void SetDevice(std::string device, ExtDeviceForward forward);
 
  private:
   explicit ExtServingField(ExtendedField field) : field_(std::move(field)) {}
   absl::Status Analyse(const StaticSkipOptions& o, ThreadPool& pool);
+  // One evaluation of the analysis or of At: on the device while it works, else the cpu.
+  absl::StatusOr<double> Evaluate(const ExtPass& pass, const ExtInputs<float>& in, const ExtOutputs<float>& out,
+                                  ThreadPool& pool);
 
   ExtendedField field_;
   GaussianStore canonical_;

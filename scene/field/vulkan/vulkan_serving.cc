@@ -27,25 +27,34 @@ absl::Status EnsureCreated(const LazyDevice<DeviceField>& device, const Source& 
 
 }  // namespace
 
-void ServeOnVulkan(ServingField& scene, const VulkanFieldOptions& options) {
+ServingField::Device VulkanFieldForward(const VulkanFieldOptions& options) {
   auto device = std::make_shared<std::unique_ptr<VulkanField>>();
-  scene.SetDevice(kVulkanServingDevice,
-                  [device, options](const DeformationField& field, const FieldQuery& query,
-                                    std::span<const float> means, std::vector<float>* dx,
-                                    std::vector<float>* dsh) -> absl::Status {
-                    if (absl::Status s = EnsureCreated(device, field, options); !s.ok()) return s;
-                    return (*device)->Forward(query, means, dx, dsh);
-                  });
+  return {kVulkanServingDevice,
+          [device, options](const DeformationField& field, const FieldQuery& query, std::span<const float> means,
+                            std::vector<float>* dx, std::vector<float>* dsh) -> absl::Status {
+            if (absl::Status s = EnsureCreated(device, field, options); !s.ok()) return s;
+            return (*device)->Forward(query, means, dx, dsh);
+          }};
+}
+
+ExtServingField::Device VulkanExtFieldForward(const VulkanFieldOptions& options) {
+  auto device = std::make_shared<std::unique_ptr<VulkanExtendedField>>();
+  return {kVulkanServingDevice,
+          [device, options](const ExtendedField& field, const ExtPass& pass, const ExtInputs<float>& in,
+                            const ExtOutputs<float>& out) -> absl::StatusOr<double> {
+            if (absl::Status s = EnsureCreated(device, field, options); !s.ok()) return s;
+            return (*device)->Forward(pass, in, out);
+          }};
+}
+
+void ServeOnVulkan(ServingField& scene, const VulkanFieldOptions& options) {
+  ServingField::Device d = VulkanFieldForward(options);
+  scene.SetDevice(std::move(d.name), std::move(d.forward));
 }
 
 void ServeOnVulkan(ExtServingField& scene, const VulkanFieldOptions& options) {
-  auto device = std::make_shared<std::unique_ptr<VulkanExtendedField>>();
-  scene.SetDevice(kVulkanServingDevice,
-                  [device, options](const ExtendedField& field, const ExtPass& pass, const ExtInputs<float>& in,
-                                    const ExtOutputs<float>& out) -> absl::StatusOr<double> {
-                    if (absl::Status s = EnsureCreated(device, field, options); !s.ok()) return s;
-                    return (*device)->Forward(pass, in, out);
-                  });
+  ExtServingField::Device d = VulkanExtFieldForward(options);
+  scene.SetDevice(std::move(d.name), std::move(d.forward));
 }
 
 }  // namespace streetsim::field

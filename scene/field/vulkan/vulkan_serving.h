@@ -17,7 +17,12 @@ namespace streetsim::field {
 
 inline constexpr char kVulkanServingDevice[] = "vulkan";  // ServedScene::device() while on Vulkan
 
-// VulkanFieldOptions::device picks the device (kGpu: a GPU, else lavapipe).
+// The device hooks, for ServingField::Create / ExtServingField::Create (the static analysis runs
+// there too). VulkanFieldOptions::device picks the device (kGpu: a GPU, else lavapipe).
+ServingField::Device VulkanFieldForward(const VulkanFieldOptions& options = {});
+ExtServingField::Device VulkanExtFieldForward(const VulkanFieldOptions& options = {});
+
+// The same hooks on a scene already created (its analysis stays as it was made).
 void ServeOnVulkan(ServingField& scene, const VulkanFieldOptions& options = {});
 void ServeOnVulkan(ExtServingField& scene, const VulkanFieldOptions& options = {});
 
