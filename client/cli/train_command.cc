@@ -2,6 +2,8 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <atomic>
+#include <csignal>
 #include <cstdio>
 #include <filesystem>
 
@@ -65,6 +67,36 @@ absl::StatusOr<train::FieldMode> DefaultFieldMode(const ParsedArgs& args, int64_
     if (*done > static_iterations) return train::FieldMode::kStatic;
   }
   return iterations > static_iterations ? train::FieldMode::kS3Gaussian : train::FieldMode::kStatic;
+}
+
+}  // namespace
+
+namespace {
+
+// SIGINT / SIGTERM: the first stops the run after the iteration in progress with a checkpoint
+// (a long fine stage loses nothing); a second one kills at once (the default action).
+std::atomic<bool> g_stop_requested{false};
+volatile std::sig_atomic_t g_stop_signal = 0;
+
+void OnStopSignal(int sig) {
+  if (g_stop_signal != 0) {
+    std::signal(sig, SIG_DFL);
+    std::raise(sig);
+    return;
+  }
+  g_stop_signal = sig;
+  g_stop_requested.store(true);
+  static const char kMsg[] =
+      "\nstreetsim train: stopping after this iteration with a checkpoint (again to kill now)\n";
+  [[maybe_unused]] const ssize_t n = write(STDERR_FILENO, kMsg, sizeof(kMsg) - 1);
+}
+
+void InstallStopHandlers() {
+  struct sigaction sa = {};
+  sa.sa_handler = OnStopSignal;
+  sigemptyset(&sa.sa_mask);
+  sigaction(SIGINT, &sa, nullptr);
+  sigaction(SIGTERM, &sa, nullptr);
 }
 
 }  // namespace
@@ -231,11 +263,16 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
                  tty ? "" : "\n");
     std::fflush(stderr);
   };
+  opt.stop_requested = &g_stop_requested;
+  InstallStopHandlers();
   absl::StatusOr<train::ClipTrainResult> clips = train::TrainClips(*log, *out, opt, clip_opt, progress);
   if (tty) std::fprintf(stderr, "\n");
   absl::StatusOr<train::TrainResult> r =
       !clips.ok() ? absl::StatusOr<train::TrainResult>(clips.status())
                   : clips->runs.empty() ? train::TrainResult{} : clips->runs.back().result;
+  if (!r.ok() && absl::IsCancelled(r.status()) && g_stop_signal != 0) {
+    return Fail(128 + g_stop_signal, r.status());  // 130 for SIGINT, 143 for SIGTERM, as a killed run
+  }
   if (!r.ok()) {
     const absl::StatusCode c = r.status().code();
     return Fail(c == absl::StatusCode::kInvalidArgument || c == absl::StatusCode::kNotFound ||

@@ -497,6 +497,14 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     if (opt.checkpoint_every > 0 && it % opt.checkpoint_every == 0) {
       if (absl::Status s = save_checkpoint(); !s.ok()) return s;
     }
+    if (opt.stop_requested != nullptr && opt.stop_requested->load(std::memory_order_relaxed)) {
+      if (absl::Status s = save_checkpoint(); !s.ok()) return s;
+      if (stage && stage->timings().iterations > 0) {
+        LOG(INFO) << stage->timings().Summary();
+      }
+      return absl::CancelledError(absl::StrCat("stopped at iteration ", it, " of ", opt.iterations,
+                                               ", checkpoint written: --resume continues from it"));
+    }
     if (opt.stop_after > 0 && it >= opt.stop_after) {
       result.iterations = it;
       result.gaussians = st.size();

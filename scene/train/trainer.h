@@ -4,6 +4,7 @@
 // only through render/engine.h (Render with keep_for_backward, RenderBackward, UpdateScene).
 #pragma once
 
+#include <atomic>
 #include <functional>
 #include <string>
 #include <vector>
@@ -31,6 +32,9 @@ struct TrainOptions {
   bool deterministic = false;  // fixed-order gradient reduction (identical bits run to run)
   bool write_outputs = true;   // scene.ply, plot, previews at the end
   int stop_after = 0;          // > 0: stop (as if killed) after this iteration, without final outputs
+  // Set from outside (the CLI's SIGINT / SIGTERM handler): the run stops after the iteration in
+  // progress, writes its checkpoint and returns Cancelled (--resume continues from there).
+  const std::atomic<bool>* stop_requested = nullptr;
   Backend backend = Backend::kCpu;
   Hyper hyper;
   double init_voxel_m = 0.15;  // LiDAR init voxel

@@ -81,3 +81,44 @@ TEST(CliTrain, BadArgumentsExitTwoWithOneLine) {
 }
 
 }  // namespace
+
+namespace {
+
+// `streetsim ARGS` started in the background; once its progress shows, signal `sig`; the exit
+// code and stderr.
+Result RunAndSignal(const std::string& args, const char* sig, const std::string& scratch) {
+  const std::string err = scratch + "/err.txt", code = scratch + "/code.txt", script = scratch + "/run.sh";
+  std::ofstream(script) << kBinary << " " << args << " >/dev/null 2>" << err << " & p=$!\n"
+                        << "for i in $(seq 600); do grep -q 'it/s' " << err << " && break; sleep 0.05; done\n"
+                        << "kill -" << sig << " $p; wait $p; echo $? >" << code << "\n";
+  EXPECT_EQ(std::system(("bash " + script).c_str()), 0);
+  std::ifstream c(code), e(err);
+  int rc = -1;
+  c >> rc;
+  std::stringstream s;
+  s << e.rdbuf();
+  return Result{rc, "", s.str()};
+}
+
+}  // namespace
+
+// Ctrl-C (or the job runner's SIGTERM) stops a run after the iteration in progress with a
+// checkpoint, exit 128 + signal, one line saying where; --resume continues from that iteration.
+TEST(CliTrain, ASignalStopsWithACheckpointThatResumes) {
+  for (const char* sig : {"INT", "TERM"}) {
+    const std::string dir = streetsim::testing::ScratchDir("streetsim_cli_train_signal", sig);
+    const std::string common = " --log " + kKitti + " --out " + dir +
+                               " --resolution-scale 0.12 --holdout-every 10 --voxel 0.5 --no-lidar-loss --field static";
+    const Result r = RunAndSignal("train --iterations 1000000" + common, sig, dir);
+    EXPECT_EQ(r.code, std::string(sig) == "INT" ? 130 : 143) << r.err;
+    EXPECT_NE(r.err.find("checkpoint written: --resume continues from it"), std::string::npos) << r.err;
+    const nlohmann::json run = nlohmann::json::parse(std::ifstream(dir + "/checkpoint.json"));
+    const int64_t stopped_at = run["iteration"].get<int64_t>();
+    EXPECT_GE(stopped_at, 1);
+    EXPECT_LT(stopped_at, 1000000);
+    const Result resumed = RunCli("train --iterations " + std::to_string(stopped_at + 2) + " --resume" + common);
+    EXPECT_EQ(resumed.code, 0) << resumed.err;
+    EXPECT_NE(resumed.err.find("at iteration " + std::to_string(stopped_at)), std::string::npos) << resumed.err;
+    EXPECT_TRUE(std::filesystem::exists(dir + "/scene.ply"));
+  }
+}
