@@ -1,4 +1,5 @@
 // The streetsim command-line tool.
+#include <algorithm>
 #include <cstdio>
 #include <cstring>
 #include <string>
@@ -8,8 +9,7 @@
 
 namespace {
 
-void PrintUsage(FILE* out) {
-  std::fprintf(out,
+constexpr char kUsage[] =
                "usage: streetsim <command> [flags]\n"
                "\n"
                "commands:\n"
@@ -36,14 +36,37 @@ void PrintUsage(FILE* out) {
                "  replay    scripted replay through a server: streetsim replay SCENARIO.json\n"
                "  train     scene training (docs/training.md): streetsim train --log PATH --out DIR\n"
                "              [--iterations N] [--resolution-scale S] [--holdout-every K] [--seed K] [--resume]\n"
-               "              [--checkpoint-every N] [--no-sky] [--exposure] [--no-depth] [--deterministic]\n"
+               "              [--checkpoint-every N] [--no-sky] [--exposure] [--no-depth] [--deterministic] [--voxel M]\n"
                "              [--lidar-weight W] [--lidar-every K] [--no-lidar-loss] [--backend cpu|vulkan|auto]\n"
                "              [--field static|s3gaussian|extended] [--static-iterations N] [--field-modules LIST]\n"
-               "              [--field-device auto|cpu|vulkan] [--field-init zero-heads|spec] [--clip-frames N]\n"
+               "              [--field-device auto|cpu|vulkan] [--field-init zero-heads|spec] [--field-size spec|small]\n"
+               "              [--clip-frames N]   (SIGINT / SIGTERM: stop with a checkpoint, exit 130 / 143)\n"
                "              (default field: s3gaussian when --iterations > the 5000-iteration warm-up, else static)\n"
                "  eval      metrics of a trained scene: streetsim eval --scene DIR --log PATH [--split test|train] [--no-lidar]\n"
                "              [--decomposition DIR] [--video OUT.avi|OUT.mp4] [--video-fps F]\n"
-               "              [--holdout-every K]   (JSON on stdout, a table on stderr)\n");
+               "              [--holdout-every K]   (JSON on stdout, a table on stderr)\n"
+               "\n"
+               "streetsim <command> --help: that command's part of this text.\n";
+
+void PrintUsage(FILE* out) { std::fputs(kUsage, out); }
+
+// `command`'s block of kUsage: its line and the indented lines that follow it.
+std::string CommandUsage(const std::string& command) {
+  const std::string text = kUsage, head = "  " + command + " ";
+  std::string out;
+  bool in = false;
+  for (size_t b = 0; b < text.size();) {
+    const size_t e = std::min(text.find('\n', b), text.size());
+    const std::string line = text.substr(b, e - b);
+    if (line.rfind(head, 0) == 0) {
+      in = true;
+    } else if (in && (line.size() < 3 || line[2] != ' ')) {
+      break;
+    }
+    if (in) out += line + "\n";
+    b = e + 1;
+  }
+  return out;
 }
 
 }  // namespace
@@ -56,6 +79,13 @@ int main(int argc, char** argv) {
   }
   const std::string command = argv[1];
   const std::vector<std::string> args(argv + 2, argv + argc);
+  for (const std::string& a : args) {
+    if (a != "--help" && a != "-h") continue;
+    const std::string usage = CommandUsage(command);
+    if (usage.empty()) break;  // an unknown command: said below
+    std::fputs(usage.c_str(), stdout);
+    return 0;
+  }
   if (command == "render") return streetsim::RunRenderCommand(args);
   if (command == "ply-info") return streetsim::RunPlyInfoCommand(args);
   if (command == "devices") return streetsim::RunDevicesCommand(args);

@@ -122,3 +122,19 @@ TEST(CliTrain, ASignalStopsWithACheckpointThatResumes) {
     EXPECT_TRUE(std::filesystem::exists(dir + "/scene.ply"));
   }
 }
+
+// Every command's --help / -h: its part of the usage, on stdout, exit 0 (also after other flags).
+TEST(CliTrain, CommandHelpPrintsThatCommandsUsage) {
+  for (const auto& [args, expect] : std::vector<std::pair<std::string, std::string>>{
+           {"train --help", "streetsim train --log PATH --out DIR"},
+           {"train --log x -h", "--field-device auto|cpu|vulkan"},
+           {"eval -h", "streetsim eval --scene DIR --log PATH"},
+           {"serve --help", "streetsim serve"},
+           {"log info --help", "streetsim log poses PATH"}}) {
+    const Result r = RunCli(args);
+    EXPECT_EQ(r.code, 0) << args << ": " << r.err;
+    EXPECT_NE(r.out.find(expect), std::string::npos) << args << ": " << r.out;
+    EXPECT_EQ(r.out.find("  render "), std::string::npos) << args << ": more than its own part";
+  }
+  EXPECT_EQ(RunCli("bogus --help").code, 2);
+}
