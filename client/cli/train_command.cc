@@ -257,9 +257,10 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     const int filled = static_cast<int>(width * p.iteration / std::max<int64_t>(1, p.total));
     std::string bar(filled, '#');
     bar.resize(width, '.');
-    std::fprintf(stderr, "%s[%s] %lld/%lld  loss %.4f  psnr %.2f dB  %zu Gaussians  %.2f it/s  ETA %s%s",
+    std::fprintf(stderr, "%s[%s] %lld/%lld  loss %.4f  psnr %.2f dB  %zu Gaussians  %.2f it/s  ETA %s%s%s",
                  tty ? "\r" : "", bar.c_str(), static_cast<long long>(p.iteration), static_cast<long long>(p.total),
                  p.loss, p.psnr, p.gaussians, p.it_per_s, Duration(p.eta_s).c_str(),
+                 p.eta_static_stage_only ? " (static stage; the fine stage is slower)" : "",
                  tty ? "" : "\n");
     std::fflush(stderr);
   };

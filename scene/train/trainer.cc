@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <deque>
 #include <filesystem>
 #include <fstream>
 #include <limits>
@@ -287,6 +288,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
   double recent_loss = 0;
   const int64_t first = st.iteration + 1;
   const auto t_loop = Clock::now();
+  std::deque<std::pair<int64_t, double>> rate_window;  // (iteration, seconds) at progress reports
 
   // S3Gaussian's stages: static for static_its iterations, then the field (dynamic_stage.h).
   const bool dynamic = opt.field.mode == FieldMode::kS3Gaussian;
@@ -482,6 +484,10 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       st.curve.push_back(recent_loss);
       st.curve.push_back(mean_psnr);
     }
+    if (dynamic && it == static_its) {  // the fine stage's rate is measured from here
+      rate_window.clear();
+      rate_window.emplace_back(it, SecondsSince(t_loop));
+    }
     if (progress && (it % 10 == 0 || it == opt.iterations || it == first)) {
       Progress p;
       p.iteration = it;
@@ -489,9 +495,13 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       p.loss = loss;
       p.psnr = psnr;
       p.gaussians = st.size();
-      const double el = SecondsSince(t_loop);
-      p.it_per_s = (it - first + 1) / std::max(el, 1e-9);
-      p.eta_s = (opt.iterations - it) / std::max(p.it_per_s, 1e-9);
+      const double now_s = SecondsSince(t_loop);
+      if (rate_window.empty() || rate_window.back().first != it) rate_window.emplace_back(it, now_s);
+      while (rate_window.size() > 11) rate_window.pop_front();  // ~100 iterations
+      const auto& [it0, t0_s] = rate_window.front();
+      p.it_per_s = it0 < it ? (it - it0) / std::max(now_s - t0_s, 1e-9) : (it - first + 1) / std::max(now_s, 1e-9);
+      p.eta_static_stage_only = dynamic && it <= static_its;
+      p.eta_s = ((p.eta_static_stage_only ? static_its : opt.iterations) - it) / std::max(p.it_per_s, 1e-9);
       progress(p);
     }
     if (opt.checkpoint_every > 0 && it % opt.checkpoint_every == 0) {

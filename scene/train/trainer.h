@@ -54,7 +54,12 @@ struct Progress {
   int64_t iteration = 0, total = 0;
   double loss = 0, psnr = 0;  // of the last view
   size_t gaussians = 0;
+  // Over the last ~100 iterations of the current stage (a fine stage runs at a fraction of the
+  // static stage's rate).
   double it_per_s = 0, eta_s = 0;
+  // The static stage of a staged run: eta_s is to its end only (the fine stage's rate is not
+  // known before it starts).
+  bool eta_static_stage_only = false;
 };
 
 struct FrameMetrics {

@@ -123,6 +123,14 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
   EXPECT_NE(r.err.find("--field s3gaussian (the default"), std::string::npos) << r.err;
   // Where the fine stage's time went, once at the end (docs/training.md "Fine-stage timings").
   EXPECT_NE(r.err.find("fine stage: 4 iterations, ms per iteration: field forward"), std::string::npos) << r.err;
+  // The progress's ETA says when it covers the static stage only (the fine stage is slower).
+  const size_t first_line = r.err.find("] 1/10 "), last_line = r.err.find("] 10/10 ");
+  ASSERT_NE(first_line, std::string::npos) << r.err;
+  ASSERT_NE(last_line, std::string::npos) << r.err;
+  EXPECT_NE(r.err.substr(first_line, r.err.find('\n', first_line) - first_line).find("(static stage"),
+            std::string::npos) << r.err;
+  EXPECT_EQ(r.err.substr(last_line, r.err.find('\n', last_line) - last_line).find("(static stage"),
+            std::string::npos) << r.err;
   EXPECT_TRUE(std::filesystem::exists(staged_dir + "/field.bin"));
   EXPECT_EQ(nlohmann::json::parse(Slurp(staged_dir + "/train_meta.json"))["field"], "s3gaussian");
   const nlohmann::json staged_run = nlohmann::json::parse(Slurp(staged_dir + "/checkpoint.json"));
