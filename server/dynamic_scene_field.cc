@@ -31,8 +31,7 @@ absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
   absl::StatusOr<field::ServingField> serving = field::ServingField::Create(
       std::move(field), std::move(canonical), options, *(*f)->pool_, on_vulkan ? &vk : nullptr);
   if (!serving.ok()) return serving.status();
-  auto s3 = std::make_unique<field::ServingField>(std::move(*serving));
-  (*f)->serving_ = std::move(s3);
+  (*f)->serving_ = std::make_unique<field::ServingField>(std::move(*serving));
   return Finish(std::move(*f), upload);
 }
 

@@ -379,9 +379,9 @@ absl::StatusOr<int> JobRunner::RunChild(const std::string& id, const std::vector
     }
     if (stop || cancel) {
       // On SIGTERM `streetsim train` finishes its iteration and writes a checkpoint (docs/training.md
-      // "Stopping a run"). A server stop leaves the job to resume at the next start, so it gets the
-      // time for that (a KITTI fine iteration plus ~1 GB of checkpoint); a cancelled job is not
-      // resumed and gets 2 s.
+      // "CLI"). A server stop leaves the job to resume at the next start, so it gets the time for
+      // that (a KITTI fine iteration plus ~1 GB of checkpoint); a cancelled job is not resumed and
+      // gets 2 s.
       const int grace_polls = cancel ? 100 : 1500;  // x 20 ms
       kill(-pid, SIGTERM);
       for (int i = 0; i < grace_polls && waitpid(pid, &wstatus, WNOHANG) == 0; ++i) {

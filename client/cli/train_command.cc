@@ -46,21 +46,17 @@ absl::StatusOr<train::FieldMode> DefaultFieldMode(const ParsedArgs& args, int64_
   const fs::path ckpt = fs::path(out_dir) / "checkpoint.bin";
   std::error_code ec;
   if (args.Has("resume") && fs::exists(ckpt, ec)) {
+    const absl::Status extended_run = absl::FailedPreconditionError(
+        absl::StrCat(out_dir, " holds a --field extended run: resume it with --field extended and its --field-modules"));
     if (absl::StatusOr<std::string> recorded = train::ReadCheckpointField(out_dir); recorded.ok()) {
-      if (*recorded == "extended") {
-        return absl::FailedPreconditionError(absl::StrCat(
-            out_dir, " holds a --field extended run: resume it with --field extended and its --field-modules"));
-      }
+      if (*recorded == "extended") return extended_run;
       return train::ParseFieldMode(*recorded);
     } else if (!absl::IsNotFound(recorded.status())) {
       return recorded.status();
     }
     // Directories from before checkpoint.json: inferred from their files.
     const train::FieldCheckpointsFound found = train::FindFieldCheckpoints(out_dir);
-    if (found.extended) {
-      return absl::FailedPreconditionError(
-          absl::StrCat(out_dir, " holds a --field extended run: resume it with --field extended and its --field-modules"));
-    }
+    if (found.extended) return extended_run;
     if (found.base) return train::FieldMode::kS3Gaussian;
     absl::StatusOr<int64_t> done = train::PeekCheckpointIteration(ckpt.string());
     if (!done.ok()) return done.status();
@@ -68,10 +64,6 @@ absl::StatusOr<train::FieldMode> DefaultFieldMode(const ParsedArgs& args, int64_
   }
   return iterations > static_iterations ? train::FieldMode::kS3Gaussian : train::FieldMode::kStatic;
 }
-
-}  // namespace
-
-namespace {
 
 // SIGINT / SIGTERM: the first stops the run after the iteration in progress with a checkpoint
 // (a long fine stage loses nothing); a second one kills at once (the default action).

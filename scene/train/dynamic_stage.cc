@@ -19,13 +19,13 @@ namespace streetsim::train {
 
 namespace {
 
-// The base field's plane regularizers (their gradient added into d_field) and its Adam step, as
-// both the S3Gaussian and the extended stage take them; returns the regularizers' weighted loss.
 using Clock = std::chrono::steady_clock;
 double MsSince(Clock::time_point t0) {
   return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
 }
 
+// The base field's plane regularizers (their gradient added into d_field) and its Adam step, as
+// both the S3Gaussian and the extended stage take them; returns the regularizers' weighted loss.
 double RegularizeAndStepBaseField(const field::FieldHyper& hyper, int64_t fine_iteration, double extent,
                                   ThreadPool& pool, field::DeformationField& base, std::vector<float>& d_field,
                                   field::FieldAdamState* adam, FineStageTimings* timings) {
@@ -265,8 +265,8 @@ absl::StatusOr<double> DynamicStage::Backward(const TrainState& st, int active_d
   ++timings_.iterations;
   if (ext_) return BackwardExtended(st, active_degree, fine_iteration, grads, pool);
   field::CanonicalView c{st.size(), st.params.means.data(), st.params.sh.data()};
-  auto t0 = Clock::now();
   if (deformed_.dx.size() != c.n * 3) return absl::InternalError("DynamicStage::Backward without a matching Deform");
+  auto t0 = Clock::now();
   if (d_field_.size() == field_.layout().total) {
     std::fill(d_field_.begin(), d_field_.end(), 0.0f);
   } else {

@@ -134,12 +134,12 @@ class DynamicStage {
   // The Vulkan field (FieldOptions::device), created at the first Deform from field_'s
   // parameters and re-uploaded after every Adam step.
   bool use_vulkan_ = false;
-  FineStageTimings timings_;
   std::unique_ptr<field::VulkanField> vk_;
   std::vector<float> vk_scratch_;
-  // --field extended (field_ is moved into ext_).
+  FineStageTimings timings_;
   absl::StatusOr<GaussianParamsView> DeformBase(const TrainState& st, int active_degree, int64_t time_us,
                                                 ThreadPool& pool);
+  // --field extended (field_ is moved into ext_).
   absl::StatusOr<GaussianParamsView> DeformExtended(const TrainState& st, int active_degree, int64_t time_us,
                                                     ThreadPool& pool);
   absl::StatusOr<double> BackwardExtended(const TrainState& st, int active_degree, int64_t fine_iteration,

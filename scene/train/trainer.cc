@@ -300,6 +300,11 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     fopt.time_range = ViewsTimeRange(train_views, heldout);
   }
   std::unique_ptr<DynamicStage> stage;
+  auto log_fine_timings = [&] {
+    if (stage && stage->timings().iterations > 0) {
+      LOG(INFO) << stage->timings().Summary();
+    }
+  };
   // The field's backward sums MLP gradients per thread in scheduling order: one thread when the
   // run should be reproducible (docs/training.md "Reproducibility").
   std::unique_ptr<ThreadPool> serial_pool;
@@ -318,7 +323,9 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     stage = std::move(*r);
   }
   // The field's checkpoint first (one file per iteration), then the Gaussians', then older fields.
+  int64_t saved_iteration = -1;  // the last checkpoint's, so that a stop right after one is free
   auto save_checkpoint = [&]() -> absl::Status {
+    saved_iteration = st.iteration;
     if (stage) {
       if (absl::Status s = stage->SaveCheckpoint(FieldCheckpointPath(out_dir, st.iteration)); !s.ok()) return s;
     }
@@ -508,10 +515,10 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       if (absl::Status s = save_checkpoint(); !s.ok()) return s;
     }
     if (opt.stop_requested != nullptr && opt.stop_requested->load(std::memory_order_relaxed)) {
-      if (absl::Status s = save_checkpoint(); !s.ok()) return s;
-      if (stage && stage->timings().iterations > 0) {
-        LOG(INFO) << stage->timings().Summary();
+      if (saved_iteration != st.iteration) {
+        if (absl::Status s = save_checkpoint(); !s.ok()) return s;
       }
+      log_fine_timings();
       return absl::CancelledError(absl::StrCat("stopped at iteration ", it, " of ", opt.iterations,
                                                ", checkpoint written: --resume continues from it"));
     }
@@ -527,9 +534,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
   if (absl::Status s = save_checkpoint(); !s.ok()) return s;
   result.iterations = st.iteration;
   result.gaussians = st.size();
-  if (stage && stage->timings().iterations > 0) {
-    LOG(INFO) << stage->timings().Summary();
-  }
+  log_fine_timings();
   if (lidar_stage && lidar_stage->steps() > 0) {
     LOG(INFO) << "LiDAR step: " << lidar_stage->steps() << " steps, "
               << lidar_stage->total_ms() / lidar_stage->steps() << " ms each";

@@ -278,7 +278,9 @@ class FieldDeviceServerTest : public ServerTest {
     fs::create_directories(dir);
     ASSERT_TRUE(WriteGaussianPly(g, dir + "/scene.ply").ok());
     ASSERT_TRUE(field::SaveField(f, dir + "/" + field::kFieldFileName).ok());
-    if (ext) ASSERT_TRUE(field::SaveExtendedField(*ext, dir + "/" + field::kExtendedFieldFileName).ok());
+    if (ext) {
+      ASSERT_TRUE(field::SaveExtendedField(*ext, dir + "/" + field::kExtendedFieldFileName).ok());
+    }
     std::ofstream(dir + "/scene.json") << kRig;
   }
 
@@ -398,7 +400,9 @@ TEST_F(FieldDeviceServerTest, ForcedVulkanServesTheCpuRendersWithinRounding) {
       std::printf("%s: RGB max %d levels (%.4f %% of bytes), depth max %.2e (%.4f %% of pixels > 1e-4)\n", tag.c_str(),
                   rgb.max, 100 * rgb.fraction, depth.max, 100 * depth.fraction);
       EXPECT_GT(vk.frames(0).num_visible_gaussians(), 50u) << tag;
-      if (!previous.empty()) EXPECT_GT(CompareRgb(previous, vk.frames(0).rgb().data()).max, 5) << tag << ": no motion";
+      if (!previous.empty()) {
+        EXPECT_GT(CompareRgb(previous, vk.frames(0).rgb().data()).max, 5) << tag << ": no motion";
+      }
       previous = vk.frames(0).rgb().data();
     }
     EXPECT_EQ(FieldDevice(*other_, scene), "vulkan") << scene << ": the device failed";
