@@ -3,6 +3,10 @@
 // keep_for_backward -> L1 + D-SSIM + depth -> backward -> [field: DeformBackward + plane
 // regularisers + field Adam] -> Gaussian Adam, on a procedural street scene.
 //   train_field_bench [--settings 648x420x139000] [--iters 10] [--field-size spec|small]
+//       [--backend cpu|vulkan] [--field-device cpu|vulkan] [--field-optimizer auto|device|host]
+// --field-optimizer picks where the Vulkan field's regularisers and Adam run
+// (FieldOptions::optimizer; auto: the device on a GPU, the host on lavapipe): the A/B of
+// docs/benchmarks.md.
 #include <chrono>
 #include <cstdio>
 #include <cstring>
@@ -25,20 +29,38 @@ using Clock = std::chrono::steady_clock;
 static double Ms(Clock::time_point t0) { return std::chrono::duration<double, std::milli>(Clock::now() - t0).count(); }
 
 int main(int argc, char** argv) {
-  std::string settings = "648x420x139000", size = "spec";
+  std::string settings = "648x420x139000", size = "spec", backend_name = "cpu", field_device = "cpu",
+              optimizer = "auto";
   int iters = 10;
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--settings") && i + 1 < argc) settings = argv[++i];
     else if (!std::strcmp(argv[i], "--iters") && i + 1 < argc) iters = std::atoi(argv[++i]);
     else if (!std::strcmp(argv[i], "--field-size") && i + 1 < argc) size = argv[++i];
+    else if (!std::strcmp(argv[i], "--backend") && i + 1 < argc) backend_name = argv[++i];
+    else if (!std::strcmp(argv[i], "--field-device") && i + 1 < argc) field_device = argv[++i];
+    else if (!std::strcmp(argv[i], "--field-optimizer") && i + 1 < argc) optimizer = argv[++i];
     else {
-      std::fprintf(stderr, "usage: train_field_bench [--settings WxHxN,...] [--iters N] [--field-size spec|small]\n");
-      return 2;
+      argc = -1;
+      break;
     }
   }
-  auto engine = CreateEngine(Backend::kCpu);
-  if (!engine.ok()) return 1;
-  std::printf("device: %s, field %s\n", (*engine)->device_name().c_str(), size.c_str());
+  const bool bad = argc < 0 || iters < 1 || (size != "spec" && size != "small") ||
+                   (backend_name != "cpu" && backend_name != "vulkan") ||
+                   (field_device != "cpu" && field_device != "vulkan") ||
+                   (optimizer != "auto" && optimizer != "device" && optimizer != "host");
+  if (bad) {
+    std::fprintf(stderr,
+                 "usage: train_field_bench [--settings WxHxN,...] [--iters N] [--field-size spec|small] "
+                 "[--backend cpu|vulkan] [--field-device cpu|vulkan] [--field-optimizer auto|device|host]\n");
+    return 2;
+  }
+  auto engine = CreateEngine(backend_name == "vulkan" ? Backend::kVulkan : Backend::kCpu);
+  if (!engine.ok()) {
+    std::fprintf(stderr, "%s\n", engine.status().ToString().c_str());
+    return 1;
+  }
+  std::printf("device: %s, field %s on %s, field optimiser %s\n", (*engine)->device_name().c_str(), size.c_str(),
+              field_device.c_str(), field_device == "vulkan" ? optimizer.c_str() : "host");
   std::printf("%-18s %-7s %8s %8s %8s %8s %8s %8s %8s %8s\n", "setting", "mode", "deform", "upload", "forward",
               "loss", "backward", "field", "adam", "total");
   ThreadPool pool(0);
@@ -62,6 +84,10 @@ int main(int argc, char** argv) {
       if (with_field) {
         train::FieldOptions fo;
         fo.mode = train::FieldMode::kS3Gaussian;
+        fo.device = field_device == "vulkan" ? train::FieldDevice::kVulkan : train::FieldDevice::kCpu;
+        fo.optimizer = optimizer == "device" ? train::FieldOptimizerPlace::kDevice
+                       : optimizer == "host"  ? train::FieldOptimizerPlace::kHost
+                                              : train::FieldOptimizerPlace::kAuto;
         if (size == "small") {
           fo.config.channels = 8;
           fo.config.base_resolution = 16;
@@ -85,7 +111,14 @@ int main(int argc, char** argv) {
         const auto t0 = Clock::now();
         auto t = Clock::now();
         GaussianParamsView pv = train::ParamsView(st, sh);
-        if (stage) pv = *stage->Deform(st, sh, 100'000 * (it % 10), pool);
+        if (stage) {
+          absl::StatusOr<GaussianParamsView> d = stage->Deform(st, sh, 100'000 * (it % 10), pool);
+          if (!d.ok()) {
+            std::fprintf(stderr, "%s\n", d.status().ToString().c_str());
+            return 1;
+          }
+          pv = *d;
+        }
         const double def = Ms(t);
         t = Clock::now();
         (void)(*engine)->UpdateSceneParams(pv, &scene);
@@ -102,7 +135,12 @@ int main(int argc, char** argv) {
         (void)(*engine)->RenderBackward(*scene, {d_rgb.data(), d_depth.data(), nullptr}, {}, &grads);
         const double bwd = Ms(t);
         t = Clock::now();
-        if (stage) (void)stage->Backward(st, sh, it + 1, &grads, pool);
+        if (stage) {
+          if (absl::StatusOr<double> b = stage->Backward(st, sh, it + 1, &grads, pool); !b.ok()) {
+            std::fprintf(stderr, "%s\n", b.status().ToString().c_str());
+            return 1;
+          }
+        }
         const double fld = Ms(t);
         t = Clock::now();
         train::AdamStepGaussians(&st, grads, sh, it + 1, hyper, pool);
@@ -116,7 +154,13 @@ int main(int argc, char** argv) {
                   with_field ? "field" : "static", t_def * k, t_up * k, t_fwd * k, t_loss * k, t_bwd * k,
                   t_field * k, t_adam * k, t_tot * k);
       if (stage) {
-        // The parameter-sized passes inside "field", alone (same pool, 3 repetitions).
+        std::printf("%-18s %s\n", "", stage->timings().Summary().c_str());
+        if (absl::Status sync = stage->SyncHost(); !sync.ok()) {
+          std::fprintf(stderr, "%s\n", sync.ToString().c_str());
+          return 1;
+        }
+        // The host's parameter-sized passes (what the device optimiser replaces), alone (same
+        // pool, 3 repetitions).
         field::DeformationField f = stage->field();
         const field::FieldLayout& L = f.layout();
         std::vector<float> g(L.total, 0.0f);

@@ -114,6 +114,7 @@ DynamicStage::DynamicStage(field::DeformationField f, field::FieldAdamState adam
     : field_(std::move(f)), adam_(std::move(adam)), hyper_(options.hyper),
       ws_(std::make_unique<field::FieldWorkspace>()),
       use_vulkan_(options.device == FieldDevice::kVulkan),
+      optimizer_place_(options.optimizer),
       ext_hyper_(options.ext_hyper),
       ext_noise_seed_(options.seed) {}
 
@@ -197,7 +198,8 @@ absl::StatusOr<std::unique_ptr<DynamicStage>> DynamicStage::Resume(const std::st
   return stage;
 }
 
-absl::Status DynamicStage::SaveCheckpoint(const std::string& path) const {
+absl::Status DynamicStage::SaveCheckpoint(const std::string& path) {
+  if (absl::Status s = SyncHost(); !s.ok()) return s;
   // The scene directory's field_ext.bin follows the checkpoints (the trainer writes field.bin from
   // field() after the last one); a plain field's run removes an older run's extension.
   const std::string scene_ext =
@@ -221,6 +223,12 @@ std::shared_ptr<const field::DeformationField> DynamicStage::SceneField() const 
 
 std::string FineStageTimings::Summary() const {
   const double n = static_cast<double>(std::max<int64_t>(iterations, 1));
+  if (optimizer_on_device) {
+    return absl::StrFormat(
+        "fine stage: %d iterations, ms per iteration: field forward %.1f, field backward %.1f, plane "
+        "regularisers + field Adam on the device %.1f",
+        iterations, deform_ms / n, backward_ms / n, adam_ms / n);
+  }
   return absl::StrFormat(
       "fine stage: %d iterations, ms per iteration: field forward %.1f, field backward %.1f, plane "
       "regularisers %.1f, field Adam %.1f, parameter upload %.1f",
@@ -249,7 +257,15 @@ absl::StatusOr<GaussianParamsView> DynamicStage::DeformBase(const TrainState& st
     absl::StatusOr<std::unique_ptr<field::VulkanField>> vk = field::VulkanField::Create(field_);
     if (!vk.ok()) return vk.status();
     vk_ = std::move(*vk);
-    LOG(INFO) << "fine stage: the field runs on Vulkan (" << vk_->device_description() << ")";
+    optimizer_on_device_ = optimizer_place_ == FieldOptimizerPlace::kDevice ||
+                           (optimizer_place_ == FieldOptimizerPlace::kAuto && !vk_->is_cpu_device());
+    // A resumed (or prior-started) Adam continues from its moments; a fresh one starts at 0 there.
+    if (optimizer_on_device_ && adam_.step > 0) {
+      if (absl::Status s = vk_->SetAdamMoments(adam_.m, adam_.v); !s.ok()) return s;
+    }
+    timings_.optimizer_on_device = optimizer_on_device_;
+    LOG(INFO) << "fine stage: the field runs on Vulkan (" << vk_->device_description() << ")"
+              << (optimizer_on_device_ ? ", its regularisers and Adam too" : "");
   }
   const absl::Status deformed =
       vk_ ? field::VulkanDeformScene(*vk_, field_, field_.TimeCoordinate(time_us), c, pool, &deformed_)
@@ -266,6 +282,7 @@ absl::StatusOr<double> DynamicStage::Backward(const TrainState& st, int active_d
   if (ext_) return BackwardExtended(st, active_degree, fine_iteration, grads, pool);
   field::CanonicalView c{st.size(), st.params.means.data(), st.params.sh.data()};
   if (deformed_.dx.size() != c.n * 3) return absl::InternalError("DynamicStage::Backward without a matching Deform");
+  if (vk_ && optimizer_on_device_) return BackwardOnDevice(st, active_degree, fine_iteration, grads, pool);
   auto t0 = Clock::now();
   if (d_field_.size() == field_.layout().total) {
     std::fill(d_field_.begin(), d_field_.end(), 0.0f);
@@ -286,6 +303,40 @@ absl::StatusOr<double> DynamicStage::Backward(const TrainState& st, int active_d
     timings_.upload_ms += MsSince(t0);
   }
   return dl->weighted + reg;
+}
+
+absl::StatusOr<double> DynamicStage::BackwardOnDevice(const TrainState& st, int active_degree,
+                                                      int64_t fine_iteration, GaussianGrads* grads, ThreadPool& pool) {
+  field::CanonicalView c{st.size(), st.params.means.data(), st.params.sh.data()};
+  auto t0 = Clock::now();
+  absl::StatusOr<field::DeformLosses> dl = field::VulkanDeformBackward(*vk_, field_, c, deformed_, active_degree,
+                                                                       hyper_, pool, grads, nullptr, &vk_scratch_);
+  if (!dl.ok()) return dl.status();
+  timings_.backward_ms += MsSince(t0);
+  t0 = Clock::now();
+  field::RegularizerWeights w;
+  w.plane_tv = hyper_.plane_tv_weight;
+  w.time_smoothness = hyper_.time_smoothness_weight;
+  w.l1_time_planes = hyper_.l1_time_planes;
+  // adam_.step counts as FieldAdamStep's does (its moments live on the device until SyncHost).
+  absl::StatusOr<field::RegularizerLosses> reg =
+      vk_->RegularizeAndStep(w, field::FieldLearningRates(hyper_, fine_iteration, st.extent), adam_.step + 1);
+  if (!reg.ok()) return reg.status();
+  ++adam_.step;
+  host_stale_ = true;
+  timings_.adam_ms += MsSince(t0);
+  return dl->weighted + reg->weighted;
+}
+
+absl::Status DynamicStage::SyncHost() {
+  if (!host_stale_) return absl::OkStatus();
+  const size_t total = field_.layout().total;
+  if (absl::Status s = vk_->ReadParams(field_.mutable_params()); !s.ok()) return s;
+  adam_.m.resize(total);
+  adam_.v.resize(total);
+  if (absl::Status s = vk_->ReadAdamMoments(adam_.m, adam_.v); !s.ok()) return s;
+  host_stale_ = false;
+  return absl::OkStatus();
 }
 
 namespace {

@@ -31,6 +31,7 @@ namespace streetsim::train {
 
 enum class FieldMode { kStatic, kS3Gaussian };
 enum class FieldDevice { kAuto, kCpu, kVulkan };
+enum class FieldOptimizerPlace { kAuto, kDevice, kHost };
 absl::StatusOr<FieldDevice> ParseFieldDevice(const std::string& text);
 // kAuto -> kVulkan when `backend` is vulkan and a Vulkan GPU exists, else kCpu.
 FieldDevice ResolveFieldDevice(FieldDevice device, Backend backend);
@@ -70,6 +71,14 @@ struct FieldOptions {
   // device). The same holds for --field extended (VulkanExtendedField; docs/field.md "Extended
   // field on Vulkan").
   FieldDevice device = FieldDevice::kAuto;
+  // With S3Gaussian's field on Vulkan, where its plane regularisers and Adam run. kDevice: there
+  // too (VulkanField::RegularizeAndStep, the host's formulas), so that the gradient and the
+  // parameters (143 MB each at spec sizes) stay on the device; the host copy is read back for
+  // checkpoints and the end of the run. kHost: the gradient is downloaded, stepped on the host and
+  // the parameters uploaded every iteration. kAuto: kDevice on a GPU, kHost on a CPU Vulkan device
+  // (lavapipe runs these parameter-sized passes ~9x slower than the host's vectorised loops,
+  // docs/benchmarks.md "Field optimiser on the device").
+  FieldOptimizerPlace optimizer = FieldOptimizerPlace::kAuto;
 };
 
 // The field's AABB from the canonical Gaussians at the start of the fine stage: their bounding
@@ -86,6 +95,9 @@ struct FineStageTimings {
   double regularizers_ms = 0;  // plane TV / time smoothness / time-plane L1 (host)
   double adam_ms = 0;          // the field's Adam (host)
   double upload_ms = 0;        // the stepped parameters back to the device (Vulkan field)
+  // The optimiser on the device (FieldOptions::optimizer): regularizers_ms is 0 and adam_ms holds the
+  // device's regularisers + Adam.
+  bool optimizer_on_device = false;
   std::string Summary() const;  // one line, ms per iteration
 };
 
@@ -100,7 +112,11 @@ class DynamicStage {
   // Gaussian checkpoint says has been done (checked against the field Adam's step).
   static absl::StatusOr<std::unique_ptr<DynamicStage>> Resume(const std::string& path, const FieldOptions& options,
                                                               int64_t fine_iterations);
-  absl::Status SaveCheckpoint(const std::string& path) const;
+  absl::Status SaveCheckpoint(const std::string& path);  // after SyncHost
+  // With the optimiser on the device (FieldOptions::optimizer): reads the field's
+  // parameters and Adam moments back into the host copy that field(), SceneField() and the
+  // checkpoints use. A no-op when the host copy is current.
+  absl::Status SyncHost();
 
   // The parameters to upload for a view at `time_us`: canonical, with deformed means and SH.
   absl::StatusOr<GaussianParamsView> Deform(const TrainState& st, int active_degree, int64_t time_us,
@@ -112,7 +128,8 @@ class DynamicStage {
   absl::StatusOr<double> Backward(const TrainState& st, int active_degree, int64_t fine_iteration,
                                   GaussianGrads* grads, ThreadPool& pool);
 
-  // The base field (planes, S3Gaussian's MLP; field.bin) also with --field extended.
+  // The base field (planes, S3Gaussian's MLP; field.bin) also with --field extended. With the
+  // optimiser on the device this host copy is current after SyncHost only.
   const field::DeformationField& field() const { return ext_ ? ext_->base() : field_; }
   // The extended field (null without --field extended).
   const field::ExtendedField* extended() const { return ext_.get(); }
@@ -135,6 +152,9 @@ class DynamicStage {
   // parameters and re-uploaded after every Adam step.
   bool use_vulkan_ = false;
   std::unique_ptr<field::VulkanField> vk_;
+  FieldOptimizerPlace optimizer_place_;  // FieldOptions::optimizer
+  bool optimizer_on_device_ = false;     // what it resolved to for vk_
+  bool host_stale_ = false;           // vk_ holds newer parameters / moments than field_ / adam_
   std::vector<float> vk_scratch_;
   FineStageTimings timings_;
   absl::StatusOr<GaussianParamsView> DeformBase(const TrainState& st, int active_degree, int64_t time_us,
@@ -142,6 +162,9 @@ class DynamicStage {
   // --field extended (field_ is moved into ext_).
   absl::StatusOr<GaussianParamsView> DeformExtended(const TrainState& st, int active_degree, int64_t time_us,
                                                     ThreadPool& pool);
+  // S3Gaussian's field on Vulkan with its optimiser there (FieldOptions::optimizer).
+  absl::StatusOr<double> BackwardOnDevice(const TrainState& st, int active_degree, int64_t fine_iteration,
+                                          GaussianGrads* grads, ThreadPool& pool);
   absl::StatusOr<double> BackwardExtended(const TrainState& st, int active_degree, int64_t fine_iteration,
                                           GaussianGrads* grads, ThreadPool& pool);
   std::unique_ptr<field::ExtendedField> ext_;

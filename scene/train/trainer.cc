@@ -560,6 +560,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     meta["field"] = stage ? "s3gaussian" : "static";
     const std::string field_path = (std::filesystem::path(out_dir) / field::kFieldFileName).string();
     if (stage) {
+      if (absl::Status s = stage->SyncHost(); !s.ok()) return s;  // the field's optimiser may be on the device
       meta["static_iterations"] = static_its;
       meta["time_range_us"] = {stage->field().time_range().start_us, stage->field().time_range().end_us};
       if (absl::Status s = field::SaveField(stage->field(), field_path); !s.ok()) return s;

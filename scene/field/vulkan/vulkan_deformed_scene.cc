@@ -38,16 +38,21 @@ absl::StatusOr<DeformLosses> VulkanDeformBackward(VulkanField& vf, const Deforma
                                                    " Gaussians, grads ", grads->means.size() / 3, ", deformed ",
                                                    d.dx.size() / 3, ")"));
   }
-  if (d_field->size() != field.layout().total) d_field->assign(field.layout().total, 0.0f);
+  const FieldQuery query = field.QueryAtCoordinate(d.time_coord);
+  if (d_field == nullptr && n == 0) {  // the device gradient must still be replaced by 0
+    if (absl::Status s = vf.BackwardOnDevice(query, {}, {}, {}, {}); !s.ok()) return s;
+    return DeformLosses{};
+  }
+  if (d_field != nullptr && d_field->size() != field.layout().total) d_field->assign(field.layout().total, 0.0f);
   if (n == 0) return DeformLosses{};
   scratch->resize(n * (3 + kShOutputs));
   float* g_dx = scratch->data();
   float* g_dsh = g_dx + n * 3;
   DeformLosses losses = SparsityGradients(d, ka3, h, *grads, pool, g_dx, g_dsh);
   // grads->means already holds the identity path; the field adds the sampling-position path.
-  if (absl::Status s = vf.Backward(field.QueryAtCoordinate(d.time_coord), std::span<const float>(c.means, n * 3),
-                                   std::span<const float>(g_dx, n * 3), std::span<const float>(g_dsh, n * kShOutputs),
-                                   *d_field, grads->means);
+  const std::span<const float> means(c.means, n * 3), d_dx(g_dx, n * 3), d_dsh(g_dsh, n * kShOutputs);
+  if (absl::Status s = d_field ? vf.Backward(query, means, d_dx, d_dsh, *d_field, grads->means)
+                               : vf.BackwardOnDevice(query, means, d_dx, d_dsh, grads->means);
       !s.ok()) {
     return s;
   }

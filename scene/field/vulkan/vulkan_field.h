@@ -23,8 +23,10 @@
 #include "absl/status/statusor.h"
 #include "render/vulkan/vulkan_engine.h"
 #include "scene/field/deformation_field.h"
+#include "scene/field/field_adam.h"
 #include "scene/field/field_config.h"
 #include "scene/field/field_eval.h"
+#include "scene/field/field_regularizers.h"
 
 namespace streetsim::field {
 
@@ -76,8 +78,31 @@ class VulkanField {
   absl::Status Backward(const FieldQuery& query, std::span<const float> means, std::span<const float> d_dx,
                         std::span<const float> d_dsh, std::span<float> d_params, std::span<float> d_means);
 
+  // The optimiser on the device (docs/field.md "Vulkan field: the optimiser on the device"): the
+  // fine stage keeps the gradient, the plane regularisers and Adam where the field is, so that
+  // neither the gradient (136 MiB at spec sizes) nor the parameters cross the bus per iteration;
+  // the host reads the parameters back for checkpoints and at the end of a run.
+  //
+  // As Backward, but the parameter gradient stays on the device (replacing the previous one) for
+  // RegularizeAndStep; dL/d(means) is still ADDED to d_means (empty: not wanted).
+  absl::Status BackwardOnDevice(const FieldQuery& query, std::span<const float> means, std::span<const float> d_dx,
+                                std::span<const float> d_dsh, std::span<float> d_means);
+  // Adds the plane regularisers' gradient (PlaneRegularizers' formulas, at the parameters before
+  // this step) to the device gradient, then takes one Adam step over every parameter
+  // (FieldAdamStep's update; `step` is this step's number, from 1, for the bias corrections).
+  // The moments start at 0 unless SetAdamMoments gave them. Returns the regularisers' losses
+  // (per-workgroup float sums, added in double).
+  absl::StatusOr<RegularizerLosses> RegularizeAndStep(const RegularizerWeights& weights, const FieldLrs& lrs,
+                                                      int64_t step);
+  // Adam's moments (layout.total floats each, FieldAdamState's order) to and from the device.
+  absl::Status SetAdamMoments(std::span<const float> m, std::span<const float> v);
+  absl::Status ReadAdamMoments(std::span<float> m, std::span<float> v);
+  // The device's parameters (layout.total floats) into `params`.
+  absl::Status ReadParams(std::span<float> params);
+
   const FieldLayout& layout() const;
   std::string device_description() const;
+  bool is_cpu_device() const;       // a CPU implementation of Vulkan (lavapipe)
   bool uses_float_atomics() const;  // false: the compare-and-swap scatter
   int plane_buffers() const;        // how many storage buffers hold the planes
   size_t batch_rows() const;        // after the device's limits
