@@ -259,9 +259,15 @@ absl::StatusOr<GaussianParamsView> DynamicStage::DeformBase(const TrainState& st
     vk_ = std::move(*vk);
     optimizer_on_device_ = optimizer_place_ == FieldOptimizerPlace::kDevice ||
                            (optimizer_place_ == FieldOptimizerPlace::kAuto && !vk_->is_cpu_device());
-    // A resumed (or prior-started) Adam continues from its moments; a fresh one starts at 0 there.
-    if (optimizer_on_device_ && adam_.step > 0) {
-      if (absl::Status s = vk_->SetAdamMoments(adam_.m, adam_.v); !s.ok()) return s;
+    // A resumed Adam continues from its moments; a fresh one starts at 0 there. A device without
+    // room for the moments keeps the host optimiser unless the device one was asked for.
+    if (optimizer_on_device_) {
+      const absl::Status s = adam_.step > 0 ? vk_->SetAdamMoments(adam_.m, adam_.v) : vk_->PrepareOptimizer();
+      if (!s.ok() && optimizer_place_ == FieldOptimizerPlace::kDevice) return s;
+      if (!s.ok()) {
+        LOG(WARNING) << "fine stage: the field's optimiser stays on the host (" << s << ")";
+        optimizer_on_device_ = false;
+      }
     }
     timings_.optimizer_on_device = optimizer_on_device_;
     LOG(INFO) << "fine stage: the field runs on Vulkan (" << vk_->device_description() << ")"

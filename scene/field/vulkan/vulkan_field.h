@@ -94,6 +94,10 @@ class VulkanField {
   // (per-workgroup float sums, added in double).
   absl::StatusOr<RegularizerLosses> RegularizeAndStep(const RegularizerWeights& weights, const FieldLrs& lrs,
                                                       int64_t step);
+  // Makes the optimiser's pipelines and buffers (Adam's moments, 2 x the parameters' size, at 0)
+  // now rather than at the first RegularizeAndStep, so that a device without room for them can
+  // be told apart up front. ResourceExhausted / FailedPrecondition from the device.
+  absl::Status PrepareOptimizer();
   // Adam's moments (layout.total floats each, FieldAdamState's order) to and from the device.
   absl::Status SetAdamMoments(std::span<const float> m, std::span<const float> v);
   absl::Status ReadAdamMoments(std::span<float> m, std::span<float> v);

@@ -113,6 +113,7 @@ struct VulkanField::Impl {
                         std::span<const float> d_dsh, std::span<float> d_params, std::span<float> d_means);
   absl::Status ZeroGradients();    // vulkan_field_optimizer.cc
   absl::Status EnsureOptimizer();  // vulkan_field_optimizer.cc
+  absl::Status MakeOptimizer();    // EnsureOptimizer's work (it clears what a failure left)
   SamplePush MakeSamplePush(const FieldQuery& q, size_t rows) const;
 
   void Linear(vk::Recorder& rec, const vk::Buffer& x, const vk::Buffer& y, const vk::Buffer* mask, uint32_t rows,

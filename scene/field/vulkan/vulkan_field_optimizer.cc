@@ -65,29 +65,37 @@ absl::Status VulkanField::Impl::ZeroGradients() {
 
 absl::Status VulkanField::Impl::EnsureOptimizer() {
   if (adam) return absl::OkStatus();
+  absl::Status s = MakeOptimizer();
+  if (!s.ok()) {  // nothing half-made stays: a later call tries again, or the host optimiser runs
+    plane_reg.reset();
+    adam.reset();
+    m_planes.clear();
+    v_planes.clear();
+    m_mlp = vk::Buffer();
+    v_mlp = vk::Buffer();
+    reg_partials = vk::Buffer();
+    reg_readback = vk::Buffer();
+  }
+  return s;
+}
+
+absl::Status VulkanField::Impl::MakeOptimizer() {
   const vk::Context& c = *ctx;
   const vk::PipelineSpec specs[] = {
       {&plane_reg, "field_plane_reg", spirv::field_plane_reg, 3, sizeof(PlaneRegPush), {}},
       {&adam, "field_adam", spirv::field_adam, 4, sizeof(AdamPush), {}},
   };
-  if (auto s = vk::CreatePipelines(c, specs); !s.ok()) {
-    adam.reset();
-    return s;
-  }
-  m_planes.clear();
-  v_planes.clear();
+  if (auto s = vk::CreatePipelines(c, specs); !s.ok()) return s;
   for (size_t g = 0; g < planes.size(); ++g) {
     const size_t bytes = (group_end[g] - group_begin[g]) * sizeof(float);
     m_planes.emplace_back();
     v_planes.emplace_back();
     if (auto s = MakeBuffer(c, &m_planes.back(), bytes, vk::Buffer::Kind::kDevice, absl::StrCat("field adam m ", g));
         !s.ok()) {
-      adam.reset();
       return s;
     }
     if (auto s = MakeBuffer(c, &v_planes.back(), bytes, vk::Buffer::Kind::kDevice, absl::StrCat("field adam v ", g));
         !s.ok()) {
-      adam.reset();
       return s;
     }
   }
@@ -96,14 +104,10 @@ absl::Status VulkanField::Impl::EnsureOptimizer() {
   for (auto [buf, bytes, name] : {std::tuple{&m_mlp, mlp_total * 4, "field adam m mlp"},
                                   std::tuple{&v_mlp, mlp_total * 4, "field adam v mlp"},
                                   std::tuple{&reg_partials, size_t{slots} * 8, "field reg partials"}}) {
-    if (auto s = MakeBuffer(c, buf, bytes, vk::Buffer::Kind::kDevice, name); !s.ok()) {
-      adam.reset();
-      return s;
-    }
+    if (auto s = MakeBuffer(c, buf, bytes, vk::Buffer::Kind::kDevice, name); !s.ok()) return s;
   }
   if (auto s = MakeBuffer(c, &reg_readback, size_t{slots} * 8, vk::Buffer::Kind::kReadback, "field reg readback");
       !s.ok()) {
-    adam.reset();
     return s;
   }
   // Moments start at zero (a fresh Adam) until SetAdamMoments says otherwise.
@@ -115,6 +119,8 @@ absl::Status VulkanField::Impl::EnsureOptimizer() {
     vkCmdFillBuffer(cmd, v_mlp.handle(), 0, VK_WHOLE_SIZE, 0);
   });
 }
+
+absl::Status VulkanField::PrepareOptimizer() { return impl_->EnsureOptimizer(); }
 
 absl::StatusOr<RegularizerLosses> VulkanField::RegularizeAndStep(const RegularizerWeights& w, const FieldLrs& lrs,
                                                                  int64_t step) {
