@@ -36,12 +36,7 @@ Problem MakeProblem(const FieldConfig& c, size_t n, uint64_t seed) {
   p.means = RandomMeans<double>(n, n / 4, seed + 7);
   p.n = n;
   p.q = TestQuery(0.37);
-  std::mt19937_64 rng(seed + 3);
-  std::normal_distribution<double> g;
-  p.w_dx.resize(n * 3);
-  p.w_dsh.resize(n * kShOutputs);
-  for (double& w : p.w_dx) w = g(rng);
-  for (double& w : p.w_dsh) w = g(rng);
+  testing::RandomOutputGrads(n, seed + 3, &p.w_dx, &p.w_dsh);
   return p;
 }
 

@@ -57,6 +57,18 @@ std::vector<T> RandomParams(const FieldConfig& c, const FieldLayout& L, uint64_t
   return p;
 }
 
+// Standard-normal output gradients dL/dΔx (n * 3) and dL/dΔSH (n * kShOutputs), drawn in that
+// order from one generator.
+template <typename T>
+void RandomOutputGrads(size_t n, uint64_t seed, std::vector<T>* d_dx, std::vector<T>* d_dsh) {
+  std::mt19937_64 rng(seed);
+  std::normal_distribution<T> g;
+  d_dx->resize(n * 3);
+  d_dsh->resize(n * kShOutputs);
+  for (T& w : *d_dx) w = g(rng);
+  for (T& w : *d_dsh) w = g(rng);
+}
+
 // n positions in the test AABB, `outside` of them beyond it (border clamp).
 template <typename T>
 std::vector<T> RandomMeans(size_t n, size_t outside, uint64_t seed) {

@@ -51,12 +51,7 @@ Case MakeCase(size_t n, uint64_t seed, int time_resolution = 5) {
   s.n = n;
   for (double v : RandomParams<double>(s.config, s.L, seed)) s.params.push_back(static_cast<float>(v));
   for (double v : RandomMeans<double>(n, n / 4, seed + 7)) s.means.push_back(static_cast<float>(v));
-  std::mt19937_64 rng(seed + 3);
-  std::normal_distribution<float> g;
-  s.gdx.resize(n * 3);
-  s.gdsh.resize(n * kShOutputs);
-  for (float& w : s.gdx) w = g(rng);
-  for (float& w : s.gdsh) w = g(rng);
+  testing::RandomOutputGrads(n, seed + 3, &s.gdx, &s.gdsh);
   return s;
 }
 

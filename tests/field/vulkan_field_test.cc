@@ -65,12 +65,7 @@ Small MakeSmall(size_t n, uint64_t seed) {
   s.n = n;
   for (double v : RandomParams<double>(c, s.L, seed)) s.pf.push_back(static_cast<float>(v));
   for (double v : RandomMeans<double>(n, n / 4, seed + 7)) s.mf.push_back(static_cast<float>(v));
-  std::mt19937_64 rng(seed + 3);
-  std::normal_distribution<float> g;
-  s.gdx_f.resize(n * 3);
-  s.gdsh_f.resize(n * kShOutputs);
-  for (float& w : s.gdx_f) w = g(rng);
-  for (float& w : s.gdsh_f) w = g(rng);
+  testing::RandomOutputGrads(n, seed + 3, &s.gdx_f, &s.gdsh_f);
   s.pd.assign(s.pf.begin(), s.pf.end());
   s.md.assign(s.mf.begin(), s.mf.end());
   s.gdx_d.assign(s.gdx_f.begin(), s.gdx_f.end());

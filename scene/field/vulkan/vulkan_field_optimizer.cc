@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstring>
 #include <tuple>
+#include <type_traits>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
@@ -206,15 +207,21 @@ absl::Status CheckSize(std::span<const float> a, size_t total, const char* what)
 
 }  // namespace
 
-absl::Status VulkanField::SetAdamMoments(std::span<const float> m_in, std::span<const float> v_in) {
-  Impl& m = *impl_;
-  if (auto s = CheckSize(m_in, m.layout.total, "Adam's m"); !s.ok()) return s;
-  if (auto s = CheckSize(v_in, m.layout.total, "Adam's v"); !s.ok()) return s;
+namespace {
+
+// Adam's moments between host arrays (FieldLayout order) and the device: uploaded from const
+// arrays, downloaded into writable ones.
+template <typename T>
+absl::Status TransferMoments(VulkanField::Impl& m, T* m_host, T* v_host) {
   if (auto s = m.EnsureOptimizer(); !s.ok()) return s;
-  for (auto [host, bufs, mlp] : {std::tuple{m_in, &m.m_planes, &m.m_mlp}, std::tuple{v_in, &m.v_planes, &m.v_mlp}}) {
+  for (auto [host, bufs, mlp] : {std::tuple{m_host, &m.m_planes, &m.m_mlp}, std::tuple{v_host, &m.v_planes, &m.v_mlp}}) {
     if (auto s = ForEachGroup(m, *bufs, *mlp,
                               [&](const vk::Buffer& b, size_t begin, size_t count) {
-                                return vk::UploadBytes(*m.ctx, b, host.data() + begin, count * sizeof(float));
+                                if constexpr (std::is_const_v<T>) {
+                                  return vk::UploadBytes(*m.ctx, b, host + begin, count * sizeof(float));
+                                } else {
+                                  return vk::DownloadBytes(*m.ctx, b, host + begin, count * sizeof(float));
+                                }
                               });
         !s.ok()) {
       return s;
@@ -223,21 +230,18 @@ absl::Status VulkanField::SetAdamMoments(std::span<const float> m_in, std::span<
   return absl::OkStatus();
 }
 
+}  // namespace
+
+absl::Status VulkanField::SetAdamMoments(std::span<const float> m_in, std::span<const float> v_in) {
+  if (auto s = CheckSize(m_in, impl_->layout.total, "Adam's m"); !s.ok()) return s;
+  if (auto s = CheckSize(v_in, impl_->layout.total, "Adam's v"); !s.ok()) return s;
+  return TransferMoments(*impl_, m_in.data(), v_in.data());
+}
+
 absl::Status VulkanField::ReadAdamMoments(std::span<float> m_out, std::span<float> v_out) {
-  Impl& m = *impl_;
-  if (auto s = CheckSize(m_out, m.layout.total, "Adam's m"); !s.ok()) return s;
-  if (auto s = CheckSize(v_out, m.layout.total, "Adam's v"); !s.ok()) return s;
-  if (auto s = m.EnsureOptimizer(); !s.ok()) return s;
-  for (auto [host, bufs, mlp] : {std::tuple{m_out, &m.m_planes, &m.m_mlp}, std::tuple{v_out, &m.v_planes, &m.v_mlp}}) {
-    if (auto s = ForEachGroup(m, *bufs, *mlp,
-                              [&](const vk::Buffer& b, size_t begin, size_t count) {
-                                return vk::DownloadBytes(*m.ctx, b, host.data() + begin, count * sizeof(float));
-                              });
-        !s.ok()) {
-      return s;
-    }
-  }
-  return absl::OkStatus();
+  if (auto s = CheckSize(m_out, impl_->layout.total, "Adam's m"); !s.ok()) return s;
+  if (auto s = CheckSize(v_out, impl_->layout.total, "Adam's v"); !s.ok()) return s;
+  return TransferMoments(*impl_, m_out.data(), v_out.data());
 }
 
 absl::Status VulkanField::ReadParams(std::span<float> params) {
