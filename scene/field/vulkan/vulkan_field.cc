@@ -38,19 +38,8 @@ absl::Status VulkanField::Impl::Init(std::span<const float> params) {
   group_begin = packed->begin;
   group_end = packed->end;
   const std::vector<uint32_t>& table = packed->table;
-  for (size_t g = 0; g < group_begin.size(); ++g) {
-    const size_t bytes = (group_end[g] - group_begin[g]) * sizeof(float);
-    planes.emplace_back();
-    grads.emplace_back();
-    if (auto s = MakeBuffer(c, &planes.back(), bytes, vk::Buffer::Kind::kDevice, absl::StrCat("field planes ", g));
-        !s.ok()) {
-      return s;
-    }
-    if (auto s = MakeBuffer(c, &grads.back(), bytes, vk::Buffer::Kind::kDevice, absl::StrCat("field grads ", g));
-        !s.ok()) {
-      return s;
-    }
-  }
+  if (auto s = MakeGroupBuffers(&planes, "field planes"); !s.ok()) return s;
+  if (auto s = MakeGroupBuffers(&grads, "field grads"); !s.ok()) return s;
   mlp_total = layout.total - layout.grid_size;
   if (auto s = MakeBuffer(c, &plane_table, table.size() * 4, vk::Buffer::Kind::kDevice, "field plane table");
       !s.ok()) {

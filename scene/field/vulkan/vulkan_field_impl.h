@@ -111,6 +111,19 @@ struct VulkanField::Impl {
   // BackwardOnDevice (d_params empty: the gradient stays in `grads` and `d_mlp`).
   absl::Status Backward(const FieldQuery& query, std::span<const float> means, std::span<const float> d_dx,
                         std::span<const float> d_dsh, std::span<float> d_params, std::span<float> d_means);
+  // One device buffer per plane group, sized as the group, named "`name` g".
+  absl::Status MakeGroupBuffers(std::vector<vk::Buffer>* out, const std::string& name) const {
+    out->clear();
+    for (size_t g = 0; g < group_begin.size(); ++g) {
+      out->emplace_back();
+      if (auto s = MakeBuffer(*ctx, &out->back(), (group_end[g] - group_begin[g]) * sizeof(float),
+                              vk::Buffer::Kind::kDevice, absl::StrCat(name, " ", g));
+          !s.ok()) {
+        return s;
+      }
+    }
+    return absl::OkStatus();
+  }
   absl::Status ZeroGradients();    // vulkan_field_optimizer.cc
   absl::Status EnsureOptimizer();  // vulkan_field_optimizer.cc
   absl::Status MakeOptimizer();    // EnsureOptimizer's work (it clears what a failure left)

@@ -87,19 +87,8 @@ absl::Status VulkanField::Impl::MakeOptimizer() {
       {&adam, "field_adam", spirv::field_adam, 4, sizeof(AdamPush), {}},
   };
   if (auto s = vk::CreatePipelines(c, specs); !s.ok()) return s;
-  for (size_t g = 0; g < planes.size(); ++g) {
-    const size_t bytes = (group_end[g] - group_begin[g]) * sizeof(float);
-    m_planes.emplace_back();
-    v_planes.emplace_back();
-    if (auto s = MakeBuffer(c, &m_planes.back(), bytes, vk::Buffer::Kind::kDevice, absl::StrCat("field adam m ", g));
-        !s.ok()) {
-      return s;
-    }
-    if (auto s = MakeBuffer(c, &v_planes.back(), bytes, vk::Buffer::Kind::kDevice, absl::StrCat("field adam v ", g));
-        !s.ok()) {
-      return s;
-    }
-  }
+  if (auto s = MakeGroupBuffers(&m_planes, "field adam m"); !s.ok()) return s;
+  if (auto s = MakeGroupBuffers(&v_planes, "field adam v"); !s.ok()) return s;
   uint32_t slots = 0;
   for (const PlaneInfo& p : layout.planes) slots += RegGroups(p, layout.channels);
   for (auto [buf, bytes, name] : {std::tuple{&m_mlp, mlp_total * 4, "field adam m mlp"},
