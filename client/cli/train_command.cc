@@ -98,7 +98,8 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
       argv, {{"log"}, {"out"}, {"iterations"}, {"resolution-scale"}, {"holdout-every"}, {"seed"}, {"resume", false},
              {"checkpoint-every"}, {"no-sky", false}, {"exposure", false}, {"no-depth", false},
              {"deterministic", false}, {"backend"}, {"voxel"}, {"field"}, {"static-iterations"}, {"field-size"},
-             {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"field-modules"}, {"field-device"}, {"field-init"}});
+             {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"field-modules"}, {"field-device"}, {"field-optimizer"},
+             {"field-init"}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
@@ -202,6 +203,20 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     absl::StatusOr<train::FieldDevice> d = train::ParseFieldDevice(*v);
     if (!d.ok()) return Fail(2, d.status());
     opt.field.device = *d;
+  }
+  // Where a Vulkan field's regularisers and Adam run (auto: the device on a GPU, the host on a CPU
+  // Vulkan device; docs/field.md "The optimiser on the device").
+  if (auto v = args->Get("field-optimizer")) {
+    if (*v == "auto") {
+      opt.field.optimizer = train::FieldOptimizerPlace::kAuto;
+    } else if (*v == "device") {
+      opt.field.optimizer = train::FieldOptimizerPlace::kDevice;
+    } else if (*v == "host") {
+      opt.field.optimizer = train::FieldOptimizerPlace::kHost;
+    } else {
+      return Fail(2, absl::InvalidArgumentError(
+                         absl::StrCat("--field-optimizer must be auto, device or host, not '", *v, "'")));
+    }
   }
   opt.resume = args->Has("resume");
   opt.sky = !args->Has("no-sky");

@@ -82,6 +82,22 @@ TEST(CliField, TrainWritesAFieldThatRenderAndEvalUse) {
   render(" --time-us 0");
 }
 
+// --field-device vulkan --field-optimizer device: the fine stage steps the field on the device (its
+// log says so) and writes the device's field (lavapipe here; skipped without a Vulkan device).
+TEST(CliField, FieldOptimizerOnTheDevice) {
+  if (RunCli("devices").out.find("vulkan[0]") == std::string::npos) GTEST_SKIP() << "no Vulkan device";
+  const std::string dir = streetsim::testing::ScratchDir("streetsim_cli_field_scene", "device_optimizer");
+  const Result r = RunCli("train --log " + kKitti + " --out " + dir +
+                          " --iterations 12 --field s3gaussian --static-iterations 8 --field-size small"
+                          " --resolution-scale 0.12 --holdout-every 10 --voxel 0.5 --seed 3"
+                          " --field-device vulkan --field-optimizer device");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("its regularisers and Adam too"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("plane regularisers + field Adam on the device"), std::string::npos) << r.err;
+  EXPECT_TRUE(std::filesystem::exists(dir + "/field.bin"));
+  EXPECT_TRUE(std::filesystem::exists(dir + "/checkpoint_field_12.bin"));
+}
+
 TEST(CliField, BadValuesExitTwoWithOneLine) {
   const std::string train = "train --log " + kKitti + " --out /tmp/streetsim_cli_field_bad";
   const std::string render = "render --camera " + kKittiCamera + " --out-rgb /tmp/streetsim_cli_field_bad.png";
@@ -95,6 +111,7 @@ TEST(CliField, BadValuesExitTwoWithOneLine) {
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-size huge",
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-device gpu",
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-init random",
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-optimizer gpu",
            render + " --scene /tmp --ply /tmp/x.ply",
            render + " --ply /tmp/x.ply --time-us 5",
            render + " --scene /tmp --time-us soon",
