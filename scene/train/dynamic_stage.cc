@@ -24,15 +24,21 @@ double MsSince(Clock::time_point t0) {
   return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
 }
 
-// The base field's plane regularizers (their gradient added into d_field) and its Adam step, as
-// both the S3Gaussian and the extended stage take them; returns the regularizers' weighted loss.
-double RegularizeAndStepBaseField(const field::FieldHyper& hyper, int64_t fine_iteration, double extent,
-                                  ThreadPool& pool, field::DeformationField& base, std::vector<float>& d_field,
-                                  field::FieldAdamState* adam, FineStageTimings* timings) {
+field::RegularizerWeights PlaneRegularizerWeights(const field::FieldHyper& hyper) {
   field::RegularizerWeights w;
   w.plane_tv = hyper.plane_tv_weight;
   w.time_smoothness = hyper.time_smoothness_weight;
   w.l1_time_planes = hyper.l1_time_planes;
+  return w;
+}
+
+// The base field's plane regularizers (their gradient added into d_field) and its Adam step on the
+// host, as both the S3Gaussian and the extended stage take them; returns the regularizers'
+// weighted loss.
+double RegularizeAndStepBaseField(const field::FieldHyper& hyper, int64_t fine_iteration, double extent,
+                                  ThreadPool& pool, field::DeformationField& base, std::vector<float>& d_field,
+                                  field::FieldAdamState* adam, FineStageTimings* timings) {
+  const field::RegularizerWeights w = PlaneRegularizerWeights(hyper);
   auto t0 = Clock::now();
   const field::RegularizerLosses reg =
       field::PlaneRegularizers<float>(base.layout(), base.params().data(), w, d_field.data(), pool);
@@ -320,13 +326,9 @@ absl::StatusOr<double> DynamicStage::BackwardOnDevice(const TrainState& st, int 
   if (!dl.ok()) return dl.status();
   timings_.backward_ms += MsSince(t0);
   t0 = Clock::now();
-  field::RegularizerWeights w;
-  w.plane_tv = hyper_.plane_tv_weight;
-  w.time_smoothness = hyper_.time_smoothness_weight;
-  w.l1_time_planes = hyper_.l1_time_planes;
   // adam_.step counts as FieldAdamStep's does (its moments live on the device until SyncHost).
-  absl::StatusOr<field::RegularizerLosses> reg =
-      vk_->RegularizeAndStep(w, field::FieldLearningRates(hyper_, fine_iteration, st.extent), adam_.step + 1);
+  absl::StatusOr<field::RegularizerLosses> reg = vk_->RegularizeAndStep(
+      PlaneRegularizerWeights(hyper_), field::FieldLearningRates(hyper_, fine_iteration, st.extent), adam_.step + 1);
   if (!reg.ok()) return reg.status();
   ++adam_.step;
   host_stale_ = true;
