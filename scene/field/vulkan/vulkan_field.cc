@@ -347,7 +347,7 @@ absl::Status VulkanField::Impl::Backward(const FieldQuery& query, std::span<cons
     timings.device_ms += m.frame.ReadTimestampsMs();
     ++timings.batches;
   }
-  if (!download) {  // BackwardOnDevice: the gradient stays for StepOnDevice
+  if (!download) {  // BackwardOnDevice: the gradient stays for RegularizeAndStep
     timings.wall_ms = MsSince(t0);
     m.last_backward = timings;
     return absl::OkStatus();

@@ -78,7 +78,7 @@ class VulkanField {
   absl::Status Backward(const FieldQuery& query, std::span<const float> means, std::span<const float> d_dx,
                         std::span<const float> d_dsh, std::span<float> d_params, std::span<float> d_means);
 
-  // The optimiser on the device (docs/field.md "Vulkan field: the optimiser on the device"): the
+  // The optimiser on the device (docs/field.md "The optimiser on the device"): the
   // fine stage keeps the gradient, the plane regularisers and Adam where the field is, so that
   // neither the gradient (136 MiB at spec sizes) nor the parameters cross the bus per iteration;
   // the host reads the parameters back for checkpoints and at the end of a run.

@@ -1,5 +1,5 @@
 // VulkanField's optimiser on the device: the plane regularisers' gradient and Adam over the
-// parameters where they live (docs/field.md "Vulkan field: the optimiser on the device"). Same
+// parameters where they live (docs/field.md "The optimiser on the device"). Same
 // formulas as the cpu's PlaneRegularizers and FieldAdamStep; tests/field/vulkan_field_optimizer_test.cc
 // holds them against each other.
 #include <algorithm>
