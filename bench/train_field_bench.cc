@@ -47,7 +47,7 @@ int main(int argc, char** argv) {
   const bool bad = argc < 0 || iters < 1 || (size != "spec" && size != "small") ||
                    (backend_name != "cpu" && backend_name != "vulkan") ||
                    (field_device != "cpu" && field_device != "vulkan") ||
-                   (optimizer != "auto" && optimizer != "device" && optimizer != "host");
+                   !train::ParseFieldOptimizerPlace(optimizer).ok();
   if (bad) {
     std::fprintf(stderr,
                  "usage: train_field_bench [--settings WxHxN,...] [--iters N] [--field-size spec|small] "
@@ -85,9 +85,7 @@ int main(int argc, char** argv) {
         train::FieldOptions fo;
         fo.mode = train::FieldMode::kS3Gaussian;
         fo.device = field_device == "vulkan" ? train::FieldDevice::kVulkan : train::FieldDevice::kCpu;
-        fo.optimizer = optimizer == "device" ? train::FieldOptimizerPlace::kDevice
-                       : optimizer == "host"  ? train::FieldOptimizerPlace::kHost
-                                              : train::FieldOptimizerPlace::kAuto;
+        fo.optimizer = *train::ParseFieldOptimizerPlace(optimizer);  // checked above
         if (size == "small") {
           fo.config.channels = 8;
           fo.config.base_resolution = 16;

@@ -207,16 +207,9 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   // Where a Vulkan field's regularisers and Adam run (auto: the device on a GPU, the host on a CPU
   // Vulkan device; docs/field.md "The optimiser on the device").
   if (auto v = args->Get("field-optimizer")) {
-    if (*v == "auto") {
-      opt.field.optimizer = train::FieldOptimizerPlace::kAuto;
-    } else if (*v == "device") {
-      opt.field.optimizer = train::FieldOptimizerPlace::kDevice;
-    } else if (*v == "host") {
-      opt.field.optimizer = train::FieldOptimizerPlace::kHost;
-    } else {
-      return Fail(2, absl::InvalidArgumentError(
-                         absl::StrCat("--field-optimizer must be auto, device or host, not '", *v, "'")));
-    }
+    absl::StatusOr<train::FieldOptimizerPlace> place = train::ParseFieldOptimizerPlace(*v);
+    if (!place.ok()) return Fail(2, place.status());
+    opt.field.optimizer = *place;
   }
   opt.resume = args->Has("resume");
   opt.sky = !args->Has("no-sky");

@@ -23,15 +23,19 @@ FieldLrs FieldLearningRates(const FieldHyper& h, int64_t iteration, double exten
 using optim::AdamRange;
 constexpr float kBeta1 = optim::kAdamBeta1, kBeta2 = optim::kAdamBeta2;
 
+FieldAdamScales FieldAdamStepScales(const FieldLrs& lrs, int64_t step) {
+  const double bc1 = 1 - std::pow(double(kBeta1), double(step));
+  const double bc2 = 1 - std::pow(double(kBeta2), double(step));
+  return FieldAdamScales{static_cast<float>(lrs.grid / bc1), static_cast<float>(lrs.deformation / bc1),
+                         static_cast<float>(1 / std::sqrt(bc2))};
+}
+
 void FieldAdamStep(const FieldLayout& L, float* params, const float* grads, FieldAdamState* s, const FieldLrs& lrs,
                    ThreadPool& pool) {
   if (s->m.size() != L.total) s->Init(L.total);
   s->step += 1;
-  const double bc1 = 1 - std::pow(double(kBeta1), double(s->step));
-  const double bc2 = 1 - std::pow(double(kBeta2), double(s->step));
-  const float isb2 = static_cast<float>(1 / std::sqrt(bc2));
-  const float grid_step = static_cast<float>(lrs.grid / bc1);
-  const float mlp_step = static_cast<float>(lrs.deformation / bc1);
+  const FieldAdamScales scales = FieldAdamStepScales(lrs, s->step);
+  const float isb2 = scales.inv_sqrt_bc2, grid_step = scales.grid_step, mlp_step = scales.mlp_step;
   constexpr int64_t kChunk = 1 << 16;
   pool.ParallelFor(static_cast<int64_t>(L.total), kChunk, [&](int64_t b, int64_t e, int) {
     // Split the chunk at the group boundary.

@@ -42,6 +42,14 @@ struct FieldLrs {
 };
 FieldLrs FieldLearningRates(const FieldHyper& h, int64_t iteration, double extent);
 
+// Adam step `step` (from 1) with the bias corrections folded in, as optim::AdamRange takes them:
+// step sizes lr / (1 - beta1^step) per group and 1 / sqrt(1 - beta2^step). Shared by the host
+// step below and the Vulkan field's (VulkanField::RegularizeAndStep).
+struct FieldAdamScales {
+  float grid_step = 0, mlp_step = 0, inv_sqrt_bc2 = 0;
+};
+FieldAdamScales FieldAdamStepScales(const FieldLrs& lrs, int64_t step);
+
 // One Adam step over params [layout.total] with gradients `grads`.
 void FieldAdamStep(const FieldLayout& layout, float* params, const float* grads, FieldAdamState* state,
                    const FieldLrs& lrs, ThreadPool& pool);

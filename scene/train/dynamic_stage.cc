@@ -80,6 +80,14 @@ absl::StatusOr<FieldDevice> ParseFieldDevice(const std::string& text) {
   return absl::InvalidArgumentError(absl::StrCat("--field-device must be auto, cpu or vulkan, not '", text, "'"));
 }
 
+absl::StatusOr<FieldOptimizerPlace> ParseFieldOptimizerPlace(const std::string& text) {
+  if (text == "auto") return FieldOptimizerPlace::kAuto;
+  if (text == "device") return FieldOptimizerPlace::kDevice;
+  if (text == "host") return FieldOptimizerPlace::kHost;
+  return absl::InvalidArgumentError(
+      absl::StrCat("--field-optimizer must be auto, device or host, not '", text, "'"));
+}
+
 FieldDevice ResolveFieldDevice(FieldDevice device, Backend backend) {
   if (device != FieldDevice::kAuto) return device;
   return backend == Backend::kVulkan && HasVulkanGpu() ? FieldDevice::kVulkan : FieldDevice::kCpu;

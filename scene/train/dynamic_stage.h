@@ -33,6 +33,8 @@ enum class FieldMode { kStatic, kS3Gaussian };
 enum class FieldDevice { kAuto, kCpu, kVulkan };
 enum class FieldOptimizerPlace { kAuto, kDevice, kHost };
 absl::StatusOr<FieldDevice> ParseFieldDevice(const std::string& text);
+// "auto" | "device" | "host" (--field-optimizer).
+absl::StatusOr<FieldOptimizerPlace> ParseFieldOptimizerPlace(const std::string& text);
 // kAuto -> kVulkan when `backend` is vulkan and a Vulkan GPU exists, else kCpu.
 FieldDevice ResolveFieldDevice(FieldDevice device, Backend backend);
 const char* FieldModeName(FieldMode mode);

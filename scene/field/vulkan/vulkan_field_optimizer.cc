@@ -3,7 +3,6 @@
 // formulas as the cpu's PlaneRegularizers and FieldAdamStep; tests/field/vulkan_field_optimizer_test.cc
 // holds them against each other.
 #include <algorithm>
-#include <cmath>
 #include <cstring>
 #include <tuple>
 #include <type_traits>
@@ -150,16 +149,14 @@ absl::StatusOr<RegularizerLosses> VulkanField::RegularizeAndStep(const Regulariz
   rec.Barrier();
 
   // Adam: the planes at the grid rate, the MLP at the deformation rate (FieldAdamStep's groups).
-  const double bc1 = 1 - std::pow(double(optim::kAdamBeta1), double(step));
-  const double bc2 = 1 - std::pow(double(optim::kAdamBeta2), double(step));
-  const float isb2 = static_cast<float>(1 / std::sqrt(bc2));
+  const FieldAdamScales scales = FieldAdamStepScales(lrs, step);
   for (size_t g = 0; g < m.planes.size(); ++g) {
-    const AdamPush push{static_cast<uint32_t>(m.group_end[g] - m.group_begin[g]), static_cast<float>(lrs.grid / bc1),
-                        isb2};
+    const AdamPush push{static_cast<uint32_t>(m.group_end[g] - m.group_begin[g]), scales.grid_step,
+                        scales.inv_sqrt_bc2};
     rec.Dispatch(*m.adam, {&m.planes[g], &m.grads[g], &m.m_planes[g], &m.v_planes[g]}, push,
                  vk::GridFor(DivUp(push.count, kWg)));
   }
-  const AdamPush mlp_push{static_cast<uint32_t>(m.mlp_total), static_cast<float>(lrs.deformation / bc1), isb2};
+  const AdamPush mlp_push{static_cast<uint32_t>(m.mlp_total), scales.mlp_step, scales.inv_sqrt_bc2};
   rec.Dispatch(*m.adam, {&m.mlp, &m.d_mlp, &m.m_mlp, &m.v_mlp}, mlp_push, vk::GridFor(DivUp(m.mlp_total, kWg)));
   rec.Barrier();
   rec.Copy(m.reg_partials, 0, m.reg_readback, 0, size_t{slot} * 8);
