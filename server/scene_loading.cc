@@ -64,10 +64,10 @@ absl::StatusOr<std::shared_ptr<LoadedScene>> LoadSceneFile(const std::string& pa
       absl::StatusOr<field::ExtendedField> ext = field::LoadExtendedField(ext_path.string(), std::move(*f));
       if (!ext.ok()) return ext.status();
       dynamic = DynamicSceneField::Create(std::move(*ext), std::move(*store), std::move(*reflectance),
-                                          field::StaticSkipOptions{}, upload, on_vulkan);
+                                          load.static_skip, upload, on_vulkan);
     } else {
       dynamic = DynamicSceneField::Create(std::move(*f), std::move(*store), std::move(*reflectance),
-                                          field::StaticSkipOptions{}, upload, on_vulkan);
+                                          load.static_skip, upload, on_vulkan);
     }
     if (!dynamic.ok()) {
       const fs::path& named = extended ? ext_path : field_path;

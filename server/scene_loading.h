@@ -9,6 +9,7 @@
 #include <Eigen/Core>
 
 #include "absl/status/statusor.h"
+#include "scene/field/static_skip.h"
 #include "scene/train/dynamic_stage.h"
 #include "server/scene_field.h"
 #include "server/scene_manifest.h"
@@ -27,6 +28,7 @@ struct SceneLoadOptions {
   // server's --field-device against its engine, train::ResolveFieldDevice). kVulkan falls back to
   // the cpu with a warning when the device fails (scene/field/vulkan/vulkan_serving.h).
   train::FieldDevice field_device = train::FieldDevice::kCpu;
+  field::StaticSkipOptions static_skip;  // ServerOptions::static_skip
 };
 
 // The manifest of a scene: `manifest_path` (DIR/scene.json; absent: the default rig; empty: a bare

@@ -84,6 +84,7 @@ absl::StatusOr<std::unique_ptr<Server>> Server::Start(const ServerOptions& optio
   if (!engine.ok()) return engine.status();
   SceneLoadOptions load;
   load.field_device = train::ResolveFieldDevice(options.field_device, (*engine)->backend());
+  load.static_skip = options.static_skip;
   s->core_ = std::make_unique<RenderCore>(std::move(*engine), deps.limits, options.debug_render_delay_ms);
   deps.core = s->core_.get();
   s->job_store_ = std::make_unique<JobStore>(state_dir);

@@ -9,6 +9,7 @@
 
 #include "absl/status/statusor.h"
 #include "render/engine.h"
+#include "scene/field/static_skip.h"
 #include "scene/train/dynamic_stage.h"
 #include "server/limits.h"
 
@@ -27,6 +28,9 @@ struct ServerOptions {
   // Where dynamic scenes evaluate their field (docs/server.md "Field device"): kAuto = Vulkan when
   // the engine is vulkan on a GPU (never lavapipe: slower than the cpu there), else the cpu.
   train::FieldDevice field_device = train::FieldDevice::kAuto;
+  // Dynamic scenes' static skip (docs/field.md "Serving": thresholds below which a Gaussian's
+  // deformation over the log is baked in; `streetsim serve --static-motion-m / --static-sh`).
+  field::StaticSkipOptions static_skip;
   std::string tls_cert_file;   // both or neither
   std::string tls_key_file;
   std::string auth_token_file;  // bearer token; empty: no auth

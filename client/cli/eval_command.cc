@@ -2,6 +2,7 @@
 // training) frames, and LiDAR metrics of the scene's rendered sweeps against the real scans
 // (scene/train/lidar_eval.h; --no-lidar skips them). JSON on stdout (a contract other tools read),
 // a table on stderr.
+#include <chrono>
 #include <cstdio>
 #include <filesystem>
 #include <map>
@@ -13,6 +14,7 @@
 #include "absl/strings/str_cat.h"
 #include "client/cli/args.h"
 #include "client/cli/commands.h"
+#include "client/cli/static_skip_flags.h"
 #include "render/engine.h"
 #include "scene/gaussians/ply_io.h"
 #include "scene/log/open_log.h"
@@ -21,6 +23,7 @@
 #include "scene/train/dynamic_stage.h"
 #include "scene/train/eval_outputs.h"
 #include "scene/train/lidar_eval.h"
+#include "scene/train/served_scene.h"
 #include "scene/train/trainer.h"
 
 namespace streetsim {
@@ -93,11 +96,24 @@ void AddLidar(const train::LidarFrameMetrics& m, nlohmann::json* j) {
 }  // namespace
 
 int RunEvalCommand(const std::vector<std::string>& argv) {
-  absl::StatusOr<ParsedArgs> args =
-      ParsedArgs::Parse(argv, {{"scene"}, {"log"}, {"split"}, {"holdout-every"}, {"resolution-scale"}, {"backend"},
-                                {"no-lidar", false}, {"lidar-columns"},
-                                {"lidar-static-sweep", false}, {"decomposition"}, {"video"}, {"video-fps"}});
+  std::vector<FlagSpec> flags = {{"scene"}, {"log"}, {"split"}, {"holdout-every"}, {"resolution-scale"}, {"backend"},
+                                 {"no-lidar", false}, {"lidar-columns"}, {"lidar-static-sweep", false},
+                                 {"decomposition"}, {"video"}, {"video-fps"}, {"served", false}};
+  flags.insert(flags.end(), StaticSkipFlags().begin(), StaticSkipFlags().end());
+  absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(argv, flags);
   if (!args.ok()) return Fail(2, args.status());
+  // --served: render a field scene as `streetsim serve` does (the static skip's Gaussians baked),
+  // with the server's thresholds or --static-motion-m / --static-sh.
+  const bool served = args->Has("served");
+  if (!served && (args->Has("static-motion-m") || args->Has("static-sh"))) {
+    return Fail(2, absl::InvalidArgumentError("--static-motion-m / --static-sh need --served"));
+  }
+  if (served && (args->Has("decomposition") || args->Has("video"))) {
+    // Their static/dynamic split is the server's default analysis, not the thresholds served here.
+    return Fail(2, absl::InvalidArgumentError("--served does not combine with --decomposition or --video"));
+  }
+  absl::StatusOr<field::StaticSkipOptions> skip = StaticSkipFromFlags(*args);
+  if (!skip.ok()) return Fail(2, skip.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
   }
@@ -175,6 +191,8 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
     for (size_t i = 0; i < all_views->size(); ++i) view_groups[0].push_back(i);
   }
   std::vector<train::EvalResult> parts;
+  size_t served_static = 0, served_dynamic = 0;
+  double served_analysis_s = 0;
   std::vector<train::LidarEvalResult> lidar_parts;
   int scenes_with_reflectance = 0, scenes_evaluated = 0;
   for (size_t k = 0; k < view_groups.size(); ++k) {
@@ -193,8 +211,27 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
     if (outputs) {
       if (absl::Status s = outputs->UseScene(*store, *f, scene_meta->background); !s.ok()) return Fail(1, s);
     }
-    absl::StatusOr<train::EvalResult> r = train::EvaluateSceneDir(**engine, dir, *store, views, scene_meta->background,
-                                                                  outputs ? outputs->sink() : train::EvalFrameSink());
+    std::shared_ptr<field::ServedScene> served_scene;
+    if (served && *f) {
+      const auto t0 = std::chrono::steady_clock::now();
+      absl::StatusOr<std::shared_ptr<field::ServedScene>> ss = train::MakeServedScene(*f, *store, *skip);
+      if (!ss.ok()) return Fail(1, ss.status());
+      served_analysis_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      served_scene = *ss;
+      served_dynamic += served_scene->num_dynamic();
+      served_static += served_scene->size() - served_scene->num_dynamic();
+    } else if (served) {
+      served_static += store->size();  // a static scene is served as it is
+    }
+    absl::StatusOr<train::EvalResult> r;
+    if (served_scene) {
+      absl::StatusOr<train::SceneForView> sv = train::MakeServedSceneForView(**engine, served_scene);
+      if (!sv.ok()) return Fail(1, sv.status());
+      r = train::EvaluateViews(**engine, *sv, views, scene_meta->background, train::EvalFrameSink());
+    } else {
+      r = train::EvaluateSceneDir(**engine, dir, *store, views, scene_meta->background,
+                                  outputs ? outputs->sink() : train::EvalFrameSink());
+    }
     if (!r.ok()) return Fail(1, r.status());
     parts.push_back(std::move(*r));
     ++scenes_evaluated;
@@ -208,7 +245,9 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
       // A field scene's sweeps, like its views, are rendered deformed at the frame's time.
       absl::StatusOr<train::LidarEvalResult> lr =
           train::EvaluateLidar(*log, std::vector<int>(frames.begin(), frames.end()), *store,
-                               refl->has_value() ? &**refl : nullptr, lopt, train::MakeStoreAtTime(*f, *store));
+                               refl->has_value() ? &**refl : nullptr, lopt,
+                               served_scene ? train::MakeServedStoreAtTime(served_scene)
+                                            : train::MakeStoreAtTime(*f, *store));
       if (!lr.ok()) return Fail(1, lr.status());
       lidar_parts.push_back(std::move(*lr));
     }
@@ -240,6 +279,13 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
   j["split"] = split;
   const nlohmann::json outputs_json = OutputsJson(*output_options, output_summary);
   for (const auto& [key, value] : outputs_json.items()) j[key] = value;
+  if (served) {
+    j["served"] = {{"motion_threshold_m", skip->motion_threshold_m}, {"sh_threshold", skip->sh_threshold},
+                   {"static_gaussians", served_static}, {"dynamic_gaussians", served_dynamic},
+                   {"analysis_s", served_analysis_s}};
+    std::fprintf(stderr, "served as by streetsim serve: %zu static / %zu dynamic Gaussians (skip below %g m, ΔSH %g)\n",
+                 served_static, served_dynamic, skip->motion_threshold_m, skip->sh_threshold);
+  }
   j["frames"] = nlohmann::json::array();
   std::fprintf(stderr, "%-34s %6s %8s %7s %12s %10s", "view", "frame", "PSNR", "SSIM", "depth med m", "within 5%");
   if (have_lidar) {

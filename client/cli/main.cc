@@ -34,7 +34,7 @@ constexpr char kUsage[] =
                "              [--voxel M] [--max-range M] [--sky] [--drop-dynamic] [--random-points N]\n"
                "  serve     run the gRPC simulator server (docs/server.md): streetsim serve\n"
                "              [--listen HOST:PORT] [--data-root DIR] [--state-dir DIR] [--backend B]\n"
-               "              [--field-device auto|cpu|vulkan] ...\n"
+               "              [--field-device auto|cpu|vulkan] [--static-motion-m M] [--static-sh S] ...\n"
                "  scenes    list a server's scenes: streetsim scenes --server HOST:PORT\n"
                "  jobs      training jobs on a server: streetsim jobs list|train|watch|get|cancel ...\n"
                "  replay    scripted replay through a server: streetsim replay SCENARIO.json\n"
@@ -49,7 +49,9 @@ constexpr char kUsage[] =
                "              (default field: s3gaussian when --iterations > the 5000-iteration warm-up, else static)\n"
                "  eval      metrics of a trained scene: streetsim eval --scene DIR --log PATH [--split test|train] [--no-lidar]\n"
                "              [--decomposition DIR] [--video OUT.avi|OUT.mp4] [--video-fps F]\n"
-               "              [--holdout-every K]   (JSON on stdout, a table on stderr)\n"
+               "              [--holdout-every K] [--served [--static-motion-m M] [--static-sh S]]\n"
+               "              (JSON on stdout, a table on stderr; --served: rendered as streetsim serve\n"
+               "              serves it, the static skip's Gaussians baked, docs/field.md \"Serving\")\n"
                "\n"
                "streetsim <command> --help: that command's part of this text.\n";
 

@@ -7,6 +7,7 @@
 #include "absl/strings/str_split.h"
 #include "client/cli/args.h"
 #include "client/cli/commands.h"
+#include "client/cli/static_skip_flags.h"
 #include "scene/train/dynamic_stage.h"
 #include "server/server_main.h"
 
@@ -30,10 +31,12 @@ absl::Status ParseInt(const ParsedArgs& args, const std::string& flag, T min, T*
 }  // namespace
 
 int RunServeCommand(const std::vector<std::string>& argv) {
-  absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(
-      argv, {{"listen"}, {"data-root"}, {"state-dir"}, {"backend"}, {"tls-cert"}, {"tls-key"},
-             {"auth-token-file"}, {"max-sessions"}, {"max-queued-renders"}, {"max-image-side"},
-             {"session-lease-s"}, {"max-message-mb"}, {"init-command"}, {"field-device"}});
+  std::vector<FlagSpec> flags = {{"listen"},       {"data-root"},        {"state-dir"},      {"backend"},
+                                 {"tls-cert"},     {"tls-key"},          {"auth-token-file"}, {"max-sessions"},
+                                 {"max-queued-renders"}, {"max-image-side"}, {"session-lease-s"},
+                                 {"max-message-mb"}, {"init-command"},   {"field-device"}};
+  flags.insert(flags.end(), StaticSkipFlags().begin(), StaticSkipFlags().end());
+  absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(argv, flags);
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
@@ -50,6 +53,9 @@ int RunServeCommand(const std::vector<std::string>& argv) {
       train::ParseFieldDevice(args->Get("field-device").value_or("auto"));
   if (!field_device.ok()) return Fail(2, field_device.status());
   o.field_device = *field_device;
+  absl::StatusOr<field::StaticSkipOptions> skip = StaticSkipFromFlags(*args);
+  if (!skip.ok()) return Fail(2, skip.status());
+  o.static_skip = *skip;
   o.tls_cert_file = args->Get("tls-cert").value_or("");
   o.tls_key_file = args->Get("tls-key").value_or("");
   o.auth_token_file = args->Get("auth-token-file").value_or("");

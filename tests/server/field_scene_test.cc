@@ -7,6 +7,7 @@
 #include <cstring>
 #include <fstream>
 #include <random>
+#include <tuple>
 
 #include "render/engine.h"
 #include "render/lidar/lidar_renderer.h"
@@ -282,6 +283,29 @@ TEST_F(FieldSceneTest, ABadFieldFailsItsSceneAndTheServerKeepsServing) {
   ASSERT_TRUE(street.ok());
   EXPECT_FALSE(street->has_field());  // a scene without field.bin: static, as before
   EXPECT_GT(street->load_time_s(), 0.0);
+}
+
+// `streetsim serve --static-motion-m / --static-sh` (ServerOptions::static_skip) reach the scenes:
+// thresholds of 0 bake nothing and huge ones bake every Gaussian (this field moves every Gaussian
+// by more than the default thresholds, so the default bakes nothing either).
+TEST_F(FieldSceneTest, TheServersSkipThresholdsReachItsScenes) {
+  absl::StatusOr<v1::Scene> by_default = client_->LoadScene("dyn", true);
+  ASSERT_TRUE(by_default.ok()) << by_default.status();
+  const uint64_t n = store_.size(), default_dynamic = by_default->num_dynamic_gaussians();
+  EXPECT_GT(default_dynamic, 0u);
+  for (const auto& [motion_m, sh, want] : {std::tuple<double, double, uint64_t>{0, 0, n}, {1e3, 1e3, 0}}) {
+    client_.reset();
+    server_.reset();
+    server::ServerOptions o = TestOptions(data_root_, state_dir_);
+    o.static_skip.motion_threshold_m = motion_m;
+    o.static_skip.sh_threshold = sh;
+    StartServer(o);
+    absl::StatusOr<v1::Scene> loaded = client_->LoadScene("dyn", true);
+    ASSERT_TRUE(loaded.ok()) << loaded.status();
+    EXPECT_EQ(loaded->num_dynamic_gaussians(), want) << motion_m;
+    absl::StatusOr<v1::RenderResponse> r = client_->Render(At(700'000));
+    EXPECT_TRUE(r.ok()) << r.status();
+  }
 }
 
 }  // namespace

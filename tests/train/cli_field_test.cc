@@ -73,6 +73,35 @@ TEST(CliField, TrainWritesAFieldThatRenderAndEvalUse) {
   ASSERT_FALSE(j["frames"].empty());
   EXPECT_TRUE(j["frames"][0].contains("psnr_dynamic"));
 
+  // --served: rendered as `streetsim serve` serves it. With the thresholds at 0 nothing is baked
+  // and every view is the plain eval's up to float rounding; with huge ones every Gaussian is baked
+  // at its time-mean deformation (the counts say so; the 8 fine iterations barely move anything, so
+  // PSNR is not compared there: tests/train/served_scene_test.cc checks the renders on a field that moves).
+  const size_t n = j["frames"].size();
+  auto served = [&](const std::string& extra) {
+    const Result rs = RunCli("eval --scene " + dir + " --log " + kKitti + " --no-lidar --served" + extra);
+    EXPECT_EQ(rs.code, 0) << extra << ": " << rs.err;
+    EXPECT_NE(rs.err.find("served as by streetsim serve"), std::string::npos) << rs.err;
+    return nlohmann::json::parse(rs.out);
+  };
+  const nlohmann::json none = served(" --static-motion-m 0 --static-sh 0");
+  ASSERT_EQ(none["frames"].size(), n);
+  EXPECT_EQ(none["served"]["static_gaussians"], 0);
+  const int64_t total = none["served"]["dynamic_gaussians"];
+  EXPECT_GT(total, 0);
+  for (size_t i = 0; i < n; ++i) {
+    EXPECT_NEAR(none["frames"][i]["psnr"].get<double>(), j["frames"][i]["psnr"].get<double>(), 1e-3) << i;
+  }
+  const nlohmann::json all = served(" --static-motion-m 1000 --static-sh 1000");
+  EXPECT_EQ(all["served"]["dynamic_gaussians"], 0);
+  EXPECT_EQ(all["served"]["static_gaussians"], total);
+  EXPECT_EQ(all["served"]["motion_threshold_m"], 1000.0);
+  const nlohmann::json by_default = served("");
+  EXPECT_EQ(by_default["served"]["motion_threshold_m"], 0.01);
+  EXPECT_EQ(by_default["served"]["static_gaussians"].get<int64_t>() + by_default["served"]["dynamic_gaussians"].get<int64_t>(),
+            total);
+  EXPECT_FALSE(j.contains("served"));  // only with --served
+
   // A static run into the same directory removes the field (so nothing renders a stale one).
   r = RunCli("train --log " + kKitti + " --out " + dir + " --iterations 2 --resolution-scale 0.12 --holdout-every 0 --voxel 0.5 --field static");
   ASSERT_EQ(r.code, 0) << r.err;
@@ -101,6 +130,7 @@ TEST(CliField, FieldOptimizerOnTheDevice) {
 TEST(CliField, BadValuesExitTwoWithOneLine) {
   const std::string train = "train --log " + kKitti + " --out /tmp/streetsim_cli_field_bad";
   const std::string render = "render --camera " + kKittiCamera + " --out-rgb /tmp/streetsim_cli_field_bad.png";
+  const std::string eval = "eval --scene /tmp/streetsim_cli_field_bad --log " + kKitti + " --no-lidar";
   for (const std::string& args : {
            train + " --field bogus",
            train + " --iterations 20 --field s3gaussian --static-iterations 20",
@@ -112,6 +142,14 @@ TEST(CliField, BadValuesExitTwoWithOneLine) {
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-device gpu",
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-init random",
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-optimizer gpu",
+           eval + " --static-motion-m 0.1",                 // needs --served
+           eval + " --served --static-sh -1",
+           eval + " --served --static-motion-m nan",
+           eval + " --served --static-motion-m 1e6",
+           eval + " --served --static-sh x",
+           eval + " --served --video /tmp/streetsim_cli_field_bad.mp4",
+           std::string("serve --static-motion-m -0.5"),
+           std::string("serve --static-sh inf"),
            render + " --scene /tmp --ply /tmp/x.ply",
            render + " --ply /tmp/x.ply --time-us 5",
            render + " --scene /tmp --time-us soon",

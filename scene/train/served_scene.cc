@@ -1,0 +1,54 @@
+#include "scene/train/served_scene.h"
+
+#include <utility>
+
+#include "absl/strings/str_cat.h"
+#include "render/common/thread_pool.h"
+#include "scene/field/extended/extended_deform.h"
+#include "scene/field/extended/extended_serving.h"
+
+namespace streetsim::train {
+
+absl::StatusOr<std::shared_ptr<field::ServedScene>> MakeServedScene(
+    std::shared_ptr<const field::DeformationField> f, const GaussianStore& canonical,
+    const field::StaticSkipOptions& options) {
+  if (!f) return absl::InvalidArgumentError("a served scene needs a field (the scene has no field.bin)");
+  if (canonical.sh_degree != 3) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("a scene with a field needs SH degree 3 Gaussians, this one has degree ", canonical.sh_degree));
+  }
+  ThreadPool pool(0);
+  if (std::shared_ptr<const field::ExtendedField> ext = field::ExtensionOf(*f)) {
+    absl::StatusOr<std::unique_ptr<field::ExtServingField>> s =
+        field::ExtServingField::Create(*ext, canonical, options, pool);
+    if (!s.ok()) return s.status();
+    return std::shared_ptr<field::ServedScene>(std::move(*s));
+  }
+  absl::StatusOr<field::ServingField> s = field::ServingField::Create(*f, canonical, options, pool);
+  if (!s.ok()) return s.status();
+  return std::shared_ptr<field::ServedScene>(std::make_shared<field::ServingField>(std::move(*s)));
+}
+
+absl::StatusOr<SceneForView> MakeServedSceneForView(Engine& engine, std::shared_ptr<field::ServedScene> served) {
+  if (!served) return absl::InvalidArgumentError("no served scene");
+  auto pool = std::make_shared<ThreadPool>(0);
+  auto scene = std::make_shared<std::unique_ptr<DeviceScene>>();
+  Engine* e = &engine;
+  return SceneForView([=](const View& v) -> absl::StatusOr<const DeviceScene*> {
+    absl::StatusOr<const GaussianStore*> g = served->At(v.time_us, *pool);
+    if (!g.ok()) return g.status();
+    if (absl::Status s = e->UpdateScene(**g, scene.get()); !s.ok()) return s;
+    return scene->get();
+  });
+}
+
+StoreAtTime MakeServedStoreAtTime(std::shared_ptr<field::ServedScene> served) {
+  auto pool = std::make_shared<ThreadPool>(0);
+  return [served, pool](int64_t time_us) -> absl::StatusOr<GaussianStore> {
+    absl::StatusOr<const GaussianStore*> g = served->At(time_us, *pool);
+    if (!g.ok()) return g.status();
+    return **g;
+  };
+}
+
+}  // namespace streetsim::train

@@ -1,0 +1,32 @@
+// A trained scene as `streetsim serve` serves it (scene/field/static_skip.h ServingField; with an
+// extension, extended_serving.h ExtServingField): the static skip's Gaussians baked at their
+// time-mean deformation, the others evaluated per timestamp. `streetsim eval --served` renders
+// through this, so the quality cost of a pair of skip thresholds is measured against the log
+// rather than guessed (docs/field.md "Serving").
+#pragma once
+
+#include <cstdint>
+#include <memory>
+
+#include "absl/status/statusor.h"
+#include "render/engine.h"
+#include "scene/field/deformation_field.h"
+#include "scene/field/static_skip.h"
+#include "scene/gaussians/gaussian_store.h"
+#include "scene/train/dynamic_stage.h"
+#include "scene/train/lidar_eval.h"
+
+namespace streetsim::train {
+
+// The served scene of `canonical` under `field` (an extended field when LoadSceneField attached
+// one), after the static analysis with `options`. `field` must not be null.
+absl::StatusOr<std::shared_ptr<field::ServedScene>> MakeServedScene(
+    std::shared_ptr<const field::DeformationField> field, const GaussianStore& canonical,
+    const field::StaticSkipOptions& options);
+
+// Views and LiDAR sweeps rendered from `served` at their times (one served scene, evaluated once
+// per distinct timestamp; not thread-safe, as eval is sequential). Valid while the engine is.
+absl::StatusOr<SceneForView> MakeServedSceneForView(Engine& engine, std::shared_ptr<field::ServedScene> served);
+StoreAtTime MakeServedStoreAtTime(std::shared_ptr<field::ServedScene> served);
+
+}  // namespace streetsim::train
