@@ -3,12 +3,14 @@
 // thresholds leaves static, and what a served timestamp then costs (docs/field.md "Serving").
 //   field_scene_bench --scene DIR [--samples 50] [--repeats 5] [--threads 0]
 //                     [--thresholds 0.01:0.01,0.02:0.02,0.05:0.05,0.1:0.1]   (motion m : ΔSH; 1e9 = no test)
-// Also: the range of the scene-mean Δx over the log and the Δx box with that shift removed (a
-// field that only corrected the poses would move every Gaussian alike: small residual boxes).
+// Also: the range of the scene-mean Δx over the log, and the Δx boxes with that shift or with a
+// rigid motion of the whole scene fitted per time (Kabsch) removed (a field that only corrected
+// the poses would move every Gaussian alike: small residual boxes).
 // DIR is a trained scene directory (scene.ply + field.bin, S3Gaussian's field). The ranges are
 // AnalyseStatic's: per Gaussian the diagonal of its Δx box and the largest ΔSH range over the
 // samples (times spread over the log, ends included).
 #include <algorithm>
+#include <cmath>
 #include <chrono>
 #include <cstdio>
 #include <cstring>
@@ -16,6 +18,9 @@
 #include <string>
 #include <utility>
 #include <vector>
+
+#include <Eigen/Geometry>
+#include <Eigen/SVD>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_split.h"
@@ -39,17 +44,38 @@ double Ms(Clock::time_point t0) { return std::chrono::duration<double, std::mill
 }
 
 // Per Gaussian: {diagonal of the Δx range box (m), largest ΔSH range over the store's coefficients}.
-// `shift` (optional, [samples * 3]): subtracted from every Δx of sample s first.
+// Per sample, the sums that fit one rigid motion to every Gaussian's x -> x + Δx (Kabsch).
+struct RigidSums {
+  Eigen::Vector3d sx = Eigen::Vector3d::Zero(), sy = Eigen::Vector3d::Zero();
+  Eigen::Matrix3d sxy = Eigen::Matrix3d::Zero();
+  double n = 0;
+  Eigen::Vector3d MeanShift() const { return (sy - sx) / n; }
+  // The least-squares rigid motion y ~ R x + t.
+  Eigen::Isometry3d Fit() const {
+    const Eigen::Vector3d cx = sx / n, cy = sy / n;
+    const Eigen::Matrix3d H = sxy / n - cx * cy.transpose();
+    Eigen::JacobiSVD<Eigen::Matrix3d> svd(H, Eigen::ComputeFullU | Eigen::ComputeFullV);
+    Eigen::Matrix3d D = Eigen::Matrix3d::Identity();
+    D(2, 2) = (svd.matrixV() * svd.matrixU().transpose()).determinant() < 0 ? -1 : 1;
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    T.linear() = svd.matrixV() * D * svd.matrixU().transpose();
+    T.translation() = cy - T.linear() * cx;
+    return T;
+  }
+};
+
+// `motion` (optional, one per sample): the Δx it implies, T x - x, is removed from every Δx of
+// that sample first. `sums` (optional): filled per sample.
 std::vector<std::pair<float, float>> Ranges(const DeformationField& f, const GaussianStore& g, int samples,
-                                            ThreadPool& pool, const std::vector<double>* shift = nullptr,
-                                            std::vector<double>* mean_dx = nullptr) {
+                                            ThreadPool& pool, const std::vector<Eigen::Isometry3d>* motion = nullptr,
+                                            std::vector<RigidSums>* sums = nullptr) {
   const size_t n = g.size(), chunk = 1 << 16;
   const int K3 = g.sh_coeffs() * 3;
   std::vector<std::pair<float, float>> out(n);
   std::vector<float> spatial, dx, dsh;
   FieldWorkspace ws;
   DeltaRanges r;
-  if (mean_dx) mean_dx->assign(samples * 3, 0.0);
+  if (sums) sums->assign(samples, RigidSums());
   for (size_t c0 = 0; c0 < n; c0 += chunk) {
     const size_t cn = std::min(chunk, n - c0);
     spatial.resize(cn * f.layout().feature_dim());
@@ -62,11 +88,18 @@ std::vector<std::pair<float, float>> Ranges(const DeformationField& f, const Gau
       const double coord = f.NormalisedTime(static_cast<double>(s) / (samples - 1));
       FieldForwardCached<float>(f.layout(), f.params().data(), f.QueryAtCoordinate(coord), g.means.data() + c0 * 3,
                                 nullptr, spatial.data(), cn, dx.data(), dsh.data(), pool, ws);
-      for (size_t i = 0; i < cn; ++i)
-        for (int k = 0; k < 3; ++k) {
-          if (mean_dx) (*mean_dx)[s * 3 + k] += dx[i * 3 + k] / double(g.size());
-          if (shift) dx[i * 3 + k] -= static_cast<float>((*shift)[s * 3 + k]);
+      for (size_t i = 0; i < cn; ++i) {
+        const Eigen::Vector3d x(g.means[(c0 + i) * 3], g.means[(c0 + i) * 3 + 1], g.means[(c0 + i) * 3 + 2]);
+        const Eigen::Vector3d y = x + Eigen::Vector3d(dx[i * 3], dx[i * 3 + 1], dx[i * 3 + 2]);
+        if (sums) {
+          RigidSums& r = (*sums)[s];
+          r.sx += x, r.sy += y, r.sxy += x * y.transpose(), r.n += 1;
         }
+        if (motion) {
+          const Eigen::Vector3d rigid = (*motion)[s] * x - x;
+          for (int k = 0; k < 3; ++k) dx[i * 3 + k] -= static_cast<float>(rigid[k]);
+        }
+      }
       r.Add({{dx.data(), 3, 3}, {dsh.data(), kShOutputs, K3}}, pool);
     }
     for (size_t i = 0; i < cn; ++i) {
@@ -119,19 +152,31 @@ int main(int argc, char** argv) {
               (f->time_range().end_us - f->time_range().start_us) * 1e-6, samples, pool.num_threads());
 
   auto t0 = Clock::now();
-  std::vector<double> mean_dx;
-  const std::vector<std::pair<float, float>> ranges = Ranges(*f, *g, samples, pool, nullptr, &mean_dx);
+  std::vector<RigidSums> sums;
+  const std::vector<std::pair<float, float>> ranges = Ranges(*f, *g, samples, pool, nullptr, &sums);
   std::printf("ranges over the log: %.0f ms\n", Ms(t0));
+  // Is the learned motion one motion of the whole scene per time (what a pose error would ask
+  // for), a shift or a rigid motion, or each Gaussian's own? Boxes with either removed.
   {
-    double lo[3] = {1e30, 1e30, 1e30}, hi[3] = {-1e30, -1e30, -1e30};
-    for (int s = 0; s < samples; ++s)
-      for (int k = 0; k < 3; ++k) lo[k] = std::min(lo[k], mean_dx[s * 3 + k]), hi[k] = std::max(hi[k], mean_dx[s * 3 + k]);
-    std::printf("scene-mean Δx over the log: range %.4f %.4f %.4f m\n", hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]);
-    const std::vector<std::pair<float, float>> rel = Ranges(*f, *g, samples, pool, &mean_dx);
-    std::vector<float> m(n);
-    for (size_t i = 0; i < n; ++i) m[i] = rel[i].first;
-    std::printf("Δx box diagonal minus the scene-mean shift: p10 %.4f p50 %.4f p90 %.4f m\n", Quantile(m, 0.1),
-                Quantile(m, 0.5), Quantile(m, 0.9));
+    std::vector<Eigen::Isometry3d> shift(samples, Eigen::Isometry3d::Identity()), rigid(samples);
+    Eigen::Vector3d lo = Eigen::Vector3d::Constant(1e30), hi = -lo;
+    double max_angle = 0;
+    for (int s = 0; s < samples; ++s) {
+      shift[s].translation() = sums[s].MeanShift();
+      lo = lo.cwiseMin(shift[s].translation()), hi = hi.cwiseMax(shift[s].translation());
+      rigid[s] = sums[s].Fit();
+      max_angle = std::max(max_angle, Eigen::AngleAxisd(rigid[s].linear()).angle());
+    }
+    std::printf("scene-mean Δx over the log: range %.4f %.4f %.4f m; fitted rigid motion: up to %.4f deg\n",
+                hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2], max_angle * 180 / M_PI);
+    for (const auto& [name, m] : {std::pair<const char*, const std::vector<Eigen::Isometry3d>*>{"scene-mean shift", &shift},
+                                  {"fitted rigid motion", &rigid}}) {
+      const std::vector<std::pair<float, float>> rel = Ranges(*f, *g, samples, pool, m);
+      std::vector<float> box(n);
+      for (size_t i = 0; i < n; ++i) box[i] = rel[i].first;
+      std::printf("Δx box diagonal minus the %s: p10 %.4f p50 %.4f p90 %.4f m\n", name, Quantile(box, 0.1),
+                  Quantile(box, 0.5), Quantile(box, 0.9));
+    }
   }
   std::vector<float> motion(n), colour(n);
   for (size_t i = 0; i < n; ++i) motion[i] = ranges[i].first, colour[i] = ranges[i].second;
