@@ -557,7 +557,8 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     meta["seed"] = opt.seed;
     meta["sky"] = opt.sky;
     meta["exposure"] = opt.exposure;
-    meta["field"] = stage ? "s3gaussian" : "static";
+    meta["field"] = !stage ? "static" : opt.field.extended ? "extended" : "s3gaussian";
+    if (stage && opt.field.extended) meta["field_modules"] = opt.field.extended->ModulesString();
     const std::string field_path = (std::filesystem::path(out_dir) / field::kFieldFileName).string();
     if (stage) {
       if (absl::Status s = stage->SyncHost(); !s.ok()) return s;  // the field's optimiser may be on the device

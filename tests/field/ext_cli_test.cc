@@ -52,6 +52,10 @@ TEST(CliExtendedField, TrainEvalRenderResume) {
     EXPECT_TRUE(std::filesystem::exists(dir + "/" + f)) << f;
   }
   EXPECT_FALSE(std::filesystem::exists(dir + "/checkpoint_field_10_ext.bin"));  // replaced by the last one
+  // train_meta.json names the field kind and its modules (was "s3gaussian" for an extended run).
+  const nlohmann::json meta = nlohmann::json::parse(Slurp(dir + "/train_meta.json"));
+  EXPECT_EQ(meta["field"], "extended");
+  EXPECT_TRUE(meta["field_modules"].is_string() && !meta["field_modules"].get<std::string>().empty()) << meta.dump();
 
   r = RunCli("eval --scene " + dir + " --log " + kKitti + " --no-lidar");
   ASSERT_EQ(r.code, 0) << r.err;
@@ -94,6 +98,8 @@ TEST(CliExtendedField, NoModulesIsS3Gaussian) {
   r = RunCli("train --log " + kKitti + " --out " + b + " --field s3gaussian" + common);
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_FALSE(std::filesystem::exists(b + "/field_ext.bin"));
+  EXPECT_EQ(nlohmann::json::parse(Slurp(a + "/train_meta.json"))["field_modules"], "none");
+  EXPECT_FALSE(nlohmann::json::parse(Slurp(b + "/train_meta.json")).contains("field_modules"));
   absl::StatusOr<streetsim::field::DeformationField> fa = streetsim::field::LoadField(a + "/field.bin");
   absl::StatusOr<streetsim::field::DeformationField> fb = streetsim::field::LoadField(b + "/field.bin");
   ASSERT_TRUE(fa.ok() && fb.ok());
