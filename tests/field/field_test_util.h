@@ -142,4 +142,18 @@ inline double RelError(std::vector<double>& x, const std::vector<size_t>& idx, c
   return den > 0 ? std::sqrt(num / den) : std::sqrt(num);
 }
 
+// The finest xt plane made to vary in time over its 2 * half_width middle texel columns (the
+// others stay at the spec's 1): the field then moves the Gaussians in that band of x and leaves
+// the rest still (static skip, decomposition and served-scene tests).
+inline void AddTimeVaryingBand(DeformationField* f, int half_width) {
+  const FieldLayout& L = f->layout();
+  for (const PlaneInfo& pi : L.planes) {
+    if (pi.plane != 2 || pi.level != L.num_levels - 1) continue;
+    for (int v = 0; v < pi.height; ++v)
+      for (int u = pi.width / 2 - half_width; u < pi.width / 2 + half_width; ++u)
+        for (int k = 0; k < L.channels; ++k)
+          f->mutable_params()[pi.offset + (size_t(v) * pi.width + u) * L.channels + k] = 1.0f + 0.8f * std::sin(2.0f * v + k);
+  }
+}
+
 }  // namespace streetsim::field::testing

@@ -10,21 +10,13 @@
 namespace streetsim::field {
 namespace {
 
-// Space-time planes vary in time only over texel columns [u0, u1) of the finest xt plane: Gaussians
+// Space-time planes vary in time only over the middle texel columns of the finest xt plane: Gaussians
 // whose x falls there move, the others do not.
 DeformationField BandField() {
   absl::StatusOr<DeformationField> f =
       DeformationField::Create(testing::SmallConfig(), testing::TestAabb(), {0, 2'000'000}, 7);
   EXPECT_TRUE(f.ok());
-  const FieldLayout& L = f->layout();
-  for (const PlaneInfo& pi : L.planes) {
-    if (pi.plane != 2 || pi.level != L.num_levels - 1) continue;  // finest level only
-    const int u0 = pi.width / 2 - 1, u1 = pi.width / 2 + 1;
-    for (int v = 0; v < pi.height; ++v)
-      for (int u = u0; u < u1; ++u)
-        for (int k = 0; k < L.channels; ++k)
-          f->mutable_params()[pi.offset + (size_t(v) * pi.width + u) * L.channels + k] = 1.0f + 0.8f * std::sin(2.0f * v + k);
-  }
+  testing::AddTimeVaryingBand(&*f, 1);
   return std::move(*f);
 }
 

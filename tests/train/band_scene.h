@@ -23,14 +23,7 @@ inline field::DeformationField BandField() {
   absl::StatusOr<field::DeformationField> f =
       field::DeformationField::Create(field::testing::SmallConfig(), field::testing::TestAabb(), {0, 2'000'000}, 7);
   EXPECT_TRUE(f.ok());
-  const field::FieldLayout& L = f->layout();
-  for (const field::PlaneInfo& pi : L.planes) {
-    if (pi.plane != 2 || pi.level != L.num_levels - 1) continue;
-    for (int v = 0; v < pi.height; ++v)
-      for (int u = pi.width / 2 - 1; u < pi.width / 2 + 1; ++u)
-        for (int k = 0; k < L.channels; ++k)
-          f->mutable_params()[pi.offset + (size_t(v) * pi.width + u) * L.channels + k] = 1.0f + 0.8f * std::sin(2.0f * v + k);
-  }
+  field::testing::AddTimeVaryingBand(&*f, 1);
   return std::move(*f);
 }
 

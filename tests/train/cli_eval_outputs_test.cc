@@ -19,6 +19,7 @@
 #include "scene/field/static_skip.h"
 #include "scene/gaussians/ply_io.h"
 #include "tests/common/cli_runner.h"
+#include "tests/field/field_test_util.h"
 
 namespace {
 
@@ -49,14 +50,7 @@ Result RunCli(const std::string& args, const std::string& dir) {
 void AddMovingBand(const std::string& field_path) {
   absl::StatusOr<field::DeformationField> f = field::LoadField(field_path);
   ASSERT_TRUE(f.ok()) << f.status();
-  const field::FieldLayout& L = f->layout();
-  for (const field::PlaneInfo& pi : L.planes) {
-    if (pi.plane != 2 || pi.level != L.num_levels - 1) continue;
-    for (int v = 0; v < pi.height; ++v)
-      for (int u = pi.width / 2 - 2; u < pi.width / 2 + 2; ++u)
-        for (int k = 0; k < L.channels; ++k)
-          f->mutable_params()[pi.offset + (size_t(v) * pi.width + u) * L.channels + k] = 1.0f + 0.8f * std::sin(2.0f * v + k);
-  }
+  field::testing::AddTimeVaryingBand(&*f, 2);
   ASSERT_TRUE(field::SaveField(*f, field_path).ok());
 }
 
