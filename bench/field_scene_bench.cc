@@ -6,7 +6,8 @@
 // Also: the range of the scene-mean Δx over the log, and the Δx boxes with that shift or with a
 // rigid motion of the whole scene fitted per time (Kabsch) removed (a field that only corrected
 // the poses would move every Gaussian alike: small residual boxes).
-// DIR is a trained scene directory (scene.ply + field.bin, S3Gaussian's field). The ranges are
+// DIR is a trained scene directory (scene.ply + field.bin; with field_ext.bin, --field extended,
+// only the static share and the served cost per threshold pair, through ExtServingField). The ranges are
 // AnalyseStatic's: per Gaussian the diagonal of its Δx box and the largest ΔSH range over the
 // samples (times spread over the log, ends included).
 #include <algorithm>
@@ -26,6 +27,8 @@
 #include "absl/strings/str_split.h"
 #include "render/common/thread_pool.h"
 #include "scene/field/field_eval.h"
+#include "scene/field/extended/extended_io.h"
+#include "scene/field/extended/extended_serving.h"
 #include "scene/field/field_io.h"
 #include "scene/field/static_skip.h"
 #include "scene/gaussians/ply_io.h"
@@ -117,6 +120,18 @@ float Quantile(std::vector<float> v, double q) {
   return v[k];
 }
 
+// Wall ms per served timestamp over `repeats` distinct times inside the log (after a warm-up one).
+double MsPerTimestamp(ServedScene& sf, const FieldTimeRange& tr, int repeats, ThreadPool& pool) {
+  double total = 0;
+  for (int r = 0; r <= repeats; ++r) {
+    const int64_t t_us = tr.start_us + (tr.end_us - tr.start_us) * (r + 1) / (repeats + 2);
+    const auto t1 = Clock::now();
+    if (!sf.At(t_us, pool).ok()) Die(1, "serving failed");
+    if (r > 0) total += Ms(t1);  // the first timestamp warms the workspace
+  }
+  return total / repeats;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -148,6 +163,30 @@ int main(int argc, char** argv) {
   if (g->sh_degree != 3) Die(2, "a scene with a field has SH degree 3 Gaussians");
   ThreadPool pool(threads);
   const size_t n = g->size();
+  // --field extended (field_ext.bin): its Δs come out of ExtendedForward, so only the serving
+  // analysis's counts are shown (ExtServingField: Δx, ΔSH and the decoder's Δs against their thresholds).
+  const std::filesystem::path ext_path = std::filesystem::path(dir) / kExtendedFieldFileName;
+  if (std::filesystem::exists(ext_path)) {
+    absl::StatusOr<ExtendedField> ext = LoadExtendedField(ext_path.string(), *f);
+    if (!ext.ok()) Die(2, std::string(ext.status().message()));
+    std::printf("scene %s: %zu Gaussians, extended field (modules %s), %d samples, %d threads\n", dir.c_str(), n,
+                ext->config().ModulesString().c_str(), samples, pool.num_threads());
+    std::printf("%10s %8s | %9s | %10s %14s\n", "motion m", "ΔSH", "static", "setup ms", "ms / timestamp");
+    for (const auto& [m, s] : pairs) {
+      StaticSkipOptions o;
+      o.num_samples = samples;
+      o.motion_threshold_m = m;
+      o.sh_threshold = s;
+      const auto t0 = Clock::now();
+      absl::StatusOr<std::unique_ptr<ExtServingField>> sf = ExtServingField::Create(*ext, *g, o, pool);
+      const double setup_ms = Ms(t0);
+      if (!sf.ok()) Die(1, std::string(sf.status().message()));
+      const double ms = MsPerTimestamp(**sf, f->time_range(), repeats, pool);
+      std::printf("%10g %8g | %8.1f%% | %10.0f %14.1f\n", m, s, 100.0 * ((*sf)->size() - (*sf)->num_dynamic()) / n,
+                  setup_ms, ms);
+    }
+    return 0;
+  }
   std::printf("scene %s: %zu Gaussians, field over %.3f s, %d samples, %d threads\n", dir.c_str(), n,
               (f->time_range().end_us - f->time_range().start_us) * 1e-6, samples, pool.num_threads());
 
@@ -205,16 +244,9 @@ int main(int argc, char** argv) {
       Die(1, "the serving analysis disagrees with this bench's ranges (static " +
                  std::to_string(sf->size() - sf->num_dynamic()) + " vs " + std::to_string(both) + ")");
     }
-    double total = 0;
-    for (int r = 0; r <= repeats; ++r) {
-      const int64_t t_us = f->time_range().start_us +
-                           (f->time_range().end_us - f->time_range().start_us) * (r + 1) / (repeats + 2);
-      const auto t1 = Clock::now();
-      if (!sf->At(t_us, pool).ok()) Die(1, "serving failed");
-      if (r > 0) total += Ms(t1);  // the first timestamp warms the workspace
-    }
+    const double ms = MsPerTimestamp(*sf, f->time_range(), repeats, pool);
     std::printf("%10g %8g | %8.1f%% %8.1f%% %8.1f%% | %10.0f %14.1f\n", m, s, 100.0 * mo / n, 100.0 * so / n,
-                100.0 * both / n, setup_ms, total / repeats);
+                100.0 * both / n, setup_ms, ms);
   }
   return 0;
 }
