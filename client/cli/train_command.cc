@@ -189,9 +189,10 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
       return Fail(2, absl::InvalidArgumentError("--field-size must be spec or small"));
     }
   }
-  // The heads' init (docs/training.md "Field init"): zero-heads (the default: the fine stage starts
-  // from the static model, FieldConfig::zero_init_heads) or spec (S3Gaussian's).
-  opt.field.config.zero_init_heads = true;
+  // The heads' init (docs/training.md "Field init"): spec (S3Gaussian's, the default: it learns
+  // motion sooner) or zero-heads (the fine stage starts exactly from the static model,
+  // FieldConfig::zero_init_heads).
+  opt.field.config.zero_init_heads = false;
   if (auto v = args->Get("field-init")) {
     if (*v != "spec" && *v != "zero-heads") {
       return Fail(2, absl::InvalidArgumentError(absl::StrCat("--field-init must be spec or zero-heads, not '", *v, "'")));
