@@ -35,11 +35,13 @@ struct FieldConfig {
   // Departure from S3Gaussian (method.md section 1): the log's time range maps to the full [-1, 1]
   // of the time axis. false = S3Gaussian's t in [0, 1] (only the upper half of the axis is used).
   bool full_time_range = true;
-  // Departure from S3Gaussian (method.md section 1 lists the others): the last Linear of the
-  // Δposition and ΔSH heads starts at zero, so that the fine stage starts exactly from the static
-  // model instead of moving every Gaussian by the random heads' output (about ±0.1 m and a colour
-  // shift at the spec init); the heads' other layers and the planes start learning after the first
-  // step. false = the spec's init (Xavier weights, PyTorch biases on every layer).
+  // Departure from S3Gaussian behind a switch (`streetsim train --field-init zero-heads`): the last
+  // Linear of the Δposition and ΔSH heads starts at zero, so that the fine stage starts exactly
+  // from the static model instead of moving every Gaussian by the random heads' output (about
+  // ±0.1 m and a colour shift). Not the default: Δ = W h then grows only at the heads' learning
+  // rate, and on KITTI it learned motion later and ended 0.6-0.8 dB lower after 500 fine
+  // iterations (docs/training.md "Field init"). false = the spec's init (Xavier weights, PyTorch
+  // biases on every layer).
   bool zero_init_heads = false;
 
   int num_levels() const { return static_cast<int>(multires.size()); }
