@@ -6,10 +6,11 @@
 // Also: the range of the scene-mean Δx over the log, and the Δx boxes with that shift or with a
 // rigid motion of the whole scene fitted per time (Kabsch) removed (a field that only corrected
 // the poses would move every Gaussian alike: small residual boxes).
-// DIR is a trained scene directory (scene.ply + field.bin; with field_ext.bin, --field extended,
-// only the static share and the served cost per threshold pair, through ExtServingField). The ranges are
-// AnalyseStatic's: per Gaussian the diagonal of its Δx box and the largest ΔSH range over the
-// samples (times spread over the log, ends included).
+// DIR is a trained scene directory, loaded and served as `streetsim eval --served` does
+// (train::LoadSceneField, train::MakeServedScene); with field_ext.bin (--field extended) only the
+// static share and the served cost per threshold pair. The ranges are AnalyseStatic's: per
+// Gaussian the diagonal of its Δx box and the largest ΔSH range over the samples (times spread
+// over the log, ends included).
 #include <algorithm>
 #include <cmath>
 #include <chrono>
@@ -27,11 +28,12 @@
 #include "absl/strings/str_split.h"
 #include "render/common/thread_pool.h"
 #include "scene/field/field_eval.h"
-#include "scene/field/extended/extended_io.h"
-#include "scene/field/extended/extended_serving.h"
+#include "scene/field/extended/extended_deform.h"
 #include "scene/field/field_io.h"
 #include "scene/field/static_skip.h"
 #include "scene/gaussians/ply_io.h"
+#include "scene/train/dynamic_stage.h"
+#include "scene/train/served_scene.h"
 
 using namespace streetsim;
 using namespace streetsim::field;
@@ -158,77 +160,64 @@ int main(int argc, char** argv) {
   }
   absl::StatusOr<GaussianStore> g = ReadGaussianPly((std::filesystem::path(dir) / "scene.ply").string());
   if (!g.ok()) Die(2, std::string(g.status().message()));
-  absl::StatusOr<DeformationField> f = LoadField((std::filesystem::path(dir) / kFieldFileName).string());
-  if (!f.ok()) Die(2, std::string(f.status().message()));
   if (g->sh_degree != 3) Die(2, "a scene with a field has SH degree 3 Gaussians");
+  // field.bin, and field_ext.bin checked against it, as the CLI and the server load them.
+  absl::StatusOr<std::shared_ptr<const DeformationField>> field = train::LoadSceneField(dir);
+  if (!field.ok()) Die(2, std::string(field.status().message()));
+  if (!*field) Die(2, dir + " has no " + kFieldFileName + ": a static scene has nothing to skip");
+  const DeformationField& f = **field;
+  // --field extended: its Δs come out of ExtendedForward, so only the serving analysis's counts
+  // are shown (ExtServingField: Δx, ΔSH and the decoder's Δs against their thresholds).
+  const std::shared_ptr<const ExtendedField> ext = ExtensionOf(f);
   ThreadPool pool(threads);
   const size_t n = g->size();
-  // --field extended (field_ext.bin): its Δs come out of ExtendedForward, so only the serving
-  // analysis's counts are shown (ExtServingField: Δx, ΔSH and the decoder's Δs against their thresholds).
-  const std::filesystem::path ext_path = std::filesystem::path(dir) / kExtendedFieldFileName;
-  if (std::filesystem::exists(ext_path)) {
-    absl::StatusOr<ExtendedField> ext = LoadExtendedField(ext_path.string(), *f);
-    if (!ext.ok()) Die(2, std::string(ext.status().message()));
-    std::printf("scene %s: %zu Gaussians, extended field (modules %s), %d samples, %d threads\n", dir.c_str(), n,
-                ext->config().ModulesString().c_str(), samples, pool.num_threads());
-    std::printf("%10s %8s | %9s | %10s %14s\n", "motion m", "ΔSH", "static", "setup ms", "ms / timestamp");
-    for (const auto& [m, s] : pairs) {
-      StaticSkipOptions o;
-      o.num_samples = samples;
-      o.motion_threshold_m = m;
-      o.sh_threshold = s;
-      const auto t0 = Clock::now();
-      absl::StatusOr<std::unique_ptr<ExtServingField>> sf = ExtServingField::Create(*ext, *g, o, pool);
-      const double setup_ms = Ms(t0);
-      if (!sf.ok()) Die(1, std::string(sf.status().message()));
-      const double ms = MsPerTimestamp(**sf, f->time_range(), repeats, pool);
-      std::printf("%10g %8g | %8.1f%% | %10.0f %14.1f\n", m, s, 100.0 * ((*sf)->size() - (*sf)->num_dynamic()) / n,
-                  setup_ms, ms);
+  std::printf("scene %s: %zu Gaussians, %s, field over %.3f s, %d samples, %d threads\n", dir.c_str(), n,
+              ext ? ("extended field (modules " + ext->config().ModulesString() + ")").c_str() : "S3Gaussian's field",
+              (f.time_range().end_us - f.time_range().start_us) * 1e-6, samples, pool.num_threads());
+  std::vector<float> motion, colour;  // per Gaussian (S3Gaussian's field only)
+  if (!ext) {
+    auto t0 = Clock::now();
+    std::vector<RigidSums> sums;
+    const std::vector<std::pair<float, float>> ranges = Ranges(f, *g, samples, pool, nullptr, &sums);
+    std::printf("ranges over the log: %.0f ms\n", Ms(t0));
+    // Is the learned motion one motion of the whole scene per time (what a pose error would ask
+    // for), a shift or a rigid motion, or each Gaussian's own? Boxes with either removed.
+    {
+      std::vector<Eigen::Isometry3d> shift(samples, Eigen::Isometry3d::Identity()), rigid(samples);
+      Eigen::Vector3d lo = Eigen::Vector3d::Constant(1e30), hi = -lo;
+      double max_angle = 0;
+      for (int s = 0; s < samples; ++s) {
+        shift[s].translation() = sums[s].MeanShift();
+        lo = lo.cwiseMin(shift[s].translation()), hi = hi.cwiseMax(shift[s].translation());
+        rigid[s] = sums[s].Fit();
+        max_angle = std::max(max_angle, Eigen::AngleAxisd(rigid[s].linear()).angle());
+      }
+      std::printf("scene-mean Δx over the log: range %.4f %.4f %.4f m; fitted rigid motion: up to %.4f deg\n",
+                  hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2], max_angle * 180 / M_PI);
+      for (const auto& [name, m] : {std::pair<const char*, const std::vector<Eigen::Isometry3d>*>{"scene-mean shift", &shift},
+                                    {"fitted rigid motion", &rigid}}) {
+        const std::vector<std::pair<float, float>> rel = Ranges(f, *g, samples, pool, m);
+        std::vector<float> box(n);
+        for (size_t i = 0; i < n; ++i) box[i] = rel[i].first;
+        std::printf("Δx box diagonal minus the %s: p10 %.4f p50 %.4f p90 %.4f m\n", name, Quantile(box, 0.1),
+                    Quantile(box, 0.5), Quantile(box, 0.9));
+      }
     }
-    return 0;
+    motion.resize(n);
+    colour.resize(n);
+    for (size_t i = 0; i < n; ++i) motion[i] = ranges[i].first, colour[i] = ranges[i].second;
+    std::printf("%-28s %9s %9s %9s %9s %9s\n", "per Gaussian, over the log", "p10", "p50", "p90", "p99", "max");
+    std::printf("%-28s", "Δx box diagonal (m)");
+    for (double q : {0.1, 0.5, 0.9, 0.99, 1.0}) std::printf(" %9.4f", Quantile(motion, q));
+    std::printf("\n%-28s", "max ΔSH range");
+    for (double q : {0.1, 0.5, 0.9, 0.99, 1.0}) std::printf(" %9.4f", Quantile(colour, q));
+    std::printf("\n");
   }
-  std::printf("scene %s: %zu Gaussians, field over %.3f s, %d samples, %d threads\n", dir.c_str(), n,
-              (f->time_range().end_us - f->time_range().start_us) * 1e-6, samples, pool.num_threads());
-
-  auto t0 = Clock::now();
-  std::vector<RigidSums> sums;
-  const std::vector<std::pair<float, float>> ranges = Ranges(*f, *g, samples, pool, nullptr, &sums);
-  std::printf("ranges over the log: %.0f ms\n", Ms(t0));
-  // Is the learned motion one motion of the whole scene per time (what a pose error would ask
-  // for), a shift or a rigid motion, or each Gaussian's own? Boxes with either removed.
-  {
-    std::vector<Eigen::Isometry3d> shift(samples, Eigen::Isometry3d::Identity()), rigid(samples);
-    Eigen::Vector3d lo = Eigen::Vector3d::Constant(1e30), hi = -lo;
-    double max_angle = 0;
-    for (int s = 0; s < samples; ++s) {
-      shift[s].translation() = sums[s].MeanShift();
-      lo = lo.cwiseMin(shift[s].translation()), hi = hi.cwiseMax(shift[s].translation());
-      rigid[s] = sums[s].Fit();
-      max_angle = std::max(max_angle, Eigen::AngleAxisd(rigid[s].linear()).angle());
-    }
-    std::printf("scene-mean Δx over the log: range %.4f %.4f %.4f m; fitted rigid motion: up to %.4f deg\n",
-                hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2], max_angle * 180 / M_PI);
-    for (const auto& [name, m] : {std::pair<const char*, const std::vector<Eigen::Isometry3d>*>{"scene-mean shift", &shift},
-                                  {"fitted rigid motion", &rigid}}) {
-      const std::vector<std::pair<float, float>> rel = Ranges(*f, *g, samples, pool, m);
-      std::vector<float> box(n);
-      for (size_t i = 0; i < n; ++i) box[i] = rel[i].first;
-      std::printf("Δx box diagonal minus the %s: p10 %.4f p50 %.4f p90 %.4f m\n", name, Quantile(box, 0.1),
-                  Quantile(box, 0.5), Quantile(box, 0.9));
-    }
-  }
-  std::vector<float> motion(n), colour(n);
-  for (size_t i = 0; i < n; ++i) motion[i] = ranges[i].first, colour[i] = ranges[i].second;
-  std::printf("%-28s %9s %9s %9s %9s %9s\n", "per Gaussian, over the log", "p10", "p50", "p90", "p99", "max");
-  std::printf("%-28s", "Δx box diagonal (m)");
-  for (double q : {0.1, 0.5, 0.9, 0.99, 1.0}) std::printf(" %9.4f", Quantile(motion, q));
-  std::printf("\n%-28s", "max ΔSH range");
-  for (double q : {0.1, 0.5, 0.9, 0.99, 1.0}) std::printf(" %9.4f", Quantile(colour, q));
-  std::printf("\n\n%10s %8s | %9s %9s %9s | %10s %14s\n", "motion m", "ΔSH", "motion ok", "ΔSH ok", "static",
+  std::printf("\n%10s %8s | %9s %9s %9s | %10s %14s\n", "motion m", "ΔSH", "motion ok", "ΔSH ok", "static",
               "setup ms", "ms / timestamp");
   for (const auto& [m, s] : pairs) {
     size_t mo = 0, so = 0, both = 0;
-    for (size_t i = 0; i < n; ++i) {
+    for (size_t i = 0; i < motion.size(); ++i) {
       const bool a = motion[i] < m, b = colour[i] < s;
       mo += a, so += b, both += a && b;
     }
@@ -236,17 +225,22 @@ int main(int argc, char** argv) {
     o.num_samples = samples;
     o.motion_threshold_m = m;
     o.sh_threshold = s;
-    t0 = Clock::now();
-    absl::StatusOr<ServingField> sf = ServingField::Create(*f, *g, o, pool);
+    const auto t0 = Clock::now();
+    absl::StatusOr<std::shared_ptr<ServedScene>> sf = train::MakeServedScene(*field, *g, o, &pool);
     const double setup_ms = Ms(t0);
     if (!sf.ok()) Die(1, std::string(sf.status().message()));
-    if (sf->size() - sf->num_dynamic() != both) {
-      Die(1, "the serving analysis disagrees with this bench's ranges (static " +
-                 std::to_string(sf->size() - sf->num_dynamic()) + " vs " + std::to_string(both) + ")");
+    const size_t num_static = (*sf)->size() - (*sf)->num_dynamic();
+    if (!ext && num_static != both) {
+      Die(1, "the serving analysis disagrees with this bench's ranges (static " + std::to_string(num_static) +
+                 " vs " + std::to_string(both) + ")");
     }
-    const double ms = MsPerTimestamp(*sf, f->time_range(), repeats, pool);
-    std::printf("%10g %8g | %8.1f%% %8.1f%% %8.1f%% | %10.0f %14.1f\n", m, s, 100.0 * mo / n, 100.0 * so / n,
-                100.0 * both / n, setup_ms, ms);
+    const double ms = MsPerTimestamp(**sf, f.time_range(), repeats, pool);
+    if (ext) {
+      std::printf("%10g %8g | %9s %9s %8.1f%% | %10.0f %14.1f\n", m, s, "-", "-", 100.0 * num_static / n, setup_ms, ms);
+    } else {
+      std::printf("%10g %8g | %8.1f%% %8.1f%% %8.1f%% | %10.0f %14.1f\n", m, s, 100.0 * mo / n, 100.0 * so / n,
+                  100.0 * num_static / n, setup_ms, ms);
+    }
   }
   return 0;
 }

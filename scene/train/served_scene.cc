@@ -1,5 +1,6 @@
 #include "scene/train/served_scene.h"
 
+#include <memory>
 #include <utility>
 
 #include "absl/strings/str_cat.h"
@@ -11,13 +12,15 @@ namespace streetsim::train {
 
 absl::StatusOr<std::shared_ptr<field::ServedScene>> MakeServedScene(
     std::shared_ptr<const field::DeformationField> f, const GaussianStore& canonical,
-    const field::StaticSkipOptions& options) {
+    const field::StaticSkipOptions& options, ThreadPool* analysis_pool) {
   if (!f) return absl::InvalidArgumentError("a served scene needs a field (the scene has no field.bin)");
   if (canonical.sh_degree != 3) {
     return absl::InvalidArgumentError(
         absl::StrCat("a scene with a field needs SH degree 3 Gaussians, this one has degree ", canonical.sh_degree));
   }
-  ThreadPool pool(0);
+  std::unique_ptr<ThreadPool> own;
+  if (!analysis_pool) own = std::make_unique<ThreadPool>(0);
+  ThreadPool& pool = analysis_pool ? *analysis_pool : *own;
   if (std::shared_ptr<const field::ExtendedField> ext = field::ExtensionOf(*f)) {
     absl::StatusOr<std::unique_ptr<field::ExtServingField>> s =
         field::ExtServingField::Create(*ext, canonical, options, pool);

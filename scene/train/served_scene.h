@@ -9,6 +9,7 @@
 #include <memory>
 
 #include "absl/status/statusor.h"
+#include "render/common/thread_pool.h"
 #include "render/engine.h"
 #include "scene/field/deformation_field.h"
 #include "scene/field/static_skip.h"
@@ -19,10 +20,11 @@
 namespace streetsim::train {
 
 // The served scene of `canonical` under `field` (an extended field when LoadSceneField attached
-// one), after the static analysis with `options`. `field` must not be null.
+// one), after the static analysis with `options` (run on `pool`; null: every core). `field` must
+// not be null.
 absl::StatusOr<std::shared_ptr<field::ServedScene>> MakeServedScene(
     std::shared_ptr<const field::DeformationField> field, const GaussianStore& canonical,
-    const field::StaticSkipOptions& options);
+    const field::StaticSkipOptions& options, ThreadPool* pool = nullptr);
 
 // Views and LiDAR sweeps rendered from `served` at their times (one served scene, evaluated once
 // per distinct timestamp; not thread-safe, as eval is sequential). Valid while the engine is.
