@@ -18,6 +18,7 @@
 #include "render/engine.h"
 #include "scene/gaussians/ply_io.h"
 #include "scene/log/open_log.h"
+#include "scene/train/clip_seams.h"
 #include "scene/train/clips.h"
 #include "scene/train/dynamic_pixels.h"
 #include "scene/train/dynamic_stage.h"
@@ -269,6 +270,14 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
       : scenes_with_reflectance == 0 ? "constant 0.5 (scene.ply has no reflectance property)"
                                      : "scene.ply reflectance where the clip's scene.ply has it, else constant 0.5";
   const bool have_lidar = !lidar_by_frame.empty();
+  // A clip set: how far the image jumps where a consumer crosses from one clip to the next.
+  std::vector<train::ClipSeam> seams;
+  if (*clip_set) {
+    absl::StatusOr<std::vector<train::ClipSeam>> s =
+        train::MeasureClipSeams(**engine, *scene_dir, **clip_set, *log, dopt.resolution_scale);
+    if (!s.ok()) return Fail(1, s.status());
+    seams = std::move(*s);
+  }
 
   nlohmann::json j;
   j["mean"] = Metrics(r->mean);
@@ -285,6 +294,19 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
                    {"analysis_s", served_analysis_s}};
     std::fprintf(stderr, "served as by streetsim serve: %zu static / %zu dynamic Gaussians (skip below %g m, ΔSH %g)\n",
                  served_static, served_dynamic, skip->motion_threshold_m, skip->sh_threshold);
+  }
+  if (*clip_set) {
+    j["seams"] = nlohmann::json::array();
+    for (const train::ClipSeam& s : seams) {
+      j["seams"].push_back({{"clip", s.clip}, {"switch_time_us", s.switch_time_us}, {"frames", s.frames},
+                            {"views", s.views}, {"psnr_between_clips", s.psnr_between_db},
+                            {"psnr_before", s.psnr_before_db}, {"psnr_after", s.psnr_after_db}});
+      std::fprintf(stderr,
+                   "seam clip %d | %d (frames %d, %d; %zu views): the two clips' renders %.2f dB apart; against "
+                   "the images %.2f | %.2f dB\n",
+                   s.clip, s.clip + 1, s.frames[0], s.frames[1], s.views, s.psnr_between_db, s.psnr_before_db,
+                   s.psnr_after_db);
+    }
   }
   j["frames"] = nlohmann::json::array();
   std::fprintf(stderr, "%-34s %6s %8s %7s %12s %10s", "view", "frame", "PSNR", "SSIM", "depth med m", "within 5%");

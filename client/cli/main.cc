@@ -45,7 +45,7 @@ constexpr char kUsage[] =
                "              [--field static|s3gaussian|extended] [--static-iterations N] [--field-modules LIST]\n"
                "              [--field-device auto|cpu|vulkan] [--field-optimizer auto|device|host]\n"
                "              [--field-init spec|zero-heads] [--field-size spec|small]\n"
-               "              [--clip-frames N]   (SIGINT / SIGTERM: stop with a checkpoint, exit 130 / 143)\n"
+               "              [--clip-frames N [--clip-overlap K]]   (SIGINT / SIGTERM: stop with a checkpoint, exit 130 / 143)\n"
                "              (default field: s3gaussian when --iterations > the 5000-iteration warm-up, else static)\n"
                "  eval      metrics of a trained scene: streetsim eval --scene DIR --log PATH [--split test|train] [--no-lidar]\n"
                "              [--decomposition DIR] [--video OUT.avi|OUT.mp4] [--video-fps F]\n"

@@ -98,7 +98,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
       argv, {{"log"}, {"out"}, {"iterations"}, {"resolution-scale"}, {"holdout-every"}, {"seed"}, {"resume", false},
              {"checkpoint-every"}, {"no-sky", false}, {"exposure", false}, {"no-depth", false},
              {"deterministic", false}, {"backend"}, {"voxel"}, {"field"}, {"static-iterations"}, {"field-size"},
-             {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"field-modules"}, {"field-device"}, {"field-optimizer"},
+             {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"clip-overlap"}, {"field-modules"}, {"field-device"}, {"field-optimizer"},
              {"field-init"}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
@@ -238,6 +238,16 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("--clip-frames must be an integer, not '", *v, "'")));
   }
   if (absl::Status s = train::PlanClips(1, clip_opt.clip_frames).status(); !s.ok()) return Fail(2, s);
+  // Each clip also trains on N frames of each neighbour, so a switch falls between fitted frames.
+  if (auto v = args->Get("clip-overlap")) {
+    if (!absl::SimpleAtoi(*v, &clip_opt.overlap_frames)) {
+      return Fail(2, absl::InvalidArgumentError(absl::StrCat("--clip-overlap must be an integer, not '", *v, "'")));
+    }
+    if (clip_opt.clip_frames == 0) return Fail(2, absl::InvalidArgumentError("--clip-overlap needs --clip-frames N"));
+    if (absl::Status s = train::CheckClipOverlap(clip_opt.clip_frames, clip_opt.overlap_frames); !s.ok()) {
+      return Fail(2, s);
+    }
+  }
 
   absl::StatusOr<DriveLog> log = OpenLog(*log_path);
   if (!log.ok()) return Fail(absl::IsInternal(log.status()) ? 1 : 2, log.status());
@@ -291,8 +301,11 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   }
   if (clips->set) {
     for (const train::ClipRun& c : clips->runs) {
-      std::fprintf(stderr, "streetsim train: clip %d, frames [%d, %d): %lld iterations, %zu Gaussians, %.1f s -> %s\n",
-                   c.clip, c.frames.first_frame, c.frames.end_frame, static_cast<long long>(c.result.iterations),
+      std::fprintf(stderr,
+                   "streetsim train: clip %d, frames [%d, %d) trained on [%d, %d): %lld iterations, %zu Gaussians, "
+                   "%.1f s -> %s\n",
+                   c.clip, c.frames.first_frame, c.frames.end_frame, c.trained.first_frame, c.trained.end_frame,
+                   static_cast<long long>(c.result.iterations),
                    c.result.gaussians, c.result.seconds, c.dir.c_str());
       if (!c.result.heldout.frames.empty()) {
         std::fprintf(stderr, "streetsim train: clip %d held-out (%zu views): PSNR %.2f dB, SSIM %.4f\n", c.clip,

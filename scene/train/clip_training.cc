@@ -14,12 +14,6 @@ namespace {
 
 namespace fs = std::filesystem;
 
-DriveLog SubLog(const DriveLog& log, const ClipRange& r) {
-  DriveLog sub = log;
-  sub.frames.assign(log.frames.begin() + r.first_frame, log.frames.begin() + r.end_frame);
-  return sub;
-}
-
 // The same time mapping, sizes and layout: a prior of another --field-size cannot seed this field.
 bool SameFieldConfig(const field::FieldConfig& a, const field::FieldConfig& b) {
   return a.channels == b.channels && a.base_resolution == b.base_resolution && a.multires == b.multires &&
@@ -27,14 +21,17 @@ bool SameFieldConfig(const field::FieldConfig& a, const field::FieldConfig& b) {
 }
 
 absl::Status SamePlan(const ClipSet& on_disk, const ClipSet& planned, const std::string& dir) {
-  bool same = on_disk.clip_frames == planned.clip_frames && on_disk.num_frames == planned.num_frames &&
-              on_disk.clips.size() == planned.clips.size();
-  for (size_t k = 0; same && k < planned.clips.size(); ++k) same = on_disk.clips[k].frames == planned.clips[k].frames;
+  bool same = on_disk.clip_frames == planned.clip_frames && on_disk.overlap_frames == planned.overlap_frames &&
+              on_disk.num_frames == planned.num_frames && on_disk.clips.size() == planned.clips.size();
+  for (size_t k = 0; same && k < planned.clips.size(); ++k) {
+    same = on_disk.clips[k].frames == planned.clips[k].frames && on_disk.trained(k) == planned.trained(k);
+  }
   if (same) return absl::OkStatus();
   return absl::FailedPreconditionError(absl::StrCat(
-      dir, " holds clips of ", on_disk.clip_frames, " frames over a ", on_disk.num_frames,
-      "-frame log; this run plans ", planned.clip_frames, " over ", planned.num_frames,
-      " (resume with the same --clip-frames and log, or train into another directory)"));
+      dir, " holds clips of ", on_disk.clip_frames, " frames (overlap ", on_disk.overlap_frames, ") over a ",
+      on_disk.num_frames, "-frame log; this run plans ", planned.clip_frames, " (overlap ", planned.overlap_frames,
+      ") over ", planned.num_frames,
+      " (resume with the same --clip-frames, --clip-overlap and log, or train into another directory)"));
 }
 
 }  // namespace
@@ -45,7 +42,7 @@ absl::StatusOr<TrainResult> TrainClip(const DriveLog& log, const ClipRange& fram
     return absl::InvalidArgumentError(absl::StrCat("clip frames [", frames.first_frame, ", ", frames.end_frame,
                                                    ") are not inside the log's ", log.frames.size()));
   }
-  const DriveLog sub = SubLog(log, frames);
+  const DriveLog sub = ClipLog(log, frames);
   // Every view of the clip, then the log-wide hold-out rule on the log's frame index (a clip
   // starting at frame 50 holds out 51, 55, ... as the whole-log run does).
   DatasetOptions dopt;
@@ -97,6 +94,7 @@ absl::StatusOr<ClipTrainResult> TrainClips(const DriveLog& log, const std::strin
                                            const std::function<void(const Progress&)>& progress) {
   absl::StatusOr<std::vector<ClipRange>> plan = PlanClips(static_cast<int>(log.frames.size()), copt.clip_frames);
   if (!plan.ok()) return plan.status();
+  if (absl::Status s = CheckClipOverlap(copt.clip_frames, copt.overlap_frames); !s.ok()) return s;
   ClipTrainResult out;
   std::error_code ec;
   const fs::path manifest = fs::path(out_dir) / kClipManifestName;
@@ -111,11 +109,11 @@ absl::StatusOr<ClipTrainResult> TrainClips(const DriveLog& log, const std::strin
     absl::StatusOr<TrainResult> r = Train(log, out_dir, opt, progress);
     if (!r.ok()) return r.status();
     out.stopped = opt.stop_after > 0 && r->iterations < opt.iterations;
-    out.runs.push_back({0, plan->front(), out_dir, std::move(*r)});
+    out.runs.push_back({0, plan->front(), plan->front(), out_dir, std::move(*r)});
     return out;
   }
 
-  ClipSet set = MakeClipSet(log, copt.clip_frames, *plan);
+  ClipSet set = MakeClipSet(log, copt.clip_frames, *plan, copt.overlap_frames);
   if (opt.resume) {
     absl::StatusOr<std::optional<ClipSet>> on_disk = ReadClipSet(out_dir);
     if (!on_disk.ok()) return on_disk.status();
@@ -134,6 +132,7 @@ absl::StatusOr<ClipTrainResult> TrainClips(const DriveLog& log, const std::strin
 
   for (size_t k = 0; k < set.clips.size(); ++k) {
     ClipEntry& clip = set.clips[k];
+    const ClipRange trained = set.trained(k);
     const std::string dir = (fs::path(out_dir) / clip.dir).string();
     if (clip.done) {
       LOG(INFO) << "clip " << k << " (" << clip.dir << ") is done; not retrained";
@@ -141,8 +140,8 @@ absl::StatusOr<ClipTrainResult> TrainClips(const DriveLog& log, const std::strin
     }
     TrainOptions o = opt;
     o.seed = opt.seed + k;  // each clip its own random streams (view order, init, a fresh field)
-    // The field's time axis spans the clip's frames (held-out ones included).
-    o.field.time_range = {clip.start_us, clip.end_us};
+    // The field's time axis spans the frames the clip trains on (held-out ones included).
+    o.field.time_range = {log.frames[trained.first_frame].time_us, log.frames[trained.end_frame - 1].time_us};
     if (copt.stop_in_clip >= 0 && static_cast<int>(k) != copt.stop_in_clip) o.stop_after = 0;
     if (o.field.mode == FieldMode::kS3Gaussian && k > 0) {
       const std::string prior_path = (fs::path(out_dir) / set.clips[k - 1].dir / field::kFieldFileName).string();
@@ -171,14 +170,15 @@ absl::StatusOr<ClipTrainResult> TrainClips(const DriveLog& log, const std::strin
       o.field.prior = std::make_shared<const field::DeformationField>(std::move(*prior));
     }
     LOG(INFO) << "clip " << k << " of " << set.clips.size() << ": frames [" << clip.frames.first_frame << ", "
-              << clip.frames.end_frame << ") -> " << dir
+              << clip.frames.end_frame << "), trained on [" << trained.first_frame << ", "
+              << trained.end_frame << ") -> " << dir
               << (o.field.prior ? (o.field.ext_prior ? " (fine stage from the previous clip's field and extension)"
                                                      : " (fine stage from the previous clip's field)")
                                 : "");
-    absl::StatusOr<TrainResult> r = TrainClip(log, clip.frames, dir, o, progress);
+    absl::StatusOr<TrainResult> r = TrainClip(log, trained, dir, o, progress);
     if (!r.ok()) return absl::Status(r.status().code(), absl::StrCat("clip ", k, ": ", r.status().message()));
     const bool finished = r->iterations >= opt.iterations;
-    out.runs.push_back({static_cast<int>(k), clip.frames, dir, std::move(*r)});
+    out.runs.push_back({static_cast<int>(k), clip.frames, trained, dir, std::move(*r)});
     if (!finished) {
       out.stopped = true;
       return out;

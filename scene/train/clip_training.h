@@ -19,13 +19,17 @@ namespace streetsim::train {
 
 struct ClipTrainOptions {
   int clip_frames = 0;  // 0: one clip (a plain scene directory, exactly Train's)
+  // Each clip also trains on this many frames of each neighbour (clips.h TrainedFrames); 0 ..
+  // clip_frames / 2; without effect on a one-clip plan.
+  int overlap_frames = 0;
   // Testing: the clip whose run TrainOptions::stop_after stops (as if killed); -1: any clip's.
   int stop_in_clip = -1;
 };
 
 struct ClipRun {
   int clip = 0;
-  ClipRange frames;
+  ClipRange frames;   // the frames it serves (ClipEntry::frames)
+  ClipRange trained;  // the frames it trained on (ClipEntry::trained)
   std::string dir;
   TrainResult result;
 };
@@ -38,7 +42,8 @@ struct ClipTrainResult {
 
 // Plans the clips of `log` and trains every clip that is not done. One clip: Train(log, out_dir)
 // (a stale DIR/clips.json is removed; --resume of a clip set without --clip-frames is refused).
-// Clip k trains with seed options.seed + k, its field's time axis over its own frames' times.
+// Clip k trains with seed options.seed + k on its trained frames (its own and the overlap), its
+// field's time axis over their times.
 absl::StatusOr<ClipTrainResult> TrainClips(const DriveLog& log, const std::string& out_dir,
                                            const TrainOptions& options, const ClipTrainOptions& clip_options,
                                            const std::function<void(const Progress&)>& progress = nullptr);

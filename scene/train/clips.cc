@@ -44,15 +44,34 @@ absl::StatusOr<std::vector<ClipRange>> PlanClips(int num_frames, int clip_frames
   return plan;
 }
 
+ClipRange TrainedFrames(const ClipRange& frames, int overlap_frames, int num_frames) {
+  return {std::max(0, frames.first_frame - overlap_frames), std::min(num_frames, frames.end_frame + overlap_frames)};
+}
+
+absl::Status CheckClipOverlap(int clip_frames, int overlap_frames) {
+  if (overlap_frames < 0 || overlap_frames > clip_frames / 2) {
+    return absl::InvalidArgumentError(absl::StrCat("--clip-overlap must be in 0..", clip_frames / 2,
+                                                   " (half of --clip-frames ", clip_frames, "), not ", overlap_frames));
+  }
+  return absl::OkStatus();
+}
+
+DriveLog ClipLog(const DriveLog& log, const ClipRange& r) {
+  DriveLog sub = log;
+  sub.frames.assign(log.frames.begin() + r.first_frame, log.frames.begin() + r.end_frame);
+  return sub;
+}
+
 std::string ClipDirName(int index) {
   char buf[32];
   std::snprintf(buf, sizeof(buf), "clip_%03d", index);
   return buf;
 }
 
-ClipSet MakeClipSet(const DriveLog& log, int clip_frames, const std::vector<ClipRange>& plan) {
+ClipSet MakeClipSet(const DriveLog& log, int clip_frames, const std::vector<ClipRange>& plan, int overlap_frames) {
   ClipSet set;
   set.clip_frames = clip_frames;
+  set.overlap_frames = overlap_frames;
   set.num_frames = static_cast<int>(log.frames.size());
   for (size_t k = 0; k < plan.size(); ++k) {
     ClipEntry e;
@@ -69,6 +88,7 @@ absl::Status WriteClipSet(const ClipSet& set, const std::string& dir) {
   nlohmann::json j;
   j["version"] = kManifestVersion;
   j["clip_frames"] = set.clip_frames;
+  j["overlap_frames"] = set.overlap_frames;
   j["num_frames"] = set.num_frames;
   j["clips"] = nlohmann::json::array();
   for (size_t k = 0; k < set.clips.size(); ++k) {
@@ -76,6 +96,7 @@ absl::Status WriteClipSet(const ClipSet& set, const std::string& dir) {
     j["clips"].push_back({{"index", k},
                           {"dir", c.dir},
                           {"frames", {c.frames.first_frame, c.frames.end_frame}},
+                          {"trained_frames", {set.trained(k).first_frame, set.trained(k).end_frame}},
                           {"time_range_us", {c.start_us, c.end_us}},
                           {"done", c.done}});
   }
@@ -111,9 +132,11 @@ absl::StatusOr<std::optional<ClipSet>> ReadClipSet(const std::string& dir) {
     }
     set.clip_frames = j.at("clip_frames").get<int>();
     set.num_frames = j.at("num_frames").get<int>();
+    set.overlap_frames = j.value("overlap_frames", 0);
     const nlohmann::json& clips = j.at("clips");
     if (!clips.is_array() || clips.empty()) return Bad(path, "\"clips\" must be a non-empty array");
     if (set.num_frames < 1 || set.num_frames > kMaxFrames || set.clip_frames < 0 ||
+        !CheckClipOverlap(set.clip_frames, set.overlap_frames).ok() ||
         clips.size() > static_cast<size_t>(set.num_frames)) {
       return Bad(path, "implausible clip_frames / num_frames / number of clips");
     }
@@ -147,6 +170,14 @@ absl::StatusOr<std::optional<ClipSet>> ReadClipSet(const std::string& dir) {
       }
       if (e.end_us < e.start_us || (k > 0 && e.start_us < set.clips.back().end_us)) {
         return Bad(path, absl::StrCat("clip ", k, ": time range out of order"));
+      }
+      if (c.contains("trained_frames")) {
+        const nlohmann::json& tf = c.at("trained_frames");
+        const ClipRange trained = TrainedFrames(e.frames, set.overlap_frames, set.num_frames);
+        if (tf.size() != 2 || !(ClipRange{tf.at(0).get<int>(), tf.at(1).get<int>()} == trained)) {
+          return Bad(path, absl::StrCat("clip ", k, ": trained_frames are not its frames widened by overlap_frames ",
+                                        set.overlap_frames));
+        }
       }
       set.clips.push_back(std::move(e));
     }

@@ -36,28 +36,43 @@ struct ClipRange {
 // Errors: clip_frames < 0, 0 < clip_frames < kMinClipFrames, num_frames < 1.
 absl::StatusOr<std::vector<ClipRange>> PlanClips(int num_frames, int clip_frames);
 
+// The frames a clip trains on: its own frames and `overlap_frames` of each neighbour's (clamped to
+// the log), so that at a switch between two clips both have been fitted to the frames around it
+// (docs/training.md "Clips", overlap).
+ClipRange TrainedFrames(const ClipRange& frames, int overlap_frames, int num_frames);
+// --clip-overlap: 0 .. clip_frames / 2 (a larger overlap would train a clip on more of its
+// neighbours' frames than of its own). Errors name the flag.
+absl::Status CheckClipOverlap(int clip_frames, int overlap_frames);
+
 struct ClipEntry {
-  ClipRange frames;
-  int64_t start_us = 0, end_us = 0;  // times of its first and last frame
+  ClipRange frames;                  // the frames it serves and is evaluated on
+  int64_t start_us = 0, end_us = 0;  // times of its first and last frame (`frames`)
   std::string dir;                   // relative to the clip set: ClipDirName(index)
   bool done = false;                 // trained to the end, outputs written
 };
 
 // DIR/clips.json.
 struct ClipSet {
-  int clip_frames = 0;  // --clip-frames
-  int num_frames = 0;   // frames of the log
+  int clip_frames = 0;     // --clip-frames
+  int overlap_frames = 0;  // --clip-overlap
+  int num_frames = 0;      // frames of the log
   std::vector<ClipEntry> clips;
+  // The frames clip k is trained on (its own and the overlap).
+  ClipRange trained(size_t k) const { return TrainedFrames(clips[k].frames, overlap_frames, num_frames); }
 };
 
 std::string ClipDirName(int index);  // "clip_000"
 // The plan of a log as a manifest (done = false everywhere).
-ClipSet MakeClipSet(const DriveLog& log, int clip_frames, const std::vector<ClipRange>& plan);
+ClipSet MakeClipSet(const DriveLog& log, int clip_frames, const std::vector<ClipRange>& plan, int overlap_frames = 0);
+// The log restricted to frames [first, end) (a clip's own log: its scene.json, its views).
+DriveLog ClipLog(const DriveLog& log, const ClipRange& frames);
 // Written to a temporary file and renamed into place.
 absl::Status WriteClipSet(const ClipSet& set, const std::string& dir);
 // nullopt when DIR has no clips.json. Anything malformed is a DataLoss error naming the file:
 // bad JSON, missing or mistyped keys, clips that are not consecutive frame ranges in time order,
-// a directory other than clip_KKK of its index (nothing that could leave DIR).
+// trained frames other than TrainedFrames of the clip's, a directory other than clip_KKK of its
+// index (nothing that could leave DIR). A manifest without "overlap_frames" (written before
+// overlaps existed) has none.
 absl::StatusOr<std::optional<ClipSet>> ReadClipSet(const std::string& dir);
 
 // The clip for a time: the one whose [start_us, end_us] holds it; between two clips the nearer

@@ -129,12 +129,24 @@ TEST_F(CliClips, TrainRenderEvalResume) {
   for (const auto& f : j["frames"]) frames.push_back(f["frame"]), clip_of.push_back(f["clip"]);
   EXPECT_EQ(frames, (std::vector<int>{3, 7, 11, 15}));
   EXPECT_EQ(clip_of, (std::vector<int>{0, 0, 1, 1}));
+  // The seam where clip 0 hands over to clip 1: frames 7 and 8 rendered by both.
+  ASSERT_EQ(j["seams"].size(), 1u);
+  EXPECT_EQ(j["seams"][0]["frames"], nlohmann::json({7, 8}));
+  EXPECT_EQ(j["seams"][0]["views"], 2);
+  const double between = j["seams"][0]["psnr_between_clips"];
+  EXPECT_GT(between, 5);
+  EXPECT_LT(between, 100);  // two different reconstructions
+  EXPECT_GT(j["seams"][0]["switch_time_us"].get<int64_t>(), end0);
+  EXPECT_LE(j["seams"][0]["switch_time_us"].get<int64_t>(), start1);
+  EXPECT_NE(r.err.find("seam clip 0 | 1"), std::string::npos) << r.err;
   // Frame 11 scores as clip 1 scores it on its own.
   Result own = RunCli("eval --scene " + clip1 + " --log " + log + " --no-lidar");
   ASSERT_EQ(own.code, 0) << own.err;
   const nlohmann::json jo = nlohmann::json::parse(own.out);
   for (const auto& f : jo["frames"]) {
-    if (f["frame"] == 11) EXPECT_DOUBLE_EQ(f["psnr"].get<double>(), j["frames"][2]["psnr"].get<double>());
+    if (f["frame"] == 11) {
+      EXPECT_DOUBLE_EQ(f["psnr"].get<double>(), j["frames"][2]["psnr"].get<double>());
+    }
   }
   // Training split: every training frame once.
   r = RunCli("eval --scene " + dir + " --log " + log + " --no-lidar --split train");
@@ -177,6 +189,18 @@ TEST_F(CliClips, BadClipFramesExit2) {
     EXPECT_EQ(r.code, 2) << v;
     EXPECT_NE(r.err.find("--clip-frames"), std::string::npos) << v << ": " << r.err;
   }
+  EXPECT_FALSE(fs::exists(Scratch() / "bad"));
+  // --clip-overlap: an integer in 0 .. N / 2, and only with --clip-frames.
+  for (const char* v : {"-1", "5", "x", "1.5"}) {
+    const Result r = RunCli("train --log " + log + " --out " + (Scratch() / "bad").string() +
+                            " --iterations 2 --clip-frames 8 --clip-overlap " + v);
+    EXPECT_EQ(r.code, 2) << v;
+    EXPECT_NE(r.err.find("--clip-overlap"), std::string::npos) << v << ": " << r.err;
+  }
+  const Result r = RunCli("train --log " + log + " --out " + (Scratch() / "bad").string() +
+                          " --iterations 2 --clip-overlap 2");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("--clip-frames"), std::string::npos) << r.err;
   EXPECT_FALSE(fs::exists(Scratch() / "bad"));
 }
 

@@ -17,6 +17,8 @@
 #include "scene/field/field_io.h"
 #include "scene/gaussians/ply_io.h"
 #include "scene/log/open_log.h"
+#include "render/engine.h"
+#include "scene/train/clip_seams.h"
 #include "scene/train/clip_training.h"
 #include "scene/train/clips.h"
 
@@ -48,6 +50,13 @@ TEST(ClipPlan, FullClipsAndTheRemainderRule) {
   EXPECT_EQ(Plan(7, 5), (std::vector<ClipRange>{{0, 7}}));
 }
 
+TEST(ClipPlan, OverlapWidensTheTrainedFramesInsideTheLog) {
+  EXPECT_EQ(TrainedFrames({0, 8}, 2, 20), (ClipRange{0, 10}));  // nothing before the log
+  EXPECT_EQ(TrainedFrames({8, 16}, 2, 20), (ClipRange{6, 18}));
+  EXPECT_EQ(TrainedFrames({16, 20}, 2, 20), (ClipRange{14, 20}));  // nothing after it
+  EXPECT_EQ(TrainedFrames({8, 16}, 0, 20), (ClipRange{8, 16}));
+}
+
 TEST(ClipPlan, AbsurdValuesAreClearErrors) {
   for (int n : {-3, -1, 1, 2, 3}) {
     absl::StatusOr<std::vector<ClipRange>> p = PlanClips(78, n);
@@ -56,6 +65,13 @@ TEST(ClipPlan, AbsurdValuesAreClearErrors) {
     EXPECT_NE(p.status().message().find("--clip-frames"), std::string::npos) << p.status();
   }
   EXPECT_FALSE(PlanClips(0, 8).ok());
+  for (int overlap : {-1, 5, 100}) {
+    const absl::Status s = CheckClipOverlap(8, overlap);
+    EXPECT_EQ(s.code(), absl::StatusCode::kInvalidArgument) << overlap;
+    EXPECT_NE(s.message().find("--clip-overlap"), std::string::npos) << s;
+  }
+  EXPECT_TRUE(CheckClipOverlap(8, 4).ok());
+  EXPECT_TRUE(CheckClipOverlap(8, 0).ok());
   EXPECT_TRUE(PlanClips(78, kMinClipFrames).ok());
 }
 
@@ -100,6 +116,28 @@ TEST(ClipManifest, RoundTrip) {
   EXPECT_FALSE(fs::exists(fs::path(dir) / "clips.json.tmp"));
 }
 
+TEST(ClipManifest, OverlapRoundTripsAndOldManifestsHaveNone) {
+  const std::string dir = TempDir("overlap");
+  ClipSet s = ThreeClips();
+  s.overlap_frames = 2;
+  ASSERT_TRUE(WriteClipSet(s, dir).ok());
+  absl::StatusOr<std::optional<ClipSet>> back = ReadClipSet(dir);
+  ASSERT_TRUE(back.ok() && back->has_value()) << back.status();
+  EXPECT_EQ((*back)->overlap_frames, 2);
+  EXPECT_EQ((*back)->trained(1), (ClipRange{6, 18}));
+  EXPECT_EQ((*back)->clips[1].frames, (ClipRange{8, 16}));
+  // A manifest written before overlaps: no "overlap_frames", no "trained_frames".
+  const std::string path = (fs::path(dir) / kClipManifestName).string();
+  nlohmann::json j = nlohmann::json::parse(std::ifstream(path));
+  j.erase("overlap_frames");
+  for (auto& c : j["clips"]) c.erase("trained_frames");
+  std::ofstream(path, std::ios::trunc) << j.dump();
+  back = ReadClipSet(dir);
+  ASSERT_TRUE(back.ok() && back->has_value()) << back.status();
+  EXPECT_EQ((*back)->overlap_frames, 0);
+  EXPECT_EQ((*back)->trained(1), (ClipRange{8, 16}));
+}
+
 // Writes `s`'s JSON after `edit`, then reads it back.
 absl::Status ReadEdited(const std::string& dir, const std::function<void(nlohmann::json&)>& edit) {
   if (absl::Status st = WriteClipSet(ThreeClips(), dir); !st.ok()) return st;
@@ -136,6 +174,11 @@ TEST(ClipManifest, DamagedOrHostileManifestsAreRefused) {
       {"negative clip_frames", [](J& j) { j["clip_frames"] = -3; }},
       {"huge num_frames", [](J& j) { j["num_frames"] = 2'000'000'000; }},
       {"frames not 2 numbers", [](J& j) { j["clips"][0]["frames"] = {0}; }},
+      {"trained frames not the overlap's", [](J& j) { j["clips"][1]["trained_frames"] = {0, 20}; }},
+      {"trained frames not 2 numbers", [](J& j) { j["clips"][1]["trained_frames"] = {8}; }},
+      {"overlap above half a clip", [](J& j) { j["overlap_frames"] = 5; }},
+      {"negative overlap", [](J& j) { j["overlap_frames"] = -1; }},
+      {"overlap not a number", [](J& j) { j["overlap_frames"] = "2"; }},
   };
   for (const auto& [what, edit] : cases) {
     const absl::Status s = ReadEdited(dir, edit);
@@ -354,6 +397,77 @@ TEST(ClipTraining, PriorFieldAndResumeInTheClipItWasKilledIn) {
   other.clip_frames = 6;
   EXPECT_EQ(TrainClips(log, b, resumed, other).status().code(), absl::StatusCode::kFailedPrecondition);
   EXPECT_EQ(TrainClips(log, b, resumed, ClipTrainOptions{}).status().code(), absl::StatusCode::kFailedPrecondition);
+}
+
+// --clip-overlap: each clip trains on its neighbour's frames next to the switch (the views, the
+// field's time axis, the clip's scene.json) and serves / is evaluated on its own frames.
+TEST(ClipTraining, OverlapTrainsOnTheNeighboursFrames) {
+  const DriveLog log = ShortLog();
+  const TrainOptions opt = TinyOptions();
+  ClipTrainOptions copt;
+  copt.clip_frames = 8;
+  copt.overlap_frames = 2;
+  const std::string a = TempDir("overlap_train");
+  absl::StatusOr<ClipTrainResult> ra = TrainClips(log, a, opt, copt);
+  ASSERT_TRUE(ra.ok()) << ra.status();
+  ASSERT_EQ(ra->runs.size(), 2u);
+  EXPECT_EQ(ra->runs[0].trained, (ClipRange{0, 10}));
+  EXPECT_EQ(ra->runs[1].trained, (ClipRange{6, 19}));
+  EXPECT_EQ(ra->runs[1].frames, (ClipRange{8, 19}));
+  // Held out by the log-wide rule over the trained frames: clip 0 holds out 3 and 7, clip 1 the
+  // overlap frame 7 as well as its own 11 and 15.
+  std::vector<int> held0, held1;
+  for (const FrameMetrics& m : ra->runs[0].result.heldout.frames) held0.push_back(m.frame);
+  for (const FrameMetrics& m : ra->runs[1].result.heldout.frames) held1.push_back(m.frame);
+  EXPECT_EQ(held0, (std::vector<int>{3, 7}));
+  EXPECT_EQ(held1, (std::vector<int>{7, 11, 15}));
+  absl::StatusOr<field::DeformationField> f0 = field::LoadField((fs::path(a) / "clip_000/field.bin").string());
+  absl::StatusOr<field::DeformationField> f1 = field::LoadField((fs::path(a) / "clip_001/field.bin").string());
+  ASSERT_TRUE(f0.ok() && f1.ok());
+  EXPECT_EQ(f0->time_range().end_us, log.frames[9].time_us);
+  EXPECT_EQ(f1->time_range().start_us, log.frames[6].time_us);
+  EXPECT_EQ(f1->time_range().end_us, log.frames[18].time_us);
+  absl::StatusOr<std::optional<ClipSet>> set = ReadClipSet(a);
+  ASSERT_TRUE(set.ok() && set->has_value());
+  EXPECT_EQ((*set)->overlap_frames, 2);
+  EXPECT_EQ((*set)->clips[1].start_us, log.frames[8].time_us);  // PickClip's ranges: its own frames
+  EXPECT_EQ((*set)->clips[0].end_us, log.frames[7].time_us);
+  // A resume with another overlap is another plan.
+  TrainOptions resumed = opt;
+  resumed.resume = true;
+  ClipTrainOptions other = copt;
+  other.overlap_frames = 1;
+  absl::StatusOr<ClipTrainResult> rb = TrainClips(log, a, resumed, other);
+  EXPECT_EQ(rb.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_NE(rb.status().message().find("overlap"), std::string::npos) << rb.status();
+  other.overlap_frames = 5;  // above half a clip
+  EXPECT_EQ(TrainClips(log, a, resumed, other).status().code(), absl::StatusCode::kInvalidArgument);
+
+  // Seams: clip 0 and clip 1 render frames 7 and 8 (1 camera each); a copy of clip 0 in place of
+  // clip 1 makes the seam vanish (identical renders), which the trained clip 1 does not.
+  absl::StatusOr<std::unique_ptr<Engine>> engine = CreateEngine(Backend::kCpu);
+  ASSERT_TRUE(engine.ok());
+  absl::StatusOr<std::vector<ClipSeam>> seams =
+      MeasureClipSeams(**engine, a, **set, log, opt.resolution_scale);
+  ASSERT_TRUE(seams.ok()) << seams.status();
+  ASSERT_EQ(seams->size(), 1u);
+  EXPECT_EQ((*seams)[0].frames, (std::vector<int>{7, 8}));
+  EXPECT_EQ((*seams)[0].views, 2u);
+  EXPECT_GT((*seams)[0].switch_time_us, log.frames[7].time_us);
+  EXPECT_LE((*seams)[0].switch_time_us, log.frames[8].time_us);
+  EXPECT_EQ(PickClip(**set, (*seams)[0].switch_time_us), 1);
+  EXPECT_EQ(PickClip(**set, (*seams)[0].switch_time_us - 1), 0);
+  EXPECT_LT((*seams)[0].psnr_between_db, 60);
+  EXPECT_GT((*seams)[0].psnr_before_db, 5);
+  fs::remove_all(fs::path(a) / "clip_001");
+  fs::copy(fs::path(a) / "clip_000", fs::path(a) / "clip_001", fs::copy_options::recursive);
+  seams = MeasureClipSeams(**engine, a, **set, log, opt.resolution_scale);
+  ASSERT_TRUE(seams.ok()) << seams.status();
+  EXPECT_EQ((*seams)[0].psnr_between_db, 100);  // Psnr's value for identical images
+  EXPECT_DOUBLE_EQ((*seams)[0].psnr_before_db, (*seams)[0].psnr_after_db);
+  // A missing clip directory is an error, not a crash.
+  fs::remove_all(fs::path(a) / "clip_001");
+  EXPECT_FALSE(MeasureClipSeams(**engine, a, **set, log, opt.resolution_scale).ok());
 }
 
 // --field extended: clip 1's extension starts from clip 0's field_ext.bin (and its base from
