@@ -5,6 +5,7 @@
 #include <atomic>
 #include <csignal>
 #include <cstdio>
+#include <optional>
 #include <filesystem>
 
 #include "absl/strings/numbers.h"
@@ -238,7 +239,14 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("--clip-frames must be an integer, not '", *v, "'")));
   }
   if (absl::Status s = train::PlanClips(1, clip_opt.clip_frames).status(); !s.ok()) return Fail(2, s);
-  // Each clip also trains on N frames of each neighbour, so a switch falls between fitted frames.
+  // Each clip also trains on K frames of each neighbour, so a switch falls between fitted frames.
+  // A resume keeps the set's own overlap (sets trained before overlaps existed have none).
+  clip_opt.overlap_frames = train::DefaultClipOverlap(clip_opt.clip_frames);
+  if (opt.resume && !args->Has("clip-overlap")) {
+    absl::StatusOr<std::optional<train::ClipSet>> on_disk = train::ReadClipSet(*out);
+    if (!on_disk.ok()) return Fail(2, on_disk.status());
+    if (*on_disk) clip_opt.overlap_frames = (*on_disk)->overlap_frames;
+  }
   if (auto v = args->Get("clip-overlap")) {
     if (!absl::SimpleAtoi(*v, &clip_opt.overlap_frames)) {
       return Fail(2, absl::InvalidArgumentError(absl::StrCat("--clip-overlap must be an integer, not '", *v, "'")));

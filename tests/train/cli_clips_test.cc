@@ -87,6 +87,8 @@ TEST_F(CliClips, TrainRenderEvalResume) {
   EXPECT_EQ(clips["clips"][0]["frames"], nlohmann::json({0, 8}));
   EXPECT_EQ(clips["clips"][1]["frames"], nlohmann::json({8, 19}));  // the 3-frame tail joined clip 1
   EXPECT_EQ(clips["clips"][1]["dir"], "clip_001");
+  EXPECT_EQ(clips["overlap_frames"], 0);  // the default, a tenth of 8 frames
+  EXPECT_EQ(clips["clips"][1]["trained_frames"], nlohmann::json({8, 19}));
   const int64_t end0 = clips["clips"][0]["time_range_us"][1], start1 = clips["clips"][1]["time_range_us"][0];
   const int64_t end1 = clips["clips"][1]["time_range_us"][1];
   ASSERT_LT(end0, start1);
@@ -179,6 +181,41 @@ TEST_F(CliClips, TrainRenderEvalResume) {
   EXPECT_NE(r.err.find("clips.json"), std::string::npos) << r.err;
   r = RunCli("eval --scene " + dir + " --log " + log + " --no-lidar");
   EXPECT_EQ(r.code, 2);
+}
+
+// Without --clip-overlap a clip trains on a tenth of a clip of each neighbour's frames: clip 1 of
+// 10-frame clips on frames 9..18, its field's time axis from frame 9 (clip 0's last frame).
+TEST_F(CliClips, DefaultOverlapIsATenthOfAClip) {
+  const std::string log = ShortLog(19);
+  const std::string dir = (Scratch() / "set").string();
+  const Result r = RunCli("train --log " + log + " --out " + dir +
+                          " --iterations 4 --field s3gaussian --static-iterations 2 --field-size small"
+                          " --resolution-scale 0.12 --voxel 0.5 --seed 3 --no-lidar-loss --clip-frames 10");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const nlohmann::json clips = nlohmann::json::parse(Slurp(dir + "/clips.json"));
+  EXPECT_EQ(clips["overlap_frames"], 1);
+  ASSERT_EQ(clips["clips"].size(), 2u);
+  EXPECT_EQ(clips["clips"][0]["frames"], nlohmann::json({0, 10}));
+  EXPECT_EQ(clips["clips"][0]["trained_frames"], nlohmann::json({0, 11}));
+  EXPECT_EQ(clips["clips"][1]["trained_frames"], nlohmann::json({9, 19}));
+  const nlohmann::json meta1 = nlohmann::json::parse(Slurp(dir + "/clip_001/train_meta.json"));
+  EXPECT_EQ(meta1["time_range_us"][0], clips["clips"][0]["time_range_us"][1]);
+  EXPECT_NE(r.err.find("clip 1, frames [10, 19) trained on [9, 19)"), std::string::npos) << r.err;
+  // A resume keeps the set's overlap: a set written before overlaps existed (no overlap keys)
+  // resumes as one without (nothing left to train); another overlap given explicitly is refused.
+  nlohmann::json old = clips;
+  old.erase("overlap_frames");
+  for (auto& c : old["clips"]) c.erase("trained_frames");
+  std::ofstream(dir + "/clips.json", std::ios::trunc) << old.dump();
+  const std::string resume = "train --log " + log + " --out " + dir +
+                             " --iterations 4 --field s3gaussian --static-iterations 2 --field-size small"
+                             " --resolution-scale 0.12 --voxel 0.5 --seed 3 --no-lidar-loss --clip-frames 10 --resume";
+  Result rr = RunCli(resume);
+  EXPECT_EQ(rr.code, 0) << rr.err;
+  EXPECT_EQ(rr.err.find("trained on"), std::string::npos) << rr.err;  // no clip retrained
+  rr = RunCli(resume + " --clip-overlap 1");
+  EXPECT_EQ(rr.code, 2);
+  EXPECT_NE(rr.err.find("overlap 0"), std::string::npos) << rr.err;
 }
 
 TEST_F(CliClips, BadClipFramesExit2) {
