@@ -45,6 +45,7 @@ constexpr char kUsage[] =
                "              [--field static|s3gaussian|extended] [--static-iterations N] [--field-modules LIST]\n"
                "              [--field-device auto|cpu|vulkan] [--field-optimizer auto|device|host]\n"
                "              [--field-init spec|zero-heads] [--field-size spec|small]\n"
+               "              [--field-lambda-dx W] [--field-lambda-dsh W]   (Δ sparsity weights, 1e-3)\n"
                "              [--clip-frames N [--clip-overlap K (default N/10)]]\n"
                "              (SIGINT / SIGTERM: stop with a checkpoint, exit 130 / 143)\n"
                "              (default field: s3gaussian when --iterations > the 5000-iteration warm-up, else static)\n"

@@ -5,8 +5,8 @@
 #include <atomic>
 #include <csignal>
 #include <cstdio>
-#include <optional>
 #include <filesystem>
+#include <optional>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
@@ -100,7 +100,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
              {"checkpoint-every"}, {"no-sky", false}, {"exposure", false}, {"no-depth", false},
              {"deterministic", false}, {"backend"}, {"voxel"}, {"field"}, {"static-iterations"}, {"field-size"},
              {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"clip-overlap"}, {"field-modules"}, {"field-device"}, {"field-optimizer"},
-             {"field-init"}});
+             {"field-init"}, {"field-lambda-dx"}, {"field-lambda-dsh"}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
@@ -199,6 +199,18 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
       return Fail(2, absl::InvalidArgumentError(absl::StrCat("--field-init must be spec or zero-heads, not '", *v, "'")));
     }
     opt.field.config.zero_init_heads = *v == "zero-heads";
+  }
+  // The Δ sparsity weights (S3Gaussian's lambda_dx / lambda_dshs, 1e-3 each): larger values keep
+  // more of the scene still, which the server's static skip turns into serving time
+  // (docs/field.md "Motion sparsity").
+  for (const auto& [flag, weight] : {std::pair<const char*, double*>{"field-lambda-dx", &opt.field.hyper.lambda_dx},
+                                     std::pair<const char*, double*>{"field-lambda-dsh", &opt.field.hyper.lambda_dsh}}) {
+    if (auto v = args->Get(flag); v && (!absl::SimpleAtod(*v, weight) || !(*weight >= 0 && *weight <= 100))) {
+      return Fail(2, absl::InvalidArgumentError(absl::StrCat("--", flag, " must be a number in [0, 100], not '", *v, "'")));
+    }
+    if (args->Has(flag) && opt.field.mode == train::FieldMode::kStatic) {
+      return Fail(2, absl::InvalidArgumentError(absl::StrCat("--", flag, " needs a field (a static run has none)")));
+    }
   }
   // Where S3Gaussian's field runs (auto: Vulkan with --backend vulkan on a GPU, else the cpu).
   if (auto v = args->Get("field-device")) {
