@@ -6,7 +6,6 @@
 #include <csignal>
 #include <cstdio>
 #include <filesystem>
-#include <optional>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
@@ -251,22 +250,16 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("--clip-frames must be an integer, not '", *v, "'")));
   }
   if (absl::Status s = train::PlanClips(1, clip_opt.clip_frames).status(); !s.ok()) return Fail(2, s);
-  // Each clip also trains on K frames of each neighbour, so a switch falls between fitted frames.
-  // A resume keeps the set's own overlap (sets trained before overlaps existed have none).
-  clip_opt.overlap_frames = train::DefaultClipOverlap(clip_opt.clip_frames);
-  if (opt.resume && !args->Has("clip-overlap")) {
-    absl::StatusOr<std::optional<train::ClipSet>> on_disk = train::ReadClipSet(*out);
-    if (!on_disk.ok()) return Fail(2, on_disk.status());
-    if (*on_disk) clip_opt.overlap_frames = (*on_disk)->overlap_frames;
-  }
+  // Each clip also trains on K frames of each neighbour, so a switch falls between fitted frames
+  // (without the flag: the set's own K on --resume, else a tenth of a clip; TrainClips decides).
   if (auto v = args->Get("clip-overlap")) {
-    if (!absl::SimpleAtoi(*v, &clip_opt.overlap_frames)) {
+    int overlap = 0;
+    if (!absl::SimpleAtoi(*v, &overlap)) {
       return Fail(2, absl::InvalidArgumentError(absl::StrCat("--clip-overlap must be an integer, not '", *v, "'")));
     }
     if (clip_opt.clip_frames == 0) return Fail(2, absl::InvalidArgumentError("--clip-overlap needs --clip-frames N"));
-    if (absl::Status s = train::CheckClipOverlap(clip_opt.clip_frames, clip_opt.overlap_frames); !s.ok()) {
-      return Fail(2, s);
-    }
+    if (absl::Status s = train::CheckClipOverlap(clip_opt.clip_frames, overlap); !s.ok()) return Fail(2, s);
+    clip_opt.overlap_frames = overlap;
   }
 
   absl::StatusOr<DriveLog> log = OpenLog(*log_path);

@@ -93,7 +93,9 @@ absl::StatusOr<ClipTrainResult> TrainClips(const DriveLog& log, const std::strin
                                            const std::function<void(const Progress&)>& progress) {
   absl::StatusOr<std::vector<ClipRange>> plan = PlanClips(static_cast<int>(log.frames.size()), copt.clip_frames);
   if (!plan.ok()) return plan.status();
-  if (absl::Status s = CheckClipOverlap(copt.clip_frames, copt.overlap_frames); !s.ok()) return s;
+  if (copt.overlap_frames) {
+    if (absl::Status s = CheckClipOverlap(copt.clip_frames, *copt.overlap_frames); !s.ok()) return s;
+  }
   ClipTrainResult out;
   std::error_code ec;
   const fs::path manifest = fs::path(out_dir) / kClipManifestName;
@@ -112,13 +114,22 @@ absl::StatusOr<ClipTrainResult> TrainClips(const DriveLog& log, const std::strin
     return out;
   }
 
-  ClipSet set = MakeClipSet(log, copt.clip_frames, *plan, copt.overlap_frames);
+  std::optional<ClipSet> on_disk;
   if (opt.resume) {
-    absl::StatusOr<std::optional<ClipSet>> on_disk = ReadClipSet(out_dir);
-    if (!on_disk.ok()) return on_disk.status();
-    if (*on_disk) {
-      if (absl::Status s = SamePlan(**on_disk, set, out_dir); !s.ok()) return s;
-      for (size_t k = 0; k < set.clips.size(); ++k) set.clips[k].done = (*on_disk)->clips[k].done;
+    absl::StatusOr<std::optional<ClipSet>> read = ReadClipSet(out_dir);
+    if (!read.ok()) return read.status();
+    on_disk = std::move(*read);
+  }
+  // Unless given, a resume keeps the set's own overlap (a set trained before overlaps existed has
+  // none); a new set gets the default.
+  const int overlap = copt.overlap_frames ? *copt.overlap_frames
+                      : on_disk           ? on_disk->overlap_frames
+                                          : DefaultClipOverlap(copt.clip_frames);
+  ClipSet set = MakeClipSet(log, copt.clip_frames, *plan, overlap);
+  if (opt.resume) {
+    if (on_disk) {
+      if (absl::Status s = SamePlan(*on_disk, set, out_dir); !s.ok()) return s;
+      for (size_t k = 0; k < set.clips.size(); ++k) set.clips[k].done = on_disk->clips[k].done;
     } else if (fs::exists(fs::path(out_dir) / "checkpoint.bin", ec)) {
       return absl::FailedPreconditionError(
           absl::StrCat(out_dir, " holds a single-scene run; resume it without --clip-frames"));

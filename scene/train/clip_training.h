@@ -20,9 +20,9 @@ namespace streetsim::train {
 struct ClipTrainOptions {
   int clip_frames = 0;  // 0: one clip (a plain scene directory, exactly Train's)
   // Each clip also trains on this many frames of each neighbour (clips.h TrainedFrames); 0 ..
-  // clip_frames / 2; without effect on a one-clip plan. 0 here (S3Gaussian's plan); the CLI's
-  // default is DefaultClipOverlap.
-  int overlap_frames = 0;
+  // clip_frames / 2 (0: S3Gaussian's plan); without effect on a one-clip plan. Unset: on resume
+  // the set's own, else DefaultClipOverlap(clip_frames).
+  std::optional<int> overlap_frames;
   // Testing: the clip whose run TrainOptions::stop_after stops (as if killed); -1: any clip's.
   int stop_in_clip = -1;
 };
