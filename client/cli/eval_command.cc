@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <map>
+#include <optional>
 #include <set>
 
 #include <nlohmann/json.hpp>
@@ -196,8 +197,16 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
   double served_analysis_s = 0;
   std::vector<train::LidarEvalResult> lidar_parts;
   int scenes_with_reflectance = 0, scenes_evaluated = 0;
+  // A clip set: how far the image jumps where a consumer crosses from one clip to the next,
+  // measured with the scenes this loop loads (each clip once).
+  std::optional<train::ClipSeamMeter> seam_meter;
+  if (*clip_set) {
+    absl::StatusOr<train::ClipSeamMeter> m = train::ClipSeamMeter::Create(**clip_set, *log, dopt.resolution_scale);
+    if (!m.ok()) return Fail(1, m.status());
+    seam_meter = std::move(*m);
+  }
   for (size_t k = 0; k < view_groups.size(); ++k) {
-    if (view_groups[k].empty()) continue;
+    if (view_groups[k].empty() && !seam_meter) continue;
     const std::string& dir = scene_dirs[k];
     absl::StatusOr<train::SceneMeta> scene_meta = train::ReadSceneMeta(dir);  // its own learned sky
     if (!scene_meta.ok()) return Fail(2, scene_meta.status());
@@ -224,15 +233,18 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
     } else if (served) {
       served_static += store->size();  // a static scene is served as it is
     }
-    absl::StatusOr<train::EvalResult> r;
-    if (served_scene) {
-      absl::StatusOr<train::SceneForView> sv = train::MakeServedSceneForView(**engine, served_scene);
-      if (!sv.ok()) return Fail(1, sv.status());
-      r = train::EvaluateViews(**engine, *sv, views, scene_meta->background, train::EvalFrameSink());
-    } else {
-      r = train::EvaluateSceneDir(**engine, dir, *store, views, scene_meta->background,
-                                  outputs ? outputs->sink() : train::EvalFrameSink());
+    absl::StatusOr<train::SceneForView> sv = served_scene ? train::MakeServedSceneForView(**engine, served_scene)
+                                                          : train::MakeSceneForView(**engine, *store, *f);
+    if (!sv.ok()) return Fail(1, sv.status());
+    if (seam_meter) {
+      if (absl::Status s = seam_meter->AddClip(**engine, static_cast<int>(k), *sv, scene_meta->background); !s.ok()) {
+        return Fail(1, s);
+      }
     }
+    if (views.empty()) continue;  // a clip with no views of this split still renders its seams
+    absl::StatusOr<train::EvalResult> r =
+        train::EvaluateViews(**engine, *sv, views, scene_meta->background,
+                             outputs && !served_scene ? outputs->sink() : train::EvalFrameSink());
     if (!r.ok()) return Fail(1, r.status());
     parts.push_back(std::move(*r));
     ++scenes_evaluated;
@@ -270,11 +282,9 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
       : scenes_with_reflectance == 0 ? "constant 0.5 (scene.ply has no reflectance property)"
                                      : "scene.ply reflectance where the clip's scene.ply has it, else constant 0.5";
   const bool have_lidar = !lidar_by_frame.empty();
-  // A clip set: how far the image jumps where a consumer crosses from one clip to the next.
   std::vector<train::ClipSeam> seams;
-  if (*clip_set) {
-    absl::StatusOr<std::vector<train::ClipSeam>> s =
-        train::MeasureClipSeams(**engine, *scene_dir, **clip_set, *log, dopt.resolution_scale);
+  if (seam_meter) {
+    absl::StatusOr<std::vector<train::ClipSeam>> s = seam_meter->Finish();
     if (!s.ok()) return Fail(1, s.status());
     seams = std::move(*s);
   }

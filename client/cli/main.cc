@@ -46,6 +46,7 @@ constexpr char kUsage[] =
                "              [--field-device auto|cpu|vulkan] [--field-optimizer auto|device|host]\n"
                "              [--field-init spec|zero-heads] [--field-size spec|small]\n"
                "              [--field-lambda-dx W] [--field-lambda-dsh W]   (Δ sparsity weights, 1e-3)\n"
+               "              [--field-l1-time-planes W]   (time planes' L1 towards 1, 1e-4)\n"
                "              [--clip-frames N [--clip-overlap K (default N/10)]]\n"
                "              (SIGINT / SIGTERM: stop with a checkpoint, exit 130 / 143)\n"
                "              (default field: s3gaussian when --iterations > the 5000-iteration warm-up, else static)\n"

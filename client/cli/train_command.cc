@@ -99,7 +99,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
              {"checkpoint-every"}, {"no-sky", false}, {"exposure", false}, {"no-depth", false},
              {"deterministic", false}, {"backend"}, {"voxel"}, {"field"}, {"static-iterations"}, {"field-size"},
              {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"clip-overlap"}, {"field-modules"}, {"field-device"}, {"field-optimizer"},
-             {"field-init"}, {"field-lambda-dx"}, {"field-lambda-dsh"}});
+             {"field-init"}, {"field-lambda-dx"}, {"field-lambda-dsh"}, {"field-l1-time-planes"}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
@@ -199,11 +199,13 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     }
     opt.field.config.zero_init_heads = *v == "zero-heads";
   }
-  // The Δ sparsity weights (S3Gaussian's lambda_dx / lambda_dshs, 1e-3 each): larger values keep
-  // more of the scene still, which the server's static skip turns into serving time
-  // (docs/field.md "Motion sparsity").
-  for (const auto& [flag, weight] : {std::pair<const char*, double*>{"field-lambda-dx", &opt.field.hyper.lambda_dx},
-                                     std::pair<const char*, double*>{"field-lambda-dsh", &opt.field.hyper.lambda_dsh}}) {
+  // The Δ sparsity weights (S3Gaussian's lambda_dx / lambda_dshs, 1e-3 each) and the time planes'
+  // L1 towards 1 (l1_time_planes, 1e-4): larger values keep more of the scene still, which the
+  // server's static skip turns into serving time (docs/field.md "Motion sparsity").
+  for (const auto& [flag, weight] :
+       {std::pair<const char*, double*>{"field-lambda-dx", &opt.field.hyper.lambda_dx},
+        std::pair<const char*, double*>{"field-lambda-dsh", &opt.field.hyper.lambda_dsh},
+        std::pair<const char*, double*>{"field-l1-time-planes", &opt.field.hyper.l1_time_planes}}) {
     if (auto v = args->Get(flag); v && (!absl::SimpleAtod(*v, weight) || !(*weight >= 0 && *weight <= 100))) {
       return Fail(2, absl::InvalidArgumentError(absl::StrCat("--", flag, " must be a number in [0, 100], not '", *v, "'")));
     }

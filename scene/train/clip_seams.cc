@@ -13,7 +13,7 @@
 namespace streetsim::train {
 namespace {
 
-// A clip scene loaded once, as `streetsim eval` loads it: scene.ply, field.bin if any, its sky.
+// A clip scene loaded as `streetsim eval` loads it: scene.ply, field.bin if any, its sky.
 struct LoadedClip {
   SceneMeta meta;
   SceneForView scene_for_view;
@@ -33,15 +33,16 @@ absl::StatusOr<LoadedClip> LoadClip(Engine& engine, const std::string& set_dir, 
   return LoadedClip{*meta, std::move(*sv)};
 }
 
-// The clip's renders of `views`, clamped to [0, 1] as evaluation measures them, and their mean PSNR.
-absl::StatusOr<std::vector<std::vector<float>>> RenderViews(Engine& engine, const LoadedClip& clip,
+// The scene's renders of `views`, clamped to [0, 1] as evaluation measures them, and their mean PSNR.
+absl::StatusOr<std::vector<std::vector<float>>> RenderViews(Engine& engine, const SceneForView& scene,
+                                                            const Eigen::Vector3f& background,
                                                             const std::vector<View>& views, double* mean_psnr_db) {
   std::vector<std::vector<float>> renders;
   auto keep = [&](const View&, const std::vector<float>& rgb) {
     renders.push_back(rgb);
     return absl::OkStatus();
   };
-  absl::StatusOr<EvalResult> r = EvaluateViews(engine, clip.scene_for_view, views, clip.meta.background, keep);
+  absl::StatusOr<EvalResult> r = EvaluateViews(engine, scene, views, background, keep);
   if (!r.ok()) return r.status();
   *mean_psnr_db = r->mean.psnr;
   return renders;
@@ -49,20 +50,21 @@ absl::StatusOr<std::vector<std::vector<float>>> RenderViews(Engine& engine, cons
 
 }  // namespace
 
-absl::StatusOr<std::vector<ClipSeam>> MeasureClipSeams(Engine& engine, const std::string& set_dir, const ClipSet& set,
-                                                       const DriveLog& log, double resolution_scale) {
+absl::StatusOr<ClipSeamMeter> ClipSeamMeter::Create(const ClipSet& set, const DriveLog& log, double resolution_scale) {
   if (static_cast<int>(log.frames.size()) < set.num_frames) {
     return absl::InvalidArgumentError(absl::StrCat("the log has ", log.frames.size(), " frames, the clip set ",
                                                    set.num_frames));
   }
-  if (set.clips.empty()) return std::vector<ClipSeam>{};
-  const size_t num_seams = set.clips.size() - 1;
-  std::vector<ClipSeam> seams(num_seams);
-  std::vector<std::vector<View>> views(num_seams);
+  ClipSeamMeter m;
+  m.num_clips_ = static_cast<int>(set.clips.size());
+  const size_t num_seams = set.clips.empty() ? 0 : set.clips.size() - 1;
+  m.seams_.resize(num_seams);
+  m.views_.resize(num_seams);
+  m.earlier_.resize(num_seams);
   for (size_t k = 0; k < num_seams; ++k) {
     const ClipEntry& a = set.clips[k];
     const ClipEntry& b = set.clips[k + 1];
-    ClipSeam& seam = seams[k];
+    ClipSeam& seam = m.seams_[k];
     seam.clip = static_cast<int>(k);
     // PickClip: nearer clip, a tie to the earlier one.
     seam.switch_time_us = a.end_us + (b.start_us - a.end_us) / 2 + 1;
@@ -77,33 +79,61 @@ absl::StatusOr<std::vector<ClipSeam>> MeasureClipSeams(Engine& engine, const std
     if (v->empty()) return absl::InvalidArgumentError(absl::StrCat("seam ", k, ": no camera views"));
     for (View& view : *v) view.frame += seam.frames[0];
     seam.views = v->size();
-    views[k] = std::move(*v);
+    m.views_[k] = std::move(*v);
   }
-  // Each clip is loaded once and renders the seam before it (as the later clip) and the one after
-  // it (as the earlier); the earlier clip's renders wait for the later one's.
-  std::vector<std::vector<std::vector<float>>> earlier(num_seams);
+  return m;
+}
+
+absl::Status ClipSeamMeter::AddClip(Engine& engine, int clip, const SceneForView& scene,
+                                    const Eigen::Vector3f& background) {
+  if (clip != next_clip_ || clip >= num_clips_) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("ClipSeamMeter: clip ", clip, " given, clip ", next_clip_, " of ", num_clips_, " expected"));
+  }
+  const size_t c = static_cast<size_t>(clip);
+  if (c > 0) {  // the seam before this clip, as the later clip
+    ClipSeam& seam = seams_[c - 1];
+    absl::StatusOr<std::vector<std::vector<float>>> later =
+        RenderViews(engine, scene, background, views_[c - 1], &seam.psnr_after_db);
+    if (!later.ok()) return later.status();
+    double sum = 0;
+    for (size_t i = 0; i < later->size(); ++i) {
+      sum += Psnr(earlier_[c - 1][i].data(), (*later)[i].data(), (*later)[i].size());
+    }
+    seam.psnr_between_db = sum / later->size();
+    earlier_[c - 1].clear();
+  }
+  if (c < seams_.size()) {  // the seam after it, as the earlier clip
+    absl::StatusOr<std::vector<std::vector<float>>> r =
+        RenderViews(engine, scene, background, views_[c], &seams_[c].psnr_before_db);
+    if (!r.ok()) return r.status();
+    earlier_[c] = std::move(*r);
+  }
+  ++next_clip_;
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<ClipSeam>> ClipSeamMeter::Finish() {
+  if (next_clip_ != num_clips_) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("ClipSeamMeter: ", next_clip_, " of ", num_clips_, " clips given"));
+  }
+  return seams_;
+}
+
+absl::StatusOr<std::vector<ClipSeam>> MeasureClipSeams(Engine& engine, const std::string& set_dir, const ClipSet& set,
+                                                       const DriveLog& log, double resolution_scale) {
+  absl::StatusOr<ClipSeamMeter> meter = ClipSeamMeter::Create(set, log, resolution_scale);
+  if (!meter.ok()) return meter.status();
   for (size_t c = 0; c < set.clips.size(); ++c) {
     absl::StatusOr<LoadedClip> clip = LoadClip(engine, set_dir, set.clips[c]);
     if (!clip.ok()) return clip.status();
-    if (c > 0) {
-      ClipSeam& seam = seams[c - 1];
-      absl::StatusOr<std::vector<std::vector<float>>> later =
-          RenderViews(engine, *clip, views[c - 1], &seam.psnr_after_db);
-      if (!later.ok()) return later.status();
-      double sum = 0;
-      for (size_t i = 0; i < later->size(); ++i) {
-        sum += Psnr(earlier[c - 1][i].data(), (*later)[i].data(), (*later)[i].size());
-      }
-      seam.psnr_between_db = sum / later->size();
-      earlier[c - 1].clear();
-    }
-    if (c < num_seams) {
-      absl::StatusOr<std::vector<std::vector<float>>> r = RenderViews(engine, *clip, views[c], &seams[c].psnr_before_db);
-      if (!r.ok()) return r.status();
-      earlier[c] = std::move(*r);
+    if (absl::Status s = meter->AddClip(engine, static_cast<int>(c), clip->scene_for_view, clip->meta.background);
+        !s.ok()) {
+      return s;
     }
   }
-  return seams;
+  return meter->Finish();
 }
 
 }  // namespace streetsim::train

@@ -141,6 +141,7 @@ TEST_F(CliClips, TrainRenderEvalResume) {
   EXPECT_GT(j["seams"][0]["switch_time_us"].get<int64_t>(), end0);
   EXPECT_LE(j["seams"][0]["switch_time_us"].get<int64_t>(), start1);
   EXPECT_NE(r.err.find("seam clip 0 | 1"), std::string::npos) << r.err;
+  const double seam_before = j["seams"][0]["psnr_before"], seam_after = j["seams"][0]["psnr_after"];
   // Frame 11 scores as clip 1 scores it on its own.
   Result own = RunCli("eval --scene " + clip1 + " --log " + log + " --no-lidar");
   ASSERT_EQ(own.code, 0) << own.err;
@@ -150,6 +151,20 @@ TEST_F(CliClips, TrainRenderEvalResume) {
       EXPECT_DOUBLE_EQ(f["psnr"].get<double>(), j["frames"][2]["psnr"].get<double>());
     }
   }
+  // The seam's scores are each clip's own, with its own sky: clip k evaluated alone on frame 7
+  // (held out) and frame 8 (trained), averaged (one camera each).
+  auto frame_psnr = [&](const std::string& scene, const std::string& split, int frame) {
+    Result e = RunCli("eval --scene " + scene + " --log " + log + " --no-lidar --split " + split);
+    EXPECT_EQ(e.code, 0) << e.err;
+    const nlohmann::json je = nlohmann::json::parse(e.out);
+    for (const auto& f : je["frames"]) {
+      if (f["frame"] == frame) return f["psnr"].get<double>();
+    }
+    ADD_FAILURE() << "frame " << frame << " not in " << scene << "'s " << split << " split";
+    return 0.0;
+  };
+  EXPECT_NEAR(seam_before, (frame_psnr(clip0, "test", 7) + frame_psnr(clip0, "train", 8)) / 2, 1e-9);
+  EXPECT_NEAR(seam_after, (frame_psnr(clip1, "test", 7) + frame_psnr(clip1, "train", 8)) / 2, 1e-9);
   // Training split: every training frame once.
   r = RunCli("eval --scene " + dir + " --log " + log + " --no-lidar --split train");
   ASSERT_EQ(r.code, 0) << r.err;

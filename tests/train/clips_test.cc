@@ -465,6 +465,25 @@ TEST(ClipTraining, OverlapTrainsOnTheNeighboursFrames) {
   ASSERT_TRUE(seams.ok()) << seams.status();
   EXPECT_EQ((*seams)[0].psnr_between_db, 100);  // Psnr's value for identical images
   EXPECT_DOUBLE_EQ((*seams)[0].psnr_before_db, (*seams)[0].psnr_after_db);
+  // The meter behind it (streetsim eval feeds it the scenes it loads): clips in order, each once,
+  // and no seams before every clip was given.
+  absl::StatusOr<ClipSeamMeter> meter = ClipSeamMeter::Create(**set, log, opt.resolution_scale);
+  ASSERT_TRUE(meter.ok()) << meter.status();
+  absl::StatusOr<std::shared_ptr<const field::DeformationField>> field0 = LoadSceneField((fs::path(a) / "clip_000").string());
+  absl::StatusOr<GaussianStore> store0 = ReadGaussianPly((fs::path(a) / "clip_000" / "scene.ply").string());
+  ASSERT_TRUE(field0.ok() && store0.ok());
+  absl::StatusOr<SceneForView> sv0 = MakeSceneForView(**engine, *store0, *field0);
+  ASSERT_TRUE(sv0.ok());
+  const Eigen::Vector3f grey(0.5f, 0.5f, 0.5f);
+  EXPECT_EQ(meter->AddClip(**engine, 1, *sv0, grey).code(), absl::StatusCode::kFailedPrecondition);
+  ASSERT_TRUE(meter->AddClip(**engine, 0, *sv0, grey).ok());
+  EXPECT_EQ(meter->AddClip(**engine, 0, *sv0, grey).code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(meter->Finish().status().code(), absl::StatusCode::kFailedPrecondition);
+  ASSERT_TRUE(meter->AddClip(**engine, 1, *sv0, grey).ok());
+  EXPECT_EQ(meter->AddClip(**engine, 2, *sv0, grey).code(), absl::StatusCode::kFailedPrecondition);
+  absl::StatusOr<std::vector<ClipSeam>> same = meter->Finish();
+  ASSERT_TRUE(same.ok()) << same.status();
+  EXPECT_EQ((*same)[0].psnr_between_db, 100);  // one scene on both sides
   // A missing clip directory is an error, not a crash.
   fs::remove_all(fs::path(a) / "clip_001");
   EXPECT_FALSE(MeasureClipSeams(**engine, a, **set, log, opt.resolution_scale).ok());
