@@ -48,6 +48,7 @@ TEST(CliField, TrainWritesAFieldThatRenderAndEvalUse) {
   EXPECT_EQ(meta["static_iterations"], 8);
   EXPECT_DOUBLE_EQ(meta["field_lambda_dx"].get<double>(), 1e-3);  // S3Gaussian's Δ sparsity weights
   EXPECT_DOUBLE_EQ(meta["field_lambda_dsh"].get<double>(), 1e-3);
+  EXPECT_DOUBLE_EQ(meta["field_l1_time_planes"].get<double>(), 1e-4);  // and its time planes' L1
   ASSERT_EQ(meta["time_range_us"].size(), 2u);
   const int64_t t0 = meta["time_range_us"][0], t1 = meta["time_range_us"][1];
   EXPECT_LT(t0, t1);
@@ -148,6 +149,9 @@ TEST(CliField, BadValuesExitTwoWithOneLine) {
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-lambda-dsh nan",
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-lambda-dx 1e9",
            train + " --iterations 20 --field static --field-lambda-dx 0.1",  // a static run has no field
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-l1-time-planes -0.1",
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-l1-time-planes 1e3",
+           train + " --iterations 20 --field static --field-l1-time-planes 0.1",
            eval + " --static-motion-m 0.1",                 // needs --served
            eval + " --served --static-sh -1",
            eval + " --served --static-motion-m nan",
@@ -180,7 +184,7 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
 
   const std::string staged_dir = streetsim::testing::ScratchDir("streetsim_cli_field_default", "staged");
   r = RunCli("train --log " + kKitti + " --out " + staged_dir + " --iterations 10 --static-iterations 6" +
-             " --field-lambda-dx 0.25 --field-lambda-dsh 0" + common);
+             " --field-lambda-dx 0.25 --field-lambda-dsh 0 --field-l1-time-planes 0.5" + common);
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_NE(r.err.find("--field s3gaussian (the default"), std::string::npos) << r.err;
   // Where the fine stage's time went, once at the end (docs/training.md "Fine-stage timings").
@@ -198,6 +202,7 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
   EXPECT_EQ(staged_meta["field"], "s3gaussian");
   EXPECT_DOUBLE_EQ(staged_meta["field_lambda_dx"].get<double>(), 0.25);  // the weights given
   EXPECT_DOUBLE_EQ(staged_meta["field_lambda_dsh"].get<double>(), 0.0);
+  EXPECT_DOUBLE_EQ(staged_meta["field_l1_time_planes"].get<double>(), 0.5);
   const nlohmann::json staged_run = nlohmann::json::parse(Slurp(staged_dir + "/checkpoint.json"));
   EXPECT_EQ(staged_run["field"], "s3gaussian");
   EXPECT_EQ(staged_run["iteration"], 10);
