@@ -38,9 +38,10 @@ GaussianParamsView DeformedParamsView(const GaussianParamsView& canonical, const
   return v;
 }
 
-DeformLosses SparsityGradients(const DeformedScene& d, int ka3, const FieldHyper& h, const GaussianGrads& grads,
-                               ThreadPool& pool, float* g_dx, float* g_dsh) {
-  const size_t n = d.dx.size() / 3;
+DeformLosses SparsityGradients(const std::vector<float>& dx, const std::vector<float>& dsh, int ka3,
+                               const FieldHyper& h, const GaussianGrads& grads, ThreadPool& pool, float* g_dx,
+                               float* g_dsh) {
+  const size_t n = dx.size() / 3;
   DeformLosses losses;
   if (n == 0) return losses;
   const float cdx = static_cast<float>(h.lambda_dx / (3.0 * n));
@@ -51,12 +52,12 @@ DeformLosses SparsityGradients(const DeformedScene& d, int ka3, const FieldHyper
   pool.ParallelFor(static_cast<int64_t>(n), 8192, [&](int64_t b, int64_t e, int tid) {
     double sx = 0, ss = 0;
     for (int64_t i = b * 3; i < e * 3; ++i) {
-      sx += std::abs(d.dx[i]);
-      g_dx[i] = grads.means[i] + cdx * sign(d.dx[i]);
+      sx += std::abs(dx[i]);
+      g_dx[i] = grads.means[i] + cdx * sign(dx[i]);
     }
     for (int64_t i = b; i < e; ++i) {
       for (int k = 0; k < kShOutputs; ++k) {
-        const float v = d.dsh[i * kShOutputs + k];
+        const float v = dsh[i * kShOutputs + k];
         ss += std::abs(v);
         g_dsh[i * kShOutputs + k] = (k < ka3 ? grads.sh[i * ka3 + k] : 0.0f) + cdsh * sign(v);
       }
@@ -94,7 +95,7 @@ absl::StatusOr<DeformLosses> DeformBackward(const DeformationField& field, const
   std::vector<float>& g_dsh = ws.d_dsh;
   g_dx.resize(n * 3);
   g_dsh.resize(n * kShOutputs);
-  DeformLosses losses = SparsityGradients(d, ka3, h, *grads, pool, g_dx.data(), g_dsh.data());
+  DeformLosses losses = SparsityGradients(d.dx, d.dsh, ka3, h, *grads, pool, g_dx.data(), g_dsh.data());
   // grads->means already holds the identity path; the field adds the sampling-position path.
   FieldBackward<float>(field.layout(), field.params().data(), field.QueryAtCoordinate(d.time_coord), c.means, n,
                        g_dx.data(), g_dsh.data(), d_field->data(), grads->means.data(), pool, ws);

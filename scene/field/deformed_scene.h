@@ -51,11 +51,13 @@ struct DeformLosses {
   double weighted = 0;
 };
 
-// The Δ sparsity terms of DeformBackward (and of VulkanDeformBackward; keep the two in step):
+// The Δ sparsity terms of every field's backward (DeformBackward, VulkanDeformBackward,
+// DeformBackwardExt), from the Δx [n*3] and ΔSH [n*48] the forward produced:
 // dL/dΔx = dL/dxyz_t + sparsity into g_dx [n*3], dL/dΔSH = dL/dsh_t (the ka3 = active SH
 // coefficients x 3 of `grads`) + sparsity into g_dsh [n*48]; returns the mean |Δ| losses.
-DeformLosses SparsityGradients(const DeformedScene& deformed, int ka3, const FieldHyper& hyper,
-                               const GaussianGrads& grads, ThreadPool& pool, float* g_dx, float* g_dsh);
+DeformLosses SparsityGradients(const std::vector<float>& dx, const std::vector<float>& dsh, int ka3,
+                               const FieldHyper& hyper, const GaussianGrads& grads, ThreadPool& pool, float* g_dx,
+                               float* g_dsh);
 
 // Given `grads` of the rendered deformed scene (means [n*3], sh [n*Ka*3] at `active_degree`),
 // adds dL/d(field parameters) (including the Δ sparsity terms) to d_field [layout.total] (a

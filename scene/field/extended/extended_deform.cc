@@ -99,29 +99,15 @@ absl::StatusOr<ExtDeformLosses> DeformBackwardExt(const ExtendedField& field, co
   ExtDeformLosses losses;
   if (n == 0) return losses;
   std::vector<float> g_dx(n * 3), g_dsh(n * kShOutputs), g_dscale, g_drot, g_dop;
-  const float cdx = static_cast<float>(h.lambda_dx / (3.0 * n));
-  const float cdsh = static_cast<float>(h.lambda_dsh / (double(kShOutputs) * n));
-  auto sign = [](float x) { return static_cast<float>((x > 0) - (x < 0)); };
-  double sx = 0, ss = 0;
-  for (size_t i = 0; i < n * 3; ++i) {
-    sx += std::abs(d.dx[i]);
-    g_dx[i] = grads->means[i] + cdx * sign(d.dx[i]);
-  }
-  for (size_t i = 0; i < n; ++i) {
-    for (int k = 0; k < kShOutputs; ++k) {
-      const float v = d.dsh[i * kShOutputs + k];
-      ss += std::abs(v);
-      g_dsh[i * kShOutputs + k] = (k < ka3 ? grads->sh[i * ka3 + k] : 0.0f) + cdsh * sign(v);
-    }
-  }
+  const DeformLosses sparsity = SparsityGradients(d.dx, d.dsh, ka3, h, *grads, pool, g_dx.data(), g_dsh.data());
   if (dec) {  // Δ added to the parameter: its gradient is the rendered parameter's (copied first:
               // the encoder path adds into grads below)
     g_dscale = grads->log_scales;
     g_drot = grads->rotations;
     g_dop = grads->opacity_logits;
   }
-  losses.dx_l1 = sx / (3.0 * n);
-  losses.dsh_l1 = ss / (double(kShOutputs) * n);
+  losses.dx_l1 = sparsity.dx_l1;
+  losses.dsh_l1 = sparsity.dsh_l1;
   ExtInputs<float> in{n, c.means, c.opacity_logits, c.log_scales, c.rotations};
   ExtOutputGrads<float> go{g_dx.data(), g_dsh.data(), dec ? g_dscale.data() : nullptr, dec ? g_drot.data() : nullptr,
                            dec ? g_dop.data() : nullptr};

@@ -48,7 +48,7 @@ absl::StatusOr<DeformLosses> VulkanDeformBackward(VulkanField& vf, const Deforma
   scratch->resize(n * (3 + kShOutputs));
   float* g_dx = scratch->data();
   float* g_dsh = g_dx + n * 3;
-  DeformLosses losses = SparsityGradients(d, ka3, h, *grads, pool, g_dx, g_dsh);
+  DeformLosses losses = SparsityGradients(d.dx, d.dsh, ka3, h, *grads, pool, g_dx, g_dsh);
   // grads->means already holds the identity path; the field adds the sampling-position path.
   const std::span<const float> means(c.means, n * 3), d_dx(g_dx, n * 3), d_dsh(g_dsh, n * kShOutputs);
   if (absl::Status s = d_field ? vf.Backward(query, means, d_dx, d_dsh, *d_field, grads->means)
