@@ -165,6 +165,17 @@ TEST_F(CliClips, TrainRenderEvalResume) {
   };
   EXPECT_NEAR(seam_before, (frame_psnr(clip0, "test", 7) + frame_psnr(clip0, "train", 8)) / 2, 1e-9);
   EXPECT_NEAR(seam_after, (frame_psnr(clip1, "test", 7) + frame_psnr(clip1, "train", 8)) / 2, 1e-9);
+  // A clip with no view of the split is still read for its seams: every 10th frame held out
+  // leaves clip 0 (frames 0-7) none, and the seam scores do not depend on the split.
+  Result sparse = RunCli("eval --scene " + dir + " --log " + log + " --no-lidar --holdout-every 10");
+  ASSERT_EQ(sparse.code, 0) << sparse.err;
+  const nlohmann::json js = nlohmann::json::parse(sparse.out);
+  ASSERT_EQ(js["frames"].size(), 1u);
+  EXPECT_EQ(js["frames"][0]["frame"], 9);
+  EXPECT_EQ(js["frames"][0]["clip"], 1);
+  ASSERT_EQ(js["seams"].size(), 1u);
+  EXPECT_DOUBLE_EQ(js["seams"][0]["psnr_before"].get<double>(), seam_before);
+  EXPECT_DOUBLE_EQ(js["seams"][0]["psnr_after"].get<double>(), seam_after);
   // Training split: every training frame once.
   r = RunCli("eval --scene " + dir + " --log " + log + " --no-lidar --split train");
   ASSERT_EQ(r.code, 0) << r.err;
