@@ -47,6 +47,8 @@ constexpr char kUsage[] =
                "              [--field-init spec|zero-heads] [--field-size spec|small]\n"
                "              [--field-lambda-dx W] [--field-lambda-dsh W]   (Δ sparsity weights, 1e-3)\n"
                "              [--field-l1-time-planes W]   (time planes' L1 towards 1, 1e-4)\n"
+               "              [--field-lr-scale S] [--field-lr-decay-iterations N]   (field lr x S, decay over N\n"
+               "               fine iterations; spec: 1, 30000)\n"
                "              [--clip-frames N [--clip-overlap K (default N/10)]]\n"
                "              (SIGINT / SIGTERM: stop with a checkpoint, exit 130 / 143)\n"
                "              (default field: s3gaussian when --iterations > the 5000-iteration warm-up, else static)\n"

@@ -99,7 +99,8 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
              {"checkpoint-every"}, {"no-sky", false}, {"exposure", false}, {"no-depth", false},
              {"deterministic", false}, {"backend"}, {"voxel"}, {"field"}, {"static-iterations"}, {"field-size"},
              {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"clip-overlap"}, {"field-modules"}, {"field-device"}, {"field-optimizer"},
-             {"field-init"}, {"field-lambda-dx"}, {"field-lambda-dsh"}, {"field-l1-time-planes"}});
+             {"field-init"}, {"field-lambda-dx"}, {"field-lambda-dsh"}, {"field-l1-time-planes"},
+             {"field-lr-scale"}, {"field-lr-decay-iterations"}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
@@ -209,6 +210,24 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     if (auto v = args->Get(flag); v && (!absl::SimpleAtod(*v, weight) || !(*weight >= 0 && *weight <= 100))) {
       return Fail(2, absl::InvalidArgumentError(absl::StrCat("--", flag, " must be a number in [0, 100], not '", *v, "'")));
     }
+    if (args->Has(flag) && opt.field.mode == train::FieldMode::kStatic) {
+      return Fail(2, absl::InvalidArgumentError(absl::StrCat("--", flag, " needs a field (a static run has none)")));
+    }
+  }
+  // The field's learning rates (docs/training.md "Field learning rates"): a multiplier on both
+  // groups (the spec's are set for 50 000 fine iterations) and the length of their exponential
+  // decay (spec 30 000 fine iterations).
+  if (auto v = args->Get("field-lr-scale"); v && (!absl::SimpleAtod(*v, &opt.field.hyper.lr_scale) ||
+                                                  !(opt.field.hyper.lr_scale > 0 && opt.field.hyper.lr_scale <= 1000))) {
+    return Fail(2, absl::InvalidArgumentError(absl::StrCat("--field-lr-scale must be a number in (0, 1000], not '", *v, "'")));
+  }
+  if (auto v = args->Get("field-lr-decay-iterations");
+      v && (!absl::SimpleAtoi(*v, &opt.field.hyper.lr_decay_steps) || opt.field.hyper.lr_decay_steps < 1 ||
+            opt.field.hyper.lr_decay_steps > 10'000'000)) {
+    return Fail(2, absl::InvalidArgumentError(
+                       absl::StrCat("--field-lr-decay-iterations must be an integer in 1..10000000, not '", *v, "'")));
+  }
+  for (const char* flag : {"field-lr-scale", "field-lr-decay-iterations"}) {
     if (args->Has(flag) && opt.field.mode == train::FieldMode::kStatic) {
       return Fail(2, absl::InvalidArgumentError(absl::StrCat("--", flag, " needs a field (a static run has none)")));
     }

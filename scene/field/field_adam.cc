@@ -13,7 +13,7 @@ double FieldExpLr(double lr_init, double lr_final, int64_t step, int max_steps) 
 }
 
 FieldLrs FieldLearningRates(const FieldHyper& h, int64_t iteration, double extent) {
-  const double e = h.scale_lr_by_extent ? extent : 1.0;
+  const double e = (h.scale_lr_by_extent ? extent : 1.0) * h.lr_scale;
   FieldLrs lrs;
   lrs.grid = FieldExpLr(h.grid_lr_init * e, h.grid_lr_final * e, iteration, h.lr_decay_steps);
   lrs.deformation = FieldExpLr(h.deformation_lr_init * e, h.deformation_lr_final * e, iteration, h.lr_decay_steps);

@@ -566,6 +566,8 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       meta["field_lambda_dx"] = opt.field.hyper.lambda_dx;  // the Δ sparsity weights trained with
       meta["field_lambda_dsh"] = opt.field.hyper.lambda_dsh;
       meta["field_l1_time_planes"] = opt.field.hyper.l1_time_planes;
+      meta["field_lr_scale"] = opt.field.hyper.lr_scale;  // the field's learning-rate schedule
+      meta["field_lr_decay_iterations"] = opt.field.hyper.lr_decay_steps;
       meta["time_range_us"] = {stage->field().time_range().start_us, stage->field().time_range().end_us};
       if (absl::Status s = field::SaveField(stage->field(), field_path); !s.ok()) return s;
     } else {

@@ -141,6 +141,15 @@ TEST(FieldAdam, ScheduleAndGroups) {
   EXPECT_NEAR(b.deformation, 1.6e-6 * E, 1e-12);
   EXPECT_NEAR(c.grid, b.grid, 1e-15);
   EXPECT_NEAR(FieldLearningRates(h, 15000, E).grid, std::sqrt(1.6e-4 * 1.6e-5) * E, 1e-12);  // log-linear
+  // --field-lr-scale multiplies both groups at every step; --field-lr-decay-iterations moves the
+  // end of the decay.
+  FieldHyper fast;
+  fast.lr_scale = 4;
+  fast.lr_decay_steps = 6000;
+  EXPECT_NEAR(FieldLearningRates(fast, 0, E).grid, 4 * 1.6e-4 * E, 1e-12);
+  EXPECT_NEAR(FieldLearningRates(fast, 0, E).deformation, 4 * 1.6e-5 * E, 1e-12);
+  EXPECT_NEAR(FieldLearningRates(fast, 3000, E).grid, 4 * std::sqrt(1.6e-4 * 1.6e-5) * E, 1e-12);
+  EXPECT_NEAR(FieldLearningRates(fast, 9000, E).deformation, 4 * 1.6e-6 * E, 1e-12);
 
   const FieldLayout L = FieldLayout::Make(testing::SmallConfig());
   std::vector<float> p(L.total, 1.0f), g(L.total);

@@ -49,6 +49,8 @@ TEST(CliField, TrainWritesAFieldThatRenderAndEvalUse) {
   EXPECT_DOUBLE_EQ(meta["field_lambda_dx"].get<double>(), 1e-3);  // S3Gaussian's Δ sparsity weights
   EXPECT_DOUBLE_EQ(meta["field_lambda_dsh"].get<double>(), 1e-3);
   EXPECT_DOUBLE_EQ(meta["field_l1_time_planes"].get<double>(), 1e-4);  // and its time planes' L1
+  EXPECT_DOUBLE_EQ(meta["field_lr_scale"].get<double>(), 1.0);  // and the spec's learning rates
+  EXPECT_EQ(meta["field_lr_decay_iterations"], 30000);
   ASSERT_EQ(meta["time_range_us"].size(), 2u);
   const int64_t t0 = meta["time_range_us"][0], t1 = meta["time_range_us"][1];
   EXPECT_LT(t0, t1);
@@ -152,6 +154,14 @@ TEST(CliField, BadValuesExitTwoWithOneLine) {
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-l1-time-planes -0.1",
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-l1-time-planes 1e3",
            train + " --iterations 20 --field static --field-l1-time-planes 0.1",
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-lr-scale 0",
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-lr-scale -3",
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-lr-scale 1e4",
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-lr-scale nan",
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-lr-decay-iterations 0",
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-lr-decay-iterations 2.5",
+           train + " --iterations 20 --field static --field-lr-scale 3",
+           train + " --iterations 20 --field static --field-lr-decay-iterations 300",
            eval + " --static-motion-m 0.1",                 // needs --served
            eval + " --served --static-sh -1",
            eval + " --served --static-motion-m nan",
@@ -184,7 +194,8 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
 
   const std::string staged_dir = streetsim::testing::ScratchDir("streetsim_cli_field_default", "staged");
   r = RunCli("train --log " + kKitti + " --out " + staged_dir + " --iterations 10 --static-iterations 6" +
-             " --field-lambda-dx 0.25 --field-lambda-dsh 0 --field-l1-time-planes 0.5" + common);
+             " --field-lambda-dx 0.25 --field-lambda-dsh 0 --field-l1-time-planes 0.5" +
+             " --field-lr-scale 2.5 --field-lr-decay-iterations 4000" + common);
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_NE(r.err.find("--field s3gaussian (the default"), std::string::npos) << r.err;
   // Where the fine stage's time went, once at the end (docs/training.md "Fine-stage timings").
@@ -203,6 +214,8 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
   EXPECT_DOUBLE_EQ(staged_meta["field_lambda_dx"].get<double>(), 0.25);  // the weights given
   EXPECT_DOUBLE_EQ(staged_meta["field_lambda_dsh"].get<double>(), 0.0);
   EXPECT_DOUBLE_EQ(staged_meta["field_l1_time_planes"].get<double>(), 0.5);
+  EXPECT_DOUBLE_EQ(staged_meta["field_lr_scale"].get<double>(), 2.5);  // the learning-rate schedule given
+  EXPECT_EQ(staged_meta["field_lr_decay_iterations"], 4000);
   const nlohmann::json staged_run = nlohmann::json::parse(Slurp(staged_dir + "/checkpoint.json"));
   EXPECT_EQ(staged_run["field"], "s3gaussian");
   EXPECT_EQ(staged_run["iteration"], 10);
