@@ -7,13 +7,17 @@
 //   (--ext-modules, ';'-separated module lists, default "all"; "" skips these rows): its gate
 //   opened (0.1) and its decoder's last layers drawn (Xavier x 0.1), both of which start at 0.
 // - training: DeformScene + DeformBackward (random dL/d(deformed means, SH)), the plane
-//   regularisers and the field's Adam step, for Gaussians of the procedural street.
+//   regularisers and the field's Adam step, for Gaussians of the procedural street; with
+//   --train-ply SCENE.ply also for a trained scene's Gaussians (SH degree 3), once in the file's
+//   row order (the trainer's) and once in the field's Morton order.
 //   field_bench [--serve 500000] [--train 139000,300000] [--repeats 5] [--samples 50]
 //               [--dynamic-fraction 0.1] [--threads 0] [--row-order (no Morton order when serving)]
 //               [--ext-modules "all;encoder,vae,attention,gru,decoder"] [--serve-vulkan]
+//               [--train-ply SCENE.ply]
 //   --serve-vulkan adds serving rows with the field on Vulkan (the server's --field-device vulkan,
 //   scene/field/vulkan/vulkan_serving.h; a GPU when there is one, else lavapipe, which is slower
 //   than the cpu for the field). Their first (warm-up) timestamp creates the device field.
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -29,7 +33,9 @@
 #include "scene/field/deformed_scene.h"
 #include "scene/field/extended/extended_serving.h"
 #include "scene/field/field_regularizers.h"
+#include "scene/field/spatial_order.h"
 #include "scene/field/static_skip.h"
+#include "scene/gaussians/ply_io.h"
 #include "scene/field/vulkan/vulkan_serving.h"
 #include "scene/gaussians/synthetic_street.h"
 
@@ -192,18 +198,36 @@ void BenchServe(size_t n, int repeats, int samples, double dyn_fraction, bool or
   }
 }
 
-void BenchTrain(size_t n, int repeats, ThreadPool& pool) {
-  const GaussianStore g = MakeSyntheticStreet({.num_gaussians = n, .seed = 3, .sh_degree = 3});
+// The same Gaussians with their rows in the field's Morton order (SpatialOrder).
+GaussianStore InMortonOrder(const GaussianStore& g, const FieldAabb& box, ThreadPool& pool) {
+  const std::vector<uint32_t> order = SpatialOrder(box, g.means.data(), g.size(), nullptr, pool);
+  GaussianStore out = g;
+  for (size_t r = 0; r < order.size(); ++r) {
+    const size_t i = order[r];
+    std::copy_n(g.means.data() + i * 3, 3, out.means.data() + r * 3);
+    std::copy_n(g.sh.data() + i * 48, 48, out.sh.data() + r * 48);
+  }
+  return out;
+}
+
+FieldAabb BoxOf(const GaussianStore& g) {
   FieldAabb box;
   for (int k = 0; k < 3; ++k) {
     box.min[k] = 1e30;
     box.max[k] = -1e30;
   }
-  for (size_t i = 0; i < n; ++i)
+  for (size_t i = 0; i < g.size(); ++i)
     for (int k = 0; k < 3; ++k) {
       box.min[k] = std::min<double>(box.min[k], g.means[i * 3 + k]);
       box.max[k] = std::max<double>(box.max[k], g.means[i * 3 + k]);
     }
+  return box;
+}
+
+// One training step's field parts over the Gaussians of `g` (SH degree 3), `label` names the row.
+void BenchTrain(const GaussianStore& g, const std::string& label, int repeats, ThreadPool& pool) {
+  const size_t n = g.size();
+  const FieldAabb box = BoxOf(g);
   absl::StatusOr<DeformationField> f = DeformationField::Create(FieldConfig{}, box, {0, 5'000'000}, 1);
   if (!f.ok()) std::exit(1);
   FieldWorkspace ws;
@@ -273,6 +297,7 @@ void BenchTrain(size_t n, int repeats, ThreadPool& pool) {
     }
   }
   const double k = 1.0 / repeats;
+  std::printf("%s\n", label.c_str());
   std::printf("train %8zu  forward %7.1f  backward %7.1f  (fwd+bwd %7.1f)  zero-grad %6.1f  regularisers %6.1f  "
               "adam %6.1f  total %7.1f ms\n",
               n, t_fwd * k, t_bwd * k, (t_fwd + t_bwd) * k, t_zero * k, t_reg * k, t_adam * k,
@@ -290,6 +315,7 @@ int main(int argc, char** argv) {
   int repeats = 5, samples = 50, threads = 0;
   double dyn = 0.1;
   bool order = true, vulkan = false;
+  std::string train_ply;
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--serve") && i + 1 < argc) serve = argv[++i];
     else if (!std::strcmp(argv[i], "--train") && i + 1 < argc) train = argv[++i];
@@ -300,10 +326,11 @@ int main(int argc, char** argv) {
     else if (!std::strcmp(argv[i], "--row-order")) order = false;
     else if (!std::strcmp(argv[i], "--ext-modules") && i + 1 < argc) ext = argv[++i];
     else if (!std::strcmp(argv[i], "--serve-vulkan")) vulkan = true;
+    else if (!std::strcmp(argv[i], "--train-ply") && i + 1 < argc) train_ply = argv[++i];
     else {
       std::fprintf(stderr,
                    "usage: field_bench [--serve N,...] [--train N,...] [--repeats R] [--samples S] "
-                   "[--dynamic-fraction F] [--threads T] [--row-order] [--ext-modules 'LIST;LIST'] [--serve-vulkan]\n");
+                   "[--dynamic-fraction F] [--threads T] [--row-order] [--ext-modules 'LIST;LIST'] [--serve-vulkan] [--train-ply SCENE.ply]\n");
       return 2;
     }
   }
@@ -312,6 +339,21 @@ int main(int argc, char** argv) {
               pool.num_threads(), repeats);
   const std::vector<std::string> ext_modules = absl::StrSplit(ext, ';', absl::SkipEmpty());
   for (size_t n : ParseSizes(serve)) BenchServe(n, repeats, samples, dyn, order, ext_modules, vulkan, pool);
-  for (size_t n : ParseSizes(train)) BenchTrain(n, repeats, pool);
+  for (size_t n : ParseSizes(train)) {
+    BenchTrain(MakeSyntheticStreet({.num_gaussians = n, .seed = 3, .sh_degree = 3}), "procedural street", repeats,
+               pool);
+  }
+  if (!train_ply.empty()) {
+    // A trained scene's Gaussians in its own row order (the trainer's: LiDAR init, then
+    // densification's clones appended) and in the field's Morton order.
+    absl::StatusOr<GaussianStore> g = ReadGaussianPly(train_ply);
+    if (!g.ok() || g->sh_degree != 3) {
+      std::fprintf(stderr, "%s: %s\n", train_ply.c_str(),
+                   g.ok() ? "needs SH degree 3" : std::string(g.status().message()).c_str());
+      return 1;
+    }
+    BenchTrain(*g, train_ply + ": rows as stored", repeats, pool);
+    BenchTrain(InMortonOrder(*g, BoxOf(*g), pool), train_ply + ": rows in Morton order", repeats, pool);
+  }
   return 0;
 }

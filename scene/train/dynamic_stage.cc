@@ -13,6 +13,7 @@
 #include "render/vulkan/vulkan_engine.h"
 #include "scene/field/field_io.h"
 #include "scene/field/field_regularizers.h"
+#include "scene/field/spatial_order.h"
 #include "scene/field/vulkan/vulkan_deformed_scene.h"
 
 namespace streetsim::train {
@@ -170,6 +171,10 @@ absl::StatusOr<std::unique_ptr<DynamicStage>> DynamicStage::Begin(TrainState* st
     stage->ext_ = std::make_unique<field::ExtendedField>(std::move(*ext));
   }
   return stage;
+}
+
+absl::Status DynamicStage::OrderGaussians(TrainState* st, ThreadPool& pool) const {
+  return PermuteRows(st, field::SpatialOrder(field().aabb(), st->params.means.data(), st->size(), nullptr, pool));
 }
 
 absl::StatusOr<std::unique_ptr<DynamicStage>> DynamicStage::Resume(const std::string& path,

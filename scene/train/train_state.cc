@@ -55,6 +55,31 @@ void Compact(TrainState* s, const std::vector<uint8_t>& keep) {
   }
 }
 
+// Row r of every per-Gaussian array becomes old row order[r].
+void Permute(TrainState* s, const std::vector<uint32_t>& order) {
+  std::vector<float> tmp;
+  auto permute = [&](std::vector<float>& v, size_t stride) {
+    tmp.resize(order.size() * stride);
+    for (size_t r = 0; r < order.size(); ++r) {
+      std::memcpy(&tmp[r * stride], &v[static_cast<size_t>(order[r]) * stride], stride * sizeof(float));
+    }
+    v.swap(tmp);
+  };
+  for (GaussianStore* g : {&s->params, &s->adam_m, &s->adam_v}) {
+    permute(g->means, 3);
+    permute(g->log_scales, 3);
+    permute(g->rotations, 4);
+    permute(g->opacity_logits, 1);
+    permute(g->sh, kK * 3);
+  }
+  for (std::vector<float>* v : {&s->grad_accum, &s->denom, &s->max_radii}) {
+    if (v->size() == order.size()) permute(*v, 1);
+  }
+  if (s->reflectance_logit.size() == order.size()) {
+    for (std::vector<float>* v : {&s->reflectance_logit, &s->reflectance_m, &s->reflectance_v}) permute(*v, 1);
+  }
+}
+
 // Appends Gaussian i of params (with the given mean and log-scale) and zero moments.
 void AppendCopy(TrainState* s, size_t i, const float* mean, const float* log_scale) {
   GaussianStore& p = s->params;
@@ -275,6 +300,20 @@ void DensifyAndPrune(TrainState* s, const Hyper& h, int64_t iteration, size_t* a
   }
   for (uint8_t k : keep) *removed += !k;
   if (*removed) Compact(s, keep);
+}
+
+absl::Status PermuteRows(TrainState* s, const std::vector<uint32_t>& order) {
+  const size_t n = s->size();
+  if (order.size() != n) {
+    return absl::InvalidArgumentError(absl::StrCat("PermuteRows: ", order.size(), " rows for ", n, " Gaussians"));
+  }
+  std::vector<uint8_t> seen(n, 0);
+  for (uint32_t i : order) {
+    if (i >= n || seen[i]) return absl::InvalidArgumentError("PermuteRows: not a permutation");
+    seen[i] = 1;
+  }
+  Permute(s, order);
+  return absl::OkStatus();
 }
 
 void ResetOpacity(TrainState* s) {

@@ -76,6 +76,11 @@ void AdamStepSmall(float* p, const float* g, float* m, float* v, size_t n, doubl
 void AccumulateStats(TrainState* s, const GaussianGrads& grads, int width, int height);
 // Clone / split (when N < max) then prune (section 7). Returns the number added / removed.
 void DensifyAndPrune(TrainState* s, const Hyper& h, int64_t iteration, size_t* added, size_t* removed);
+// Reorders the Gaussians: row r becomes old row order[r] in every per-Gaussian array (parameters,
+// Adam moments, densification statistics, reflectance). The field's passes keep the Gaussians in
+// a spatial order with it (DynamicStage::OrderGaussians). InvalidArgument unless `order` is a
+// permutation of the rows.
+absl::Status PermuteRows(TrainState* s, const std::vector<uint32_t>& order);
 // opacity = logit(min(sigmoid(opacity), 0.01)); opacity moments zeroed.
 void ResetOpacity(TrainState* s);
 

@@ -367,6 +367,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       absl::StatusOr<std::unique_ptr<DynamicStage>> b = DynamicStage::Begin(&st, fopt, fopt.time_range);
       if (!b.ok()) return b.status();
       stage = std::move(*b);
+      if (absl::Status s = stage->OrderGaussians(&st, pool); !s.ok()) return s;
       LOG(INFO) << "iteration " << it << ": fine stage, field of " << stage->field().layout().total
                 << " parameters";
     }
@@ -462,6 +463,9 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       if (stage_it > h.densify_from && stage_it % h.densify_interval == 0) {
         size_t added = 0, removed = 0;
         DensifyAndPrune(&st, h, stage_it, &added, &removed);
+        if (fine) {
+          if (absl::Status s = stage->OrderGaussians(&st, pool); !s.ok()) return s;
+        }
         LOG(INFO) << "iteration " << it << ": densified +" << added << " -" << removed << " -> " << st.size();
         replaced = true;
       }
