@@ -29,9 +29,29 @@ void ZeroLike(const GaussianStore& src, GaussianStore* dst) {
   dst->normals.clear();
 }
 
+// Calls fn(array, floats per Gaussian) for every per-Gaussian array of the state that holds n
+// rows: parameters and Adam moments always, the densification statistics and the LiDAR
+// reflectance (with its moments) when present. The one list that row operations follow.
+template <typename Fn>
+void ForEachGaussianArray(TrainState* s, size_t n, const Fn& fn) {
+  for (GaussianStore* g : {&s->params, &s->adam_m, &s->adam_v}) {
+    fn(g->means, 3);
+    fn(g->log_scales, 3);
+    fn(g->rotations, 4);
+    fn(g->opacity_logits, 1);
+    fn(g->sh, kK * 3);
+  }
+  for (std::vector<float>* v : {&s->grad_accum, &s->denom, &s->max_radii}) {
+    if (v->size() == n) fn(*v, 1);
+  }
+  if (s->reflectance_logit.size() == n) {
+    for (std::vector<float>* v : {&s->reflectance_logit, &s->reflectance_m, &s->reflectance_v}) fn(*v, 1);
+  }
+}
+
 // Keeps Gaussians where keep[i] (in order), for every per-Gaussian array of the state.
 void Compact(TrainState* s, const std::vector<uint8_t>& keep) {
-  auto compact = [&](std::vector<float>& v, size_t stride) {
+  ForEachGaussianArray(s, keep.size(), [&](std::vector<float>& v, size_t stride) {
     size_t o = 0;
     for (size_t i = 0; i < keep.size(); ++i) {
       if (!keep[i]) continue;
@@ -39,45 +59,19 @@ void Compact(TrainState* s, const std::vector<uint8_t>& keep) {
       ++o;
     }
     v.resize(o * stride);
-  };
-  for (GaussianStore* g : {&s->params, &s->adam_m, &s->adam_v}) {
-    compact(g->means, 3);
-    compact(g->log_scales, 3);
-    compact(g->rotations, 4);
-    compact(g->opacity_logits, 1);
-    compact(g->sh, kK * 3);
-  }
-  compact(s->grad_accum, 1);
-  compact(s->denom, 1);
-  compact(s->max_radii, 1);
-  if (s->reflectance_logit.size() == keep.size()) {
-    for (std::vector<float>* v : {&s->reflectance_logit, &s->reflectance_m, &s->reflectance_v}) compact(*v, 1);
-  }
+  });
 }
 
 // Row r of every per-Gaussian array becomes old row order[r].
 void Permute(TrainState* s, const std::vector<uint32_t>& order) {
   std::vector<float> tmp;
-  auto permute = [&](std::vector<float>& v, size_t stride) {
+  ForEachGaussianArray(s, order.size(), [&](std::vector<float>& v, size_t stride) {
     tmp.resize(order.size() * stride);
     for (size_t r = 0; r < order.size(); ++r) {
       std::memcpy(&tmp[r * stride], &v[static_cast<size_t>(order[r]) * stride], stride * sizeof(float));
     }
     v.swap(tmp);
-  };
-  for (GaussianStore* g : {&s->params, &s->adam_m, &s->adam_v}) {
-    permute(g->means, 3);
-    permute(g->log_scales, 3);
-    permute(g->rotations, 4);
-    permute(g->opacity_logits, 1);
-    permute(g->sh, kK * 3);
-  }
-  for (std::vector<float>* v : {&s->grad_accum, &s->denom, &s->max_radii}) {
-    if (v->size() == order.size()) permute(*v, 1);
-  }
-  if (s->reflectance_logit.size() == order.size()) {
-    for (std::vector<float>* v : {&s->reflectance_logit, &s->reflectance_m, &s->reflectance_v}) permute(*v, 1);
-  }
+  });
 }
 
 // Appends Gaussian i of params (with the given mean and log-scale) and zero moments.
