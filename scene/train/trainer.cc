@@ -157,6 +157,27 @@ absl::StatusOr<std::string> ReadCheckpointField(const std::string& dir) {
   }
 }
 
+absl::StatusOr<std::optional<FieldLrSchedule>> ReadCheckpointFieldLr(const std::string& dir) {
+  const std::string path = (std::filesystem::path(dir) / kCheckpointRunFile).string();
+  std::ifstream f(path);
+  if (!f) return absl::NotFoundError(absl::StrCat("no ", path));
+  try {
+    const nlohmann::json j = nlohmann::json::parse(f);
+    if (!j.contains("field_lr_scale") && !j.contains("field_lr_decay_iterations")) {
+      return std::optional<FieldLrSchedule>();
+    }
+    FieldLrSchedule lr;
+    lr.scale = j.at("field_lr_scale").get<double>();
+    lr.decay_iterations = j.at("field_lr_decay_iterations").get<int>();
+    if (!(lr.scale > 0 && lr.scale <= 1000) || lr.decay_iterations < 1) {
+      return absl::DataLossError(absl::StrCat(path, ": field learning-rate schedule out of range"));
+    }
+    return std::optional<FieldLrSchedule>(lr);
+  } catch (const std::exception& e) {
+    return absl::DataLossError(absl::StrCat(path, ": ", e.what()));
+  }
+}
+
 absl::StatusOr<SceneMeta> ReadSceneMeta(const std::string& dir) {
   SceneMeta meta;
   const std::string path = (std::filesystem::path(dir) / "train_meta.json").string();
@@ -335,7 +356,11 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     nlohmann::json run;
     run["iteration"] = st.iteration;
     run["field"] = !dynamic ? "static" : opt.field.extended ? "extended" : "s3gaussian";
-    if (dynamic) run["static_iterations"] = static_its;
+    if (dynamic) {
+      run["static_iterations"] = static_its;
+      run["field_lr_scale"] = opt.field.hyper.lr_scale;  // ReadCheckpointFieldLr
+      run["field_lr_decay_iterations"] = opt.field.hyper.lr_decay_steps;
+    }
     return WriteText((std::filesystem::path(out_dir) / kCheckpointRunFile).string(), run.dump(2) + "\n");
   };
 

@@ -6,6 +6,7 @@
 
 #include <atomic>
 #include <functional>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -124,6 +125,15 @@ absl::StatusOr<EvalResult> EvaluateSceneDir(Engine& engine, const std::string& d
 // directory predates the file; DataLoss where it is damaged.
 inline constexpr char kCheckpointRunFile[] = "checkpoint.json";
 absl::StatusOr<std::string> ReadCheckpointField(const std::string& dir);
+// The field's learning-rate schedule the run's checkpoint.json records (`field_lr_scale`,
+// `field_lr_decay_iterations`: FieldHyper::lr_scale / lr_decay_steps), so that a resume without
+// --field-lr-scale keeps it. nullopt where the file predates them (such runs trained with the
+// spec's 1 and 30000) or the run is static; NotFound without the file; DataLoss where damaged.
+struct FieldLrSchedule {
+  double scale = 1.0;
+  int decay_iterations = 30000;
+};
+absl::StatusOr<std::optional<FieldLrSchedule>> ReadCheckpointFieldLr(const std::string& dir);
 
 // DIR/train_meta.json written by Train: the background colour and the resolution scale.
 struct SceneMeta {

@@ -49,7 +49,7 @@ TEST(CliField, TrainWritesAFieldThatRenderAndEvalUse) {
   EXPECT_DOUBLE_EQ(meta["field_lambda_dx"].get<double>(), 1e-3);  // S3Gaussian's Δ sparsity weights
   EXPECT_DOUBLE_EQ(meta["field_lambda_dsh"].get<double>(), 1e-3);
   EXPECT_DOUBLE_EQ(meta["field_l1_time_planes"].get<double>(), 1e-4);  // and its time planes' L1
-  EXPECT_DOUBLE_EQ(meta["field_lr_scale"].get<double>(), 1.0);  // and the spec's learning rates
+  EXPECT_DOUBLE_EQ(meta["field_lr_scale"].get<double>(), 10.0);  // streetsim's default learning rates
   EXPECT_EQ(meta["field_lr_decay_iterations"], 30000);
   ASSERT_EQ(meta["time_range_us"].size(), 2u);
   const int64_t t0 = meta["time_range_us"][0], t1 = meta["time_range_us"][1];
@@ -220,6 +220,42 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
   EXPECT_EQ(staged_run["field"], "s3gaussian");
   EXPECT_EQ(staged_run["iteration"], 10);
   EXPECT_EQ(staged_run["static_iterations"], 6);
+  EXPECT_DOUBLE_EQ(staged_run["field_lr_scale"].get<double>(), 2.5);  // for a resume that does not say
+  EXPECT_EQ(staged_run["field_lr_decay_iterations"], 4000);
+
+  // A resume keeps the run's own learning-rate schedule: the one checkpoint.json records, the
+  // spec's for a fine stage from before the file recorded it, and refuses a damaged one.
+  auto resume_to = [&](int iterations, const std::string& extra = "") {
+    return RunCli("train --log " + kKitti + " --out " + staged_dir + " --resume --iterations " +
+                  std::to_string(iterations) + " --static-iterations 6" + common + extra);
+  };
+  auto meta_lr = [&]() {
+    const nlohmann::json m = nlohmann::json::parse(Slurp(staged_dir + "/train_meta.json"));
+    return std::make_pair(m["field_lr_scale"].get<double>(), m["field_lr_decay_iterations"].get<int>());
+  };
+  r = resume_to(11);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(meta_lr(), std::make_pair(2.5, 4000));
+  {
+    nlohmann::json old_run = nlohmann::json::parse(Slurp(staged_dir + "/checkpoint.json"));
+    old_run.erase("field_lr_scale");
+    old_run.erase("field_lr_decay_iterations");
+    std::ofstream(staged_dir + "/checkpoint.json", std::ios::trunc) << old_run.dump();
+  }
+  r = resume_to(12);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(meta_lr(), std::make_pair(1.0, 30000));  // S3Gaussian's, which that run trained with
+  r = resume_to(13, " --field-lr-scale 4");            // an explicit value wins
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(meta_lr(), std::make_pair(4.0, 30000));
+  {
+    nlohmann::json bad = nlohmann::json::parse(Slurp(staged_dir + "/checkpoint.json"));
+    bad["field_lr_scale"] = -1;
+    std::ofstream(staged_dir + "/checkpoint.json", std::ios::trunc) << bad.dump();
+  }
+  r = resume_to(14);
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_NE(r.err.find("checkpoint.json"), std::string::npos) << r.err;
 
   // Resume without --field: the directory decides. The checkpoints here are headers only (magic +
   // iteration), so every resume then fails loading it; what is checked is the field picked first.
