@@ -142,42 +142,6 @@ field::FieldTimeRange ViewsTimeRange(const std::vector<View>& a, const std::vect
 
 }  // namespace
 
-absl::StatusOr<std::string> ReadCheckpointField(const std::string& dir) {
-  const std::string path = (std::filesystem::path(dir) / kCheckpointRunFile).string();
-  std::ifstream f(path);
-  if (!f) return absl::NotFoundError(absl::StrCat("no ", path));
-  try {
-    const std::string field = nlohmann::json::parse(f).at("field").get<std::string>();
-    if (field != "static" && field != "s3gaussian" && field != "extended") {
-      return absl::DataLossError(absl::StrCat(path, ": unknown field '", field, "'"));
-    }
-    return field;
-  } catch (const std::exception& e) {
-    return absl::DataLossError(absl::StrCat(path, ": ", e.what()));
-  }
-}
-
-absl::StatusOr<std::optional<FieldLrSchedule>> ReadCheckpointFieldLr(const std::string& dir) {
-  const std::string path = (std::filesystem::path(dir) / kCheckpointRunFile).string();
-  std::ifstream f(path);
-  if (!f) return absl::NotFoundError(absl::StrCat("no ", path));
-  try {
-    const nlohmann::json j = nlohmann::json::parse(f);
-    if (!j.contains("field_lr_scale") && !j.contains("field_lr_decay_iterations")) {
-      return std::optional<FieldLrSchedule>();
-    }
-    FieldLrSchedule lr;
-    lr.scale = j.at("field_lr_scale").get<double>();
-    lr.decay_iterations = j.at("field_lr_decay_iterations").get<int>();
-    if (!(lr.scale > 0 && lr.scale <= 1000) || lr.decay_iterations < 1) {
-      return absl::DataLossError(absl::StrCat(path, ": field learning-rate schedule out of range"));
-    }
-    return std::optional<FieldLrSchedule>(lr);
-  } catch (const std::exception& e) {
-    return absl::DataLossError(absl::StrCat(path, ": ", e.what()));
-  }
-}
-
 absl::StatusOr<SceneMeta> ReadSceneMeta(const std::string& dir) {
   SceneMeta meta;
   const std::string path = (std::filesystem::path(dir) / "train_meta.json").string();
@@ -352,16 +316,15 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     }
     if (absl::Status s = SaveCheckpoint(st, ckpt_path); !s.ok()) return s;
     RemoveFieldCheckpoints(out_dir, stage ? st.iteration : -1);
-    // Which field wrote these checkpoints, for a resume that does not say (ReadCheckpointField).
-    nlohmann::json run;
-    run["iteration"] = st.iteration;
-    run["field"] = !dynamic ? "static" : opt.field.extended ? "extended" : "s3gaussian";
+    // Which field wrote these checkpoints, for a resume that does not say (checkpoint_run.h).
+    CheckpointRun run;
+    run.iteration = st.iteration;
+    run.field = !dynamic ? "static" : opt.field.extended ? "extended" : "s3gaussian";
     if (dynamic) {
-      run["static_iterations"] = static_its;
-      run["field_lr_scale"] = opt.field.hyper.lr_scale;  // ReadCheckpointFieldLr
-      run["field_lr_decay_iterations"] = opt.field.hyper.lr_decay_steps;
+      run.static_iterations = static_its;
+      run.field_lr = FieldLrSchedule{opt.field.hyper.lr_scale, opt.field.hyper.lr_decay_steps};
     }
-    return WriteText((std::filesystem::path(out_dir) / kCheckpointRunFile).string(), run.dump(2) + "\n");
+    return WriteCheckpointRun(out_dir, run);
   };
 
   // LiDAR losses (lidar_stage.h) on every stage.

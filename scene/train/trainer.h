@@ -13,6 +13,7 @@
 #include "absl/status/statusor.h"
 #include "render/engine.h"
 #include "scene/log/drive_log.h"
+#include "scene/train/checkpoint_run.h"
 #include "scene/train/dataset.h"
 #include "scene/train/dynamic_stage.h"
 #include "scene/train/lidar_stage.h"
@@ -119,21 +120,6 @@ absl::StatusOr<EvalResult> EvaluateViews(Engine& engine, const SceneForView& sce
 absl::StatusOr<EvalResult> EvaluateSceneDir(Engine& engine, const std::string& dir, const GaussianStore& canonical,
                                             const std::vector<View>& views, const Eigen::Vector3f& background,
                                             const EvalFrameSink& sink = nullptr);
-
-// DIR/checkpoint.json, written with every checkpoint: the field of the run that wrote it ("static",
-// "s3gaussian" or "extended"), so that a resume without --field keeps it. NotFound where a run
-// directory predates the file; DataLoss where it is damaged.
-inline constexpr char kCheckpointRunFile[] = "checkpoint.json";
-absl::StatusOr<std::string> ReadCheckpointField(const std::string& dir);
-// The field's learning-rate schedule the run's checkpoint.json records (`field_lr_scale`,
-// `field_lr_decay_iterations`: FieldHyper::lr_scale / lr_decay_steps), so that a resume without
-// --field-lr-scale keeps it. nullopt where the file predates them (such runs trained with the
-// spec's 1 and 30000) or the run is static; NotFound without the file; DataLoss where damaged.
-struct FieldLrSchedule {
-  double scale = 1.0;
-  int decay_iterations = 30000;
-};
-absl::StatusOr<std::optional<FieldLrSchedule>> ReadCheckpointFieldLr(const std::string& dir);
 
 // DIR/train_meta.json written by Train: the background colour and the resolution scale.
 struct SceneMeta {

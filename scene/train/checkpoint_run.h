@@ -1,0 +1,43 @@
+// DIR/checkpoint.json, written beside every checkpoint: which field the run trains and with what
+// learning-rate schedule, so that a resume that does not say keeps them (client/cli/train_command.cc,
+// docs/training.md "Default field" and "Field learning rates").
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <string>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+
+namespace streetsim::train {
+
+inline constexpr char kCheckpointRunFile[] = "checkpoint.json";
+
+// The field's learning-rate schedule (FieldHyper::lr_scale / lr_decay_steps).
+struct FieldLrSchedule {
+  double scale = 1.0;
+  int decay_iterations = 30000;
+};
+
+struct CheckpointRun {
+  int64_t iteration = 0;
+  std::string field = "static";  // "static", "s3gaussian" or "extended"
+  // A run with a field (its static warm-up included): the warm-up's length and the schedule.
+  std::optional<int> static_iterations;
+  std::optional<FieldLrSchedule> field_lr;
+};
+
+absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run);
+
+// The field of the run that wrote DIR/checkpoint.json. NotFound where a run directory predates
+// the file; DataLoss where it is damaged.
+absl::StatusOr<std::string> ReadCheckpointField(const std::string& dir);
+
+// The field's learning-rate schedule the file records (`field_lr_scale`,
+// `field_lr_decay_iterations`). nullopt where the file predates them (such runs trained with the
+// spec's 1 and 30000) or the run is static; NotFound without the file; DataLoss where damaged or
+// out of range.
+absl::StatusOr<std::optional<FieldLrSchedule>> ReadCheckpointFieldLr(const std::string& dir);
+
+}  // namespace streetsim::train
