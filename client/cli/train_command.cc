@@ -103,7 +103,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
              {"deterministic", false}, {"backend"}, {"voxel"}, {"field"}, {"static-iterations"}, {"field-size"},
              {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"clip-overlap"}, {"field-modules"}, {"field-device"}, {"field-optimizer"},
              {"field-init"}, {"field-lambda-dx"}, {"field-lambda-dsh"}, {"field-l1-time-planes"},
-             {"field-lr-scale"}, {"field-lr-decay-iterations"}});
+             {"field-lr-scale"}, {"field-lr-decay-iterations"}, {"field-time-resolution"}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
@@ -193,6 +193,15 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
       return Fail(2, absl::InvalidArgumentError("--field-size must be spec or small"));
     }
   }
+  // The space-time planes' resolution along time (spec 25 cells for a 50-frame clip; docs/training.md
+  // "Field time resolution").
+  if (auto v = args->Get("field-time-resolution")) {
+    if (!absl::SimpleAtoi(*v, &opt.field.config.time_resolution) || opt.field.config.time_resolution < 2 ||
+        opt.field.config.time_resolution > 1000) {
+      return Fail(2, absl::InvalidArgumentError(
+                         absl::StrCat("--field-time-resolution must be an integer in 2..1000, not '", *v, "'")));
+    }
+  }
   // The heads' init (docs/training.md "Field init"): spec (S3Gaussian's, the default: it learns
   // motion sooner) or zero-heads (the fine stage starts exactly from the static model,
   // FieldConfig::zero_init_heads).
@@ -249,7 +258,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
       opt.field.hyper.lr_decay_steps = own->decay_iterations;
     }
   }
-  for (const char* flag : {"field-lr-scale", "field-lr-decay-iterations"}) {
+  for (const char* flag : {"field-lr-scale", "field-lr-decay-iterations", "field-time-resolution"}) {
     if (args->Has(flag) && opt.field.mode == train::FieldMode::kStatic) {
       return Fail(2, absl::InvalidArgumentError(absl::StrCat("--", flag, " needs a field (a static run has none)")));
     }

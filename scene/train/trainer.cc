@@ -560,6 +560,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       meta["field_l1_time_planes"] = opt.field.hyper.l1_time_planes;
       meta["field_lr_scale"] = opt.field.hyper.lr_scale;  // the field's learning-rate schedule
       meta["field_lr_decay_iterations"] = opt.field.hyper.lr_decay_steps;
+      meta["field_time_resolution"] = stage->field().config().time_resolution;  // cells along time
       meta["time_range_us"] = {stage->field().time_range().start_us, stage->field().time_range().end_us};
       if (absl::Status s = field::SaveField(stage->field(), field_path); !s.ok()) return s;
     } else {

@@ -51,6 +51,7 @@ TEST(CliField, TrainWritesAFieldThatRenderAndEvalUse) {
   EXPECT_DOUBLE_EQ(meta["field_l1_time_planes"].get<double>(), 1e-4);  // and its time planes' L1
   EXPECT_DOUBLE_EQ(meta["field_lr_scale"].get<double>(), 10.0);  // streetsim's default learning rates
   EXPECT_EQ(meta["field_lr_decay_iterations"], 30000);
+  EXPECT_EQ(meta["field_time_resolution"], 6);  // --field-size small's
   ASSERT_EQ(meta["time_range_us"].size(), 2u);
   const int64_t t0 = meta["time_range_us"][0], t1 = meta["time_range_us"][1];
   EXPECT_LT(t0, t1);
@@ -162,6 +163,10 @@ TEST(CliField, BadValuesExitTwoWithOneLine) {
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-lr-decay-iterations 2.5",
            train + " --iterations 20 --field static --field-lr-scale 3",
            train + " --iterations 20 --field static --field-lr-decay-iterations 300",
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-time-resolution 1",
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-time-resolution 1001",
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-time-resolution ten",
+           train + " --iterations 20 --field static --field-time-resolution 50",
            eval + " --static-motion-m 0.1",                 // needs --served
            eval + " --served --static-sh -1",
            eval + " --served --static-motion-m nan",
@@ -195,7 +200,7 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
   const std::string staged_dir = streetsim::testing::ScratchDir("streetsim_cli_field_default", "staged");
   r = RunCli("train --log " + kKitti + " --out " + staged_dir + " --iterations 10 --static-iterations 6" +
              " --field-lambda-dx 0.25 --field-lambda-dsh 0 --field-l1-time-planes 0.5" +
-             " --field-lr-scale 2.5 --field-lr-decay-iterations 4000" + common);
+             " --field-lr-scale 2.5 --field-lr-decay-iterations 4000 --field-time-resolution 5" + common);
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_NE(r.err.find("--field s3gaussian (the default"), std::string::npos) << r.err;
   // Where the fine stage's time went, once at the end (docs/training.md "Fine-stage timings").
@@ -216,6 +221,7 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
   EXPECT_DOUBLE_EQ(staged_meta["field_l1_time_planes"].get<double>(), 0.5);
   EXPECT_DOUBLE_EQ(staged_meta["field_lr_scale"].get<double>(), 2.5);  // the learning-rate schedule given
   EXPECT_EQ(staged_meta["field_lr_decay_iterations"], 4000);
+  EXPECT_EQ(staged_meta["field_time_resolution"], 5);  // the field's cells along time (spec 25)
   const nlohmann::json staged_run = nlohmann::json::parse(Slurp(staged_dir + "/checkpoint.json"));
   EXPECT_EQ(staged_run["field"], "s3gaussian");
   EXPECT_EQ(staged_run["iteration"], 10);
