@@ -21,6 +21,7 @@
 #include "scene/gaussians/synthetic_street.h"
 #include "scene/field/field_regularizers.h"
 #include "scene/train/dynamic_stage.h"
+#include "scene/train/gradient_guard.h"
 #include "scene/train/losses.h"
 #include "scene/train/train_state.h"
 
@@ -61,8 +62,8 @@ int main(int argc, char** argv) {
   }
   std::printf("device: %s, field %s on %s, field optimiser %s\n", (*engine)->device_name().c_str(), size.c_str(),
               field_device.c_str(), field_device == "vulkan" ? optimizer.c_str() : "host");
-  std::printf("%-18s %-7s %8s %8s %8s %8s %8s %8s %8s %8s\n", "setting", "mode", "deform", "upload", "forward",
-              "loss", "backward", "field", "adam", "total");
+  std::printf("%-18s %-7s %8s %8s %8s %8s %8s %8s %8s %8s %8s\n", "setting", "mode", "deform", "upload", "forward",
+              "loss", "backward", "guard", "field", "adam", "total");
   ThreadPool pool(0);
   constexpr int sh = 3;
   for (const std::string& s : std::vector<std::string>(absl::StrSplit(settings, ','))) {
@@ -104,7 +105,7 @@ int main(int argc, char** argv) {
       RenderOutput out;
       GaussianGrads grads;
       train::Hyper hyper;
-      double t_def = 0, t_up = 0, t_fwd = 0, t_loss = 0, t_bwd = 0, t_field = 0, t_adam = 0, t_tot = 0;
+      double t_def = 0, t_up = 0, t_fwd = 0, t_loss = 0, t_bwd = 0, t_guard = 0, t_field = 0, t_adam = 0, t_tot = 0;
       for (int it = 0; it <= iters; ++it) {
         const auto t0 = Clock::now();
         auto t = Clock::now();
@@ -133,6 +134,13 @@ int main(int argc, char** argv) {
         (void)(*engine)->RenderBackward(*scene, {d_rgb.data(), d_depth.data(), nullptr}, {}, &grads);
         const double bwd = Ms(t);
         t = Clock::now();
+        // The trainer's non-finite gradient check (scene/train/gradient_guard.h), as it runs per step.
+        if (absl::Status g = train::GuardGradients(it, st.size(), 0.01, &grads, pool); !g.ok()) {
+          std::fprintf(stderr, "%s\n", g.ToString().c_str());
+          return 1;
+        }
+        const double guard = Ms(t);
+        t = Clock::now();
         if (stage) {
           if (absl::StatusOr<double> b = stage->Backward(st, sh, it + 1, &grads, pool); !b.ok()) {
             std::fprintf(stderr, "%s\n", b.status().ToString().c_str());
@@ -144,13 +152,13 @@ int main(int argc, char** argv) {
         train::AdamStepGaussians(&st, grads, sh, it + 1, hyper, pool);
         const double adam = Ms(t);
         if (it == 0) continue;  // warm-up
-        t_def += def, t_up += up, t_fwd += fwd, t_loss += loss, t_bwd += bwd, t_field += fld, t_adam += adam;
+        t_def += def, t_up += up, t_fwd += fwd, t_loss += loss, t_bwd += bwd, t_guard += guard, t_field += fld, t_adam += adam;
         t_tot += Ms(t0);
       }
       const double k = 1.0 / iters;
-      std::printf("%-18s %-7s %8.1f %8.1f %8.1f %8.1f %8.1f %8.1f %8.1f %8.1f   ms/iteration\n", s.c_str(),
+      std::printf("%-18s %-7s %8.1f %8.1f %8.1f %8.1f %8.1f %8.1f %8.1f %8.1f %8.1f   ms/iteration\n", s.c_str(),
                   with_field ? "field" : "static", t_def * k, t_up * k, t_fwd * k, t_loss * k, t_bwd * k,
-                  t_field * k, t_adam * k, t_tot * k);
+                  t_guard * k, t_field * k, t_adam * k, t_tot * k);
       if (stage) {
         std::printf("%-18s %s\n", "", stage->timings().Summary().c_str());
         if (absl::Status sync = stage->SyncHost(); !sync.ok()) {

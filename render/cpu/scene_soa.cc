@@ -2,7 +2,9 @@
 
 #include <algorithm>
 #include <atomic>
+#include <cmath>
 #include <cstring>
+#include <string>
 #if defined(__AVX2__)
 #include <immintrin.h>
 #endif
@@ -86,6 +88,32 @@ uint32_t TransposeSh8(const float* src, size_t stride, size_t i0, int count, int
 }
 #endif
 
+// Names the first offending Gaussian and value, so that a diverging trainer says where (the error
+// path only: a serial scan).
+std::string FirstBadGaussian(const GaussianParamsView& p) {
+  const int K = ShCoeffsForDegree(p.sh_degree);
+  const size_t stride = static_cast<size_t>(p.sh_stride) * 3;
+  auto bad = [](float v) { return !std::isfinite(v); };
+  for (size_t i = 0; i < p.n; ++i) {
+    for (int k = 0; k < 3; ++k) {
+      if (bad(p.means[i * 3 + k])) return absl::StrCat("Gaussian ", i, ": mean[", k, "] = ", p.means[i * 3 + k]);
+      if (bad(p.log_scales[i * 3 + k])) {
+        return absl::StrCat("Gaussian ", i, ": log_scale[", k, "] = ", p.log_scales[i * 3 + k]);
+      }
+    }
+    const float* q = p.rotations + i * 4;
+    const float q2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3];
+    if (bad(q[0]) || bad(q[1]) || bad(q[2]) || bad(q[3]) || q2 < 1e-20f) {
+      return absl::StrCat("Gaussian ", i, ": rotation = (", q[0], ", ", q[1], ", ", q[2], ", ", q[3], ")");
+    }
+    if (bad(p.opacity_logits[i])) return absl::StrCat("Gaussian ", i, ": opacity logit = ", p.opacity_logits[i]);
+    for (int c = 0; c < K * 3; ++c) {
+      if (bad(p.sh[i * stride + c])) return absl::StrCat("Gaussian ", i, ": SH[", c, "] = ", p.sh[i * stride + c]);
+    }
+  }
+  return "none found on rescan";
+}
+
 }  // namespace
 
 absl::Status SceneSoa::Assign(ThreadPool& pool, const GaussianParamsView& p) {
@@ -142,7 +170,8 @@ absl::Status SceneSoa::Assign(ThreadPool& pool, const GaussianParamsView& p) {
     if (nf) bad.store(true, std::memory_order_relaxed);
   });
   if (bad.load()) {
-    return absl::InvalidArgumentError("UpdateSceneParams: a parameter is not finite or a rotation is zero");
+    return absl::InvalidArgumentError(
+        absl::StrCat("UpdateSceneParams: a parameter is not finite or a rotation is zero (", FirstBadGaussian(p), ")"));
   }
   return absl::OkStatus();
 }

@@ -21,12 +21,16 @@
 #include "scene/init/initial_scene.h"
 #include "scene/field/field_io.h"
 #include "scene/train/dynamic_pixels.h"
+#include "scene/train/gradient_guard.h"
 #include "scene/train/losses.h"
 
 namespace streetsim::train {
 namespace {
 
 using Clock = std::chrono::steady_clock;
+// More Gaussians than this with a non-finite gradient in one step is divergence, not one degenerate
+// splat (gradient_guard.h).
+constexpr double kMaxNonFiniteGradientFraction = 0.01;
 double SecondsSince(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
 
 double SceneExtent(const std::vector<View>& views) {
@@ -437,6 +441,8 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       if (!lidar_loss.ok()) return lidar_loss.status();
       loss += *lidar_loss;
     }
+    // Before the field's backward, which would spread one Gaussian's nan over the whole field.
+    if (absl::Status s = GuardGradients(it, st.size(), kMaxNonFiniteGradientFraction, &grads, pool); !s.ok()) return s;
     if (fine) {
       absl::StatusOr<double> field_loss = stage->Backward(st, active, stage_it, &grads, *field_pool);
       if (!field_loss.ok()) return field_loss.status();

@@ -7,6 +7,8 @@
 #include <memory>
 #include <random>
 
+#include "absl/strings/str_cat.h"
+#include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "render/cpu/binning.h"
 #include "render/cpu/blend.h"
@@ -301,9 +303,20 @@ TEST(CpuBackward, UpdateSceneParamsRendersLikeUpload) {
       std::vector<float> sh = full.sh;
       sh[bad_index] = std::nanf("");
       v.sh = sh.data();
-      EXPECT_EQ(engine->UpdateSceneParams(v, &updated).code(), absl::StatusCode::kInvalidArgument) << bad_index;
+      const absl::Status st = engine->UpdateSceneParams(v, &updated);
+      EXPECT_EQ(st.code(), absl::StatusCode::kInvalidArgument) << bad_index;
+      // The message names the Gaussian and the coefficient, so that a diverging run says where.
+      EXPECT_THAT(std::string(st.message()),
+                  ::testing::HasSubstr(absl::StrCat("Gaussian ", bad_index / 48, ": SH[", bad_index % 48, "]")));
       v.sh = full.sh.data();
     }
+    std::vector<float> rotations = full.rotations;
+    std::fill_n(rotations.begin() + 4 * 17, 4, 0.0f);
+    v.rotations = rotations.data();
+    const absl::Status st = engine->UpdateSceneParams(v, &updated);
+    EXPECT_EQ(st.code(), absl::StatusCode::kInvalidArgument);
+    EXPECT_THAT(std::string(st.message()), ::testing::HasSubstr("Gaussian 17: rotation = (0, 0, 0, 0)"));
+    v.rotations = full.rotations.data();
   }
 }
 

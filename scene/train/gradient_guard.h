@@ -1,0 +1,29 @@
+#pragma once
+// A degenerate splat (e.g. a Gaussian kilometres across, which a field's Δscale can produce) can
+// overflow float in the projection backward even though its forward was finite. One such Gaussian
+// must not end a long run: its gradient row is dropped for the step. Many of them mean the run has
+// diverged, which is an error, not something to paper over.
+#include <cstddef>
+#include <cstdint>
+
+#include "absl/status/status.h"
+#include "render/common/thread_pool.h"
+#include "render/engine.h"
+
+namespace streetsim::train {
+
+struct NonFiniteRows {
+  size_t rows = 0;           // Gaussians whose gradient had a non-finite value (now zeroed)
+  int64_t first_row = -1;    // the lowest such Gaussian index, -1 if none
+};
+
+// Zeroes every per-Gaussian gradient (means, log-scales, rotations, opacity logit, SH, screen mean)
+// of each Gaussian that has a non-finite value in any of them. `n` is the Gaussian count.
+NonFiniteRows ZeroNonFiniteGradientRows(size_t n, GaussianGrads* grads, ThreadPool& pool);
+
+// ZeroNonFiniteGradientRows, then an error when more than `max_fraction` of the Gaussians were hit
+// (the run has diverged: resume from a checkpoint with lower learning rates); logs a warning
+// otherwise (the first time, then every 100th iteration that drops rows).
+absl::Status GuardGradients(int64_t iteration, size_t n, double max_fraction, GaussianGrads* grads, ThreadPool& pool);
+
+}  // namespace streetsim::train
