@@ -20,15 +20,6 @@ struct Column {
   size_t width;
 };
 
-bool RowFinite(const Column* cols, int ncols, size_t i) {
-  float acc = 0;
-  for (int c = 0; c < ncols; ++c) {
-    const float* row = cols[c].data + i * cols[c].width;
-    for (size_t k = 0; k < cols[c].width; ++k) acc += row[k] * 0.0f;  // nan or inf -> nan
-  }
-  return acc == 0.0f;
-}
-
 // Whether any value is nan or inf (all exponent bits set), as an integer reduction the compiler
 // vectorises: the common case, every value finite, is one streaming pass.
 bool AnyNonFinite(const float* v, size_t n) {
@@ -39,6 +30,14 @@ bool AnyNonFinite(const float* v, size_t n) {
     bad |= static_cast<uint32_t>((bits & 0x7f800000u) == 0x7f800000u);
   }
   return bad != 0;
+}
+
+// Gaussians [b, e) in every column.
+bool AnyNonFinite(const Column* cols, int ncols, size_t b, size_t e) {
+  for (int c = 0; c < ncols; ++c) {
+    if (AnyNonFinite(cols[c].data + b * cols[c].width, (e - b) * cols[c].width)) return true;
+  }
+  return false;
 }
 
 }  // namespace
@@ -55,15 +54,11 @@ NonFiniteRows ZeroNonFiniteGradientRows(size_t n, GaussianGrads* grads, ThreadPo
   std::atomic<size_t> rows{0};
   std::atomic<int64_t> first{INT64_MAX};
   pool.ParallelFor(static_cast<int64_t>(n), 4096, [&](int64_t b, int64_t e, int) {
-    bool any = false;
-    for (int c = 0; c < ncols && !any; ++c) {
-      any = AnyNonFinite(cols[c].data + b * cols[c].width, (e - b) * cols[c].width);
-    }
-    if (!any) return;
+    if (!AnyNonFinite(cols, ncols, b, e)) return;  // rows are looked at only in a chunk with a bad value
     size_t local = 0;
     int64_t local_first = INT64_MAX;
     for (int64_t i = b; i < e; ++i) {
-      if (RowFinite(cols, ncols, static_cast<size_t>(i))) continue;
+      if (!AnyNonFinite(cols, ncols, i, i + 1)) continue;
       ++local;
       local_first = std::min(local_first, i);
       for (int c = 0; c < ncols; ++c) std::fill_n(cols[c].data + i * cols[c].width, cols[c].width, 0.0f);
@@ -89,8 +84,8 @@ absl::Status GuardGradients(int64_t iteration, size_t n, double max_fraction, Ga
   }
   static std::atomic<int64_t> steps_dropping{0};  // process-wide: the log is for a person, not a test
   if (steps_dropping++ % 100 != 0) return absl::OkStatus();
-  LOG(WARNING) << "iteration " << iteration << ": " << bad.rows << " Gaussian(s) with a non-finite "
-                            << "gradient (first: " << bad.first_row << ") skip this step (logged every 100th time)";
+  LOG(WARNING) << "iteration " << iteration << ": " << bad.rows << " Gaussian(s) with a non-finite gradient (first: "
+               << bad.first_row << ") skip this step (logged every 100th time)";
   return absl::OkStatus();
 }
 

@@ -442,7 +442,9 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       loss += *lidar_loss;
     }
     // Before the field's backward, which would spread one Gaussian's nan over the whole field.
-    if (absl::Status s = GuardGradients(it, st.size(), kMaxNonFiniteGradientFraction, &grads, pool); !s.ok()) return s;
+    if (absl::Status s = GuardGradients(it, st.size(), kMaxNonFiniteGradientFraction, &grads, pool); !s.ok()) {
+      return s;
+    }
     if (fine) {
       absl::StatusOr<double> field_loss = stage->Backward(st, active, stage_it, &grads, *field_pool);
       if (!field_loss.ok()) return field_loss.status();
