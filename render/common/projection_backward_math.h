@@ -1,7 +1,8 @@
 // Backward of the shared covariance chain of a projected Gaussian, for the camera's (render/cpu)
-// and the LiDAR's (render/lidar) projection backwards: conic -> 2D covariance cov = T Sigma T^T
-// -> T and Sigma = M M^T -> M = R diag(s) -> the normalised quaternion and the scales. Only the
-// Jacobian J in T = J W differs between the sensors; each caller takes dT on through its own J.
+// and the LiDAR's (render/lidar) projection backwards: conic -> 2D covariance cov = P P^T with
+// P = T M (projection_math.h: ProjectCovariance) -> T and M = R diag(s) -> the normalised
+// quaternion and the scales. Only the Jacobian J in T = J W differs between the sensors; each
+// caller takes dT on through its own J.
 #pragma once
 
 namespace streetsim::projection {
@@ -11,13 +12,13 @@ template <typename Real>
 struct CovarianceChain {
   const Real* T0;  // rows of T = J W
   const Real* T1;
-  const Real* S0;  // Sigma T0^T, Sigma T1^T
-  const Real* S1;
-  const Real* M;   // R diag(s), row-major
-  const Real* R;   // rotation of the normalised quaternion (qw, qx, qy, qz)
+  const Real* P0;  // rows of P = T M (Covariance2D::p0, p1)
+  const Real* P1;
+  const Real* M;   // R diag(s), row-major, R the rotation of the normalised quaternion
   const Real* s;   // scales
   Real cxx, cxy, cyy;  // 2D covariance (low-pass included)
-  Real inv_det;        // 1 / (cxx cyy - cxy^2)
+  Real inv_det;        // 1 / det(cov), from Covariance2D::det
+  Real low_pass;
   Real qw, qx, qy, qz;
   Real qinv;  // 1 / |q| of the raw quaternion
 };
@@ -28,40 +29,45 @@ struct CovarianceChain {
 template <typename Real>
 [[gnu::always_inline]] inline void CovarianceChainBackward(const CovarianceChain<Real>& f, Real ga, Real gb, Real gc,
                                                            Real* dT0, Real* dT1, Real* d_quat, Real* ds_times_s) {
-  const Real cxx = f.cxx, cxy = f.cxy, cyy = f.cyy, inv_det = f.inv_det;
-  const Real inv_det2 = inv_det * inv_det;
-  const Real d_cxx = -ga * cyy * cyy * inv_det2 + gb * cxy * cyy * inv_det2 + gc * (inv_det - cxx * cyy * inv_det2);
-  const Real d_cyy = ga * (inv_det - cxx * cyy * inv_det2) + gb * cxy * cxx * inv_det2 - gc * cxx * cxx * inv_det2;
-  const Real d_cxy = ga * 2 * cxy * cyy * inv_det2 + gb * (-inv_det - 2 * cxy * cxy * inv_det2) +
-                     gc * 2 * cxy * cxx * inv_det2;
-
-  // cov = T Sigma T^T: dT0 = 2 d_cxx S0 + d_cxy S1, dT1 = 2 d_cyy S1 + d_cxy S0;
-  // dSigma (full, then symmetrised through M) = d_cxx T0T0^T + d_cxy T0T1^T + d_cyy T1T1^T.
-  const Real *T0 = f.T0, *T1 = f.T1, *S0 = f.S0, *S1 = f.S1, *M = f.M, *R = f.R, *s = f.s;
+  // dL/dcov = -C G C (C the conic, G = [[ga, gb/2], [gb/2, gc]]), so dL/dP = 2 dL/dcov P =
+  // -2 C G W with W = C P. For a needle splat the long axis's column of P lies almost in C's
+  // null space: C P computed as a product cancels (each term ~|p|/low_pass, the result
+  // ~1/|p|), and so does the chain through dL/dcov, whose terms are ~|p|^2 times too large;
+  // either way the gradients of the mean and the scales were noise or inf. W is computed through
+  // adj(cov) P = (p1 x q + lp p0; q x p0 + lp p1) / det, q = p0 x p1 (the same identity as the
+  // determinant's), in which no product of the long axis is subtracted from another.
+  const Real inv_det = f.inv_det, lp = f.low_pass;
+  const Real *T0 = f.T0, *T1 = f.T1, *P0 = f.P0, *P1 = f.P1, *M = f.M, *s = f.s;
+  const Real ca = f.cyy * inv_det, cb = -f.cxy * inv_det, cc = f.cxx * inv_det;
+  const Real q[3] = {P0[1] * P1[2] - P0[2] * P1[1], P0[2] * P1[0] - P0[0] * P1[2], P0[0] * P1[1] - P0[1] * P1[0]};
+  const Real w0[3] = {(P1[1] * q[2] - P1[2] * q[1] + lp * P0[0]) * inv_det,
+                      (P1[2] * q[0] - P1[0] * q[2] + lp * P0[1]) * inv_det,
+                      (P1[0] * q[1] - P1[1] * q[0] + lp * P0[2]) * inv_det};
+  const Real w1[3] = {(q[1] * P0[2] - q[2] * P0[1] + lp * P1[0]) * inv_det,
+                      (q[2] * P0[0] - q[0] * P0[2] + lp * P1[1]) * inv_det,
+                      (q[0] * P0[1] - q[1] * P0[0] + lp * P1[2]) * inv_det};
+  Real dP0[3], dP1[3];
   for (int k = 0; k < 3; ++k) {
-    dT0[k] = 2 * d_cxx * S0[k] + d_cxy * S1[k];
-    dT1[k] = 2 * d_cyy * S1[k] + d_cxy * S0[k];
+    const Real gw0 = ga * w0[k] + Real(0.5) * gb * w1[k];
+    const Real gw1 = Real(0.5) * gb * w0[k] + gc * w1[k];
+    dP0[k] = -2 * (ca * gw0 + cb * gw1);
+    dP1[k] = -2 * (cb * gw0 + cc * gw1);
+    // d/d log s_k = <dL/dcov, 2 p_k p_k^T> = -2 w_k^T G w_k (p_k, w_k: column k of P, W),
+    // directly: through dM it would be dP . p_k, which cancels for the long axis.
+    ds_times_s[k] = -2 * (w0[k] * gw0 + w1[k] * gw1);
   }
-  Real dSig[9];
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c)
-      dSig[r * 3 + c] = d_cxx * T0[r] * T0[c] + d_cxy * T0[r] * T1[c] + d_cyy * T1[r] * T1[c];
-  // Sigma = M M^T: dM = (dSig + dSig^T) M.
+  // P = T M: dT = dP M^T, dM = T^T dP.
+  for (int r = 0; r < 3; ++r) {
+    dT0[r] = M[r * 3 + 0] * dP0[0] + M[r * 3 + 1] * dP0[1] + M[r * 3 + 2] * dP0[2];
+    dT1[r] = M[r * 3 + 0] * dP1[0] + M[r * 3 + 1] * dP1[1] + M[r * 3 + 2] * dP1[2];
+  }
   Real dM[9];
   for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c) {
-      Real v = 0;
-      for (int k = 0; k < 3; ++k) v += (dSig[r * 3 + k] + dSig[k * 3 + r]) * M[k * 3 + c];
-      dM[r * 3 + c] = v;
-    }
+    for (int k = 0; k < 3; ++k) dM[r * 3 + k] = T0[r] * dP0[k] + T1[r] * dP1[k];
   // M = R diag(s).
   Real dR[9];
   for (int r = 0; r < 3; ++r)
     for (int c = 0; c < 3; ++c) dR[r * 3 + c] = dM[r * 3 + c] * s[c];
-  for (int c = 0; c < 3; ++c) {
-    const Real ds = dM[0 * 3 + c] * R[0 * 3 + c] + dM[1 * 3 + c] * R[1 * 3 + c] + dM[2 * 3 + c] * R[2 * 3 + c];
-    ds_times_s[c] = ds * s[c];
-  }
   // R(q normalised) -> dq_n.
   const Real qw = f.qw, qx = f.qx, qy = f.qy, qz = f.qz;
   Real dqn[4];

@@ -28,6 +28,9 @@ struct Splat {
   Real opacity;        // sigmoid(logit)
   Real rgb[3];         // SH colour, +0.5, clamped at 0
   Real depth;          // camera z, metres
+  // a c - b^2 = 1 / det(cov), taken from the covariance's determinant: a c - b^2 computed from
+  // the conic cancels for a needle splat.
+  Real det_conic;
 };
 
 struct TileRect {
@@ -79,37 +82,48 @@ inline void QuatToRotation(const Real* q_in, Real* R) {
   R[6] = 2 * (x * z - w * y);     R[7] = 2 * (y * z + w * x);     R[8] = 1 - 2 * (x * x + y * y);
 }
 
-// 3D covariance Sigma = R S S^T R^T (upper triangle: xx xy xz yy yz zz) from a rotation (row-major)
-// and per-axis standard deviations.
+// M = R diag(scale) (row-major), so that the 3D covariance is Sigma = M M^T.
 template <typename Real>
-inline void Covariance3D(const Real* R, const Real* scale, Real* Sigma) {
-  Real M[9];  // M = R S
+[[gnu::always_inline]] inline void ScaledRotation(const Real* R, const Real* scale, Real* M) {
   for (int r = 0; r < 3; ++r)
     for (int c = 0; c < 3; ++c) M[r * 3 + c] = R[r * 3 + c] * scale[c];
-  Sigma[0] = M[0] * M[0] + M[1] * M[1] + M[2] * M[2];
-  Sigma[1] = M[0] * M[3] + M[1] * M[4] + M[2] * M[5];
-  Sigma[2] = M[0] * M[6] + M[1] * M[7] + M[2] * M[8];
-  Sigma[3] = M[3] * M[3] + M[4] * M[4] + M[5] * M[5];
-  Sigma[4] = M[3] * M[6] + M[4] * M[7] + M[5] * M[8];
-  Sigma[5] = M[6] * M[6] + M[7] * M[7] + M[8] * M[8];
 }
 
-// EWA: the 2D covariance T Sigma T^T (+ low_pass on the diagonal) for the 2x3 map T = J W given
-// by its rows T0, T1. Shared by the camera and the LiDAR projections.
+// EWA: the 2D covariance cov = T Sigma T^T + low_pass I for the 2x3 map T = J W (rows T0, T1),
+// and its determinant. Shared by the camera and the LiDAR projections.
+//
+// Computed through P = T M (cov = P P^T + low_pass I), not through Sigma: for a needle splat (one
+// axis kilometres long, the others millimetres) cov is nearly rank one, and cxx cyy - cxy^2
+// cancels in float to 0, a negative number or noise, so that the conic and its gradient
+// overflowed. Lagrange's identity gives det = |p0 x p1|^2 + low_pass (|p0|^2 + |p1|^2) +
+// low_pass^2: non-negative terms only, each accurate to rounding (M's columns are scaled one by
+// one, so the cross product never subtracts two products of the long axis), never below
+// low_pass^2.
 template <typename Real>
-inline void ProjectCovariance(const Real* T0, const Real* T1, const Real* Sigma, Real low_pass,
-                              Real* cov_xx, Real* cov_xy, Real* cov_yy) {
-  auto sigma_times = [&](const Real* v, Real* o) {
-    o[0] = Sigma[0] * v[0] + Sigma[1] * v[1] + Sigma[2] * v[2];
-    o[1] = Sigma[1] * v[0] + Sigma[3] * v[1] + Sigma[4] * v[2];
-    o[2] = Sigma[2] * v[0] + Sigma[4] * v[1] + Sigma[5] * v[2];
-  };
-  Real S0[3], S1[3];
-  sigma_times(T0, S0);
-  sigma_times(T1, S1);
-  *cov_xx = T0[0] * S0[0] + T0[1] * S0[1] + T0[2] * S0[2] + low_pass;
-  *cov_xy = T0[0] * S1[0] + T0[1] * S1[1] + T0[2] * S1[2];
-  *cov_yy = T1[0] * S1[0] + T1[1] * S1[1] + T1[2] * S1[2] + low_pass;
+struct Covariance2D {
+  Real p0[3], p1[3];  // rows of P = T M
+  Real cxx, cxy, cyy;  // low-pass included
+  Real det;
+};
+
+template <typename Real>
+[[gnu::always_inline]] inline Covariance2D<Real> ProjectCovariance(const Real* T0, const Real* T1, const Real* M,
+                                                                    Real low_pass) {
+  Covariance2D<Real> c;
+  for (int k = 0; k < 3; ++k) {
+    c.p0[k] = T0[0] * M[0 * 3 + k] + T0[1] * M[1 * 3 + k] + T0[2] * M[2 * 3 + k];
+    c.p1[k] = T1[0] * M[0 * 3 + k] + T1[1] * M[1 * 3 + k] + T1[2] * M[2 * 3 + k];
+  }
+  const Real n0 = c.p0[0] * c.p0[0] + c.p0[1] * c.p0[1] + c.p0[2] * c.p0[2];
+  const Real n1 = c.p1[0] * c.p1[0] + c.p1[1] * c.p1[1] + c.p1[2] * c.p1[2];
+  const Real x0 = c.p0[1] * c.p1[2] - c.p0[2] * c.p1[1];
+  const Real x1 = c.p0[2] * c.p1[0] - c.p0[0] * c.p1[2];
+  const Real x2 = c.p0[0] * c.p1[1] - c.p0[1] * c.p1[0];
+  c.cxx = n0 + low_pass;
+  c.cxy = c.p0[0] * c.p1[0] + c.p0[1] * c.p1[1] + c.p0[2] * c.p1[2];
+  c.cyy = n1 + low_pass;
+  c.det = (x0 * x0 + x1 * x1 + x2 * x2) + low_pass * (n0 + n1) + low_pass * low_pass;
+  return c;
 }
 
 // Converts a pixel extent to a tile rectangle clamped to the grid, computed in floating point
@@ -165,8 +179,8 @@ inline bool ProjectGaussian(const CameraParams<Real>& cam, const Real* mean, con
   Real R[9];
   QuatToRotation(quat, R);
   const Real s[3] = {exp(log_scale[0]), exp(log_scale[1]), exp(log_scale[2])};
-  Real Sigma[6];
-  Covariance3D(R, s, Sigma);
+  Real M[9];
+  ScaledRotation(R, s, M);
 
   // EWA: J (2x3) of the perspective projection at the (clamped) camera-space mean.
   const Real inv_z = Real(1) / pz;
@@ -183,9 +197,8 @@ inline bool ProjectGaussian(const CameraParams<Real>& cam, const Real* mean, con
   // T = J W (2x3), W = R_cam_from_world.
   const Real T0[3] = {j00 * Rcw[0] + j02 * Rcw[6], j00 * Rcw[1] + j02 * Rcw[7], j00 * Rcw[2] + j02 * Rcw[8]};
   const Real T1[3] = {j11 * Rcw[3] + j12 * Rcw[6], j11 * Rcw[4] + j12 * Rcw[7], j11 * Rcw[5] + j12 * Rcw[8]};
-  Real cov_xx, cov_xy, cov_yy;
-  ProjectCovariance(T0, T1, Sigma, Real(Limits::kLowPassPx), &cov_xx, &cov_xy, &cov_yy);
-  const Real det = cov_xx * cov_yy - cov_xy * cov_xy;
+  const Covariance2D<Real> cov = ProjectCovariance(T0, T1, M, Real(Limits::kLowPassPx));
+  const Real cov_xx = cov.cxx, cov_xy = cov.cxy, cov_yy = cov.cyy, det = cov.det;
   if (!(det > Real(0)) || !std::isfinite(det)) return false;
   const Real inv_det = Real(1) / det;
 
@@ -195,6 +208,7 @@ inline bool ProjectGaussian(const CameraParams<Real>& cam, const Real* mean, con
   sp.conic[0] = cov_yy * inv_det;
   sp.conic[1] = -cov_xy * inv_det;
   sp.conic[2] = cov_xx * inv_det;
+  sp.det_conic = inv_det;
   sp.opacity = opacity;
   sp.depth = pz;
   if (!std::isfinite(sp.x) || !std::isfinite(sp.y)) return false;

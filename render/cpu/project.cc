@@ -82,7 +82,7 @@ void ProjectGaussians(ThreadPool& pool, const GaussianStore& store,
         b.bl = sp.rgb[2];
         b.depth = sp.depth;
         b.band = band;
-        b.det_conic = b.a * b.c - b.b * b.b;
+        b.det_conic = sp.det_conic;
         b.reach2 = band * band * b.det_conic;  // band^2 = d2 * cov_yy and cov_yy = a / det_conic
         b.b_over_a = b.b / b.a;
         b.inv_a = Real(1) / b.a;

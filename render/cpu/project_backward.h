@@ -4,7 +4,7 @@
 // gradient-check reference); straight-line, branch-free code so that a loop over Gaussians
 // calling it can vectorise.
 //
-// Chain: conic <- cov2D (+0.3 low-pass) <- T = J W <- Sigma = R S S^T R^T <- (quaternion, scale);
+// Chain: conic <- cov2D = P P^T (+0.3 low-pass) <- P = T M, T = J W, M = R S <- (quaternion, scale);
 // J (EWA Jacobian, with its frustum clamp) <- camera-space mean <- world mean; mean2D <- camera
 // mean; rgb <- SH basis(direction(mean - camera centre)) and SH coefficients.
 #pragma once
@@ -118,12 +118,7 @@ template <typename Real>
   R[6] = 2 * (qx * qz - qw * qy);     R[7] = 2 * (qy * qz + qw * qx);     R[8] = 1 - 2 * (qx * qx + qy * qy);
   const Real s[3] = {exp(log_scale[0]), exp(log_scale[1]), exp(log_scale[2])};
   Real M[9];
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c) M[r * 3 + c] = R[r * 3 + c] * s[c];
-  Real Sg[9];  // full symmetric Sigma
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c)
-      Sg[r * 3 + c] = M[r * 3 + 0] * M[c * 3 + 0] + M[r * 3 + 1] * M[c * 3 + 1] + M[r * 3 + 2] * M[c * 3 + 2];
+  projection::ScaledRotation(R, s, M);
 
   const Real inv_z = Real(1) / pz;
   const Real tan_half_x = Real(0.5) * Real(cam.width) / cam.fx;
@@ -141,15 +136,9 @@ template <typename Real>
   const Real j11 = cam.fy * inv_z, j12 = -cam.fy * uy_c * inv_z;
   const Real T0[3] = {j00 * W[0] + j02 * W[6], j00 * W[1] + j02 * W[7], j00 * W[2] + j02 * W[8]};
   const Real T1[3] = {j11 * W[3] + j12 * W[6], j11 * W[4] + j12 * W[7], j11 * W[5] + j12 * W[8]};
-  Real S0[3], S1[3];  // Sigma T0^T, Sigma T1^T
-  for (int r = 0; r < 3; ++r) {
-    S0[r] = Sg[r * 3 + 0] * T0[0] + Sg[r * 3 + 1] * T0[1] + Sg[r * 3 + 2] * T0[2];
-    S1[r] = Sg[r * 3 + 0] * T1[0] + Sg[r * 3 + 1] * T1[1] + Sg[r * 3 + 2] * T1[2];
-  }
-  const Real cxx = T0[0] * S0[0] + T0[1] * S0[1] + T0[2] * S0[2] + Real(projection::Limits::kLowPassPx);
-  const Real cxy = T0[0] * S1[0] + T0[1] * S1[1] + T0[2] * S1[2];
-  const Real cyy = T1[0] * S1[0] + T1[1] * S1[1] + T1[2] * S1[2] + Real(projection::Limits::kLowPassPx);
-  const Real det = cxx * cyy - cxy * cxy;
+  const projection::Covariance2D<Real> cov =
+      projection::ProjectCovariance(T0, T1, M, Real(projection::Limits::kLowPassPx));
+  const Real cxx = cov.cxx, cxy = cov.cxy, cyy = cov.cyy, det = cov.det;
   const Real inv_det = Real(1) / det;
 
   const Real mid = Real(0.5) * (cxx + cyy);
@@ -158,7 +147,8 @@ template <typename Real>
 
   // conic -> 2D covariance -> T, Sigma -> M -> R, s -> quaternion.
   Real dT0[3], dT1[3];
-  const projection::CovarianceChain<Real> chain{T0, T1, S0, S1, M, R, s, cxx, cxy, cyy, inv_det, qw, qx, qy, qz, qinv};
+  const projection::CovarianceChain<Real> chain{T0,  T1,  cov.p0, cov.p1, M,  s,  cxx, cxy, cyy,
+                                                inv_det, Real(projection::Limits::kLowPassPx), qw, qx, qy, qz, qinv};
   projection::CovarianceChainBackward(chain, g[kGa], g[kGb], g[kGc], dT0, dT1, out->quat, out->log_scale);
 
   // T = J W -> J entries.

@@ -198,12 +198,7 @@ void ProjectGaussianBackwardRef(const RefProjectParams<Real>& p, int col, const 
                      exp(std::clamp(gp.log_scale[1], Real(-30), Real(30))),
                      exp(std::clamp(gp.log_scale[2], Real(-30), Real(30)))};
   Real M[9];
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c) M[r * 3 + c] = R[r * 3 + c] * s[c];
-  Real Sg[9];
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c)
-      Sg[r * 3 + c] = M[r * 3 + 0] * M[c * 3 + 0] + M[r * 3 + 1] * M[c * 3 + 1] + M[r * 3 + 2] * M[c * 3 + 2];
+  projection::ScaledRotation(R, s, M);
 
   double dbeam_d = 0;
   p.model->BeamCoordinate(static_cast<double>(std::atan2(pz, rho)), &dbeam_d);  // the segment: fixed
@@ -217,19 +212,13 @@ void ProjectGaussianBackwardRef(const RefProjectParams<Real>& p, int col, const 
     T0[k] = J0[0] * W[k] + J0[1] * W[3 + k] + J0[2] * W[6 + k];
     T1[k] = J1[0] * W[k] + J1[1] * W[3 + k] + J1[2] * W[6 + k];
   }
-  Real S0[3], S1[3];  // Sigma T0^T, Sigma T1^T
-  for (int r = 0; r < 3; ++r) {
-    S0[r] = Sg[r * 3 + 0] * T0[0] + Sg[r * 3 + 1] * T0[1] + Sg[r * 3 + 2] * T0[2];
-    S1[r] = Sg[r * 3 + 0] * T1[0] + Sg[r * 3 + 1] * T1[1] + Sg[r * 3 + 2] * T1[2];
-  }
-  const Real cxx = T0[0] * S0[0] + T0[1] * S0[1] + T0[2] * S0[2] + Real(kLowPassPx);
-  const Real cxy = T0[0] * S1[0] + T0[1] * S1[1] + T0[2] * S1[2];
-  const Real cyy = T1[0] * S1[0] + T1[1] * S1[1] + T1[2] * S1[2] + Real(kLowPassPx);
-  const Real inv_det = Real(1) / (cxx * cyy - cxy * cxy);
+  const projection::Covariance2D<Real> cov = projection::ProjectCovariance(T0, T1, M, Real(kLowPassPx));
+  const Real cxx = cov.cxx, cxy = cov.cxy, cyy = cov.cyy;
+  const Real inv_det = Real(1) / cov.det;
 
-  // ---- conic -> 2D covariance -> T, Sigma -> M = R diag(s) -> quaternion, scales ----
+  // ---- conic -> 2D covariance -> P = T M -> T, M = R diag(s) -> quaternion, scales ----
   Real dT0[3], dT1[3], ds_times_s[3];
-  const projection::CovarianceChain<Real> chain{T0, T1, S0, S1, M, R, s, cxx, cxy, cyy, inv_det, qw, qx, qy, qz, qinv};
+  const projection::CovarianceChain<Real> chain{T0, T1, cov.p0, cov.p1, M, s, cxx, cxy, cyy, inv_det, Real(kLowPassPx), qw, qx, qy, qz, qinv};
   projection::CovarianceChainBackward(chain, g[kGa], g[kGb], g[kGc], dT0, dT1, d_quat, ds_times_s);
   for (int c = 0; c < 3; ++c) {
     const bool free = gp.log_scale[c] > Real(-30) && gp.log_scale[c] < Real(30);  // the forward's clamp

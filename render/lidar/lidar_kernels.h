@@ -30,6 +30,7 @@ struct LidarSplatT {
   Real range;     // |mean| in the sensor frame of the Gaussian's pose column, metres
   Real refl;
   Real op_w, op_h;  // opacity box half extents (px): outside it opacity * G < 1/255
+  Real det_conic;   // a c - b^2 = 1 / det(cov), from the covariance (from the conic it cancels for needles)
 };
 using LidarSplat = LidarSplatT<float>;
 

@@ -96,8 +96,8 @@ inline bool ProjectGaussianRef(const RefProjectParams<Real>& p, int col, const G
   const Real sc[3] = {exp(std::clamp(g.log_scale[0], Real(-30), Real(30))),
                       exp(std::clamp(g.log_scale[1], Real(-30), Real(30))),
                       exp(std::clamp(g.log_scale[2], Real(-30), Real(30)))};
-  Real Sg[6];
-  projection::Covariance3D(R, sc, Sg);
+  Real M[9];
+  projection::ScaledRotation(R, sc, M);
 
   // u = (pi - atan2(y, x)) W / 2pi - 0.5:  du/dp = W/2pi (y, -x, 0) / rho^2
   // v = beam(atan2(z, rho)):              dv/dp = beam'(el) (-x z / rho, -y z / rho, rho) / r^2
@@ -113,9 +113,8 @@ inline bool ProjectGaussianRef(const RefProjectParams<Real>& p, int col, const G
     T0[k] = J0[0] * Rlw[k] + J0[1] * Rlw[3 + k] + J0[2] * Rlw[6 + k];
     T1[k] = J1[0] * Rlw[k] + J1[1] * Rlw[3 + k] + J1[2] * Rlw[6 + k];
   }
-  Real cxx, cxy, cyy;
-  projection::ProjectCovariance(T0, T1, Sg, Real(kLowPassPx), &cxx, &cxy, &cyy);
-  const Real det = cxx * cyy - cxy * cxy;
+  const projection::Covariance2D<Real> cov = projection::ProjectCovariance(T0, T1, M, Real(kLowPassPx));
+  const Real cxx = cov.cxx, cxy = cov.cxy, cyy = cov.cyy, det = cov.det;
   if (!(det > Real(0)) || !std::isfinite(det)) return false;
   const Real inv_det = Real(1) / det;
 
@@ -124,6 +123,7 @@ inline bool ProjectGaussianRef(const RefProjectParams<Real>& p, int col, const G
   sp->a = cyy * inv_det;
   sp->b = -cxy * inv_det;
   sp->c = cxx * inv_det;
+  sp->det_conic = inv_det;
   sp->opacity = opacity;
   sp->range = range;
   sp->refl = g.refl;

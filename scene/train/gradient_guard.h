@@ -1,8 +1,9 @@
 #pragma once
-// A degenerate splat (e.g. a Gaussian kilometres across, which a field's Δscale can produce) can
-// overflow float in the projection backward even though its forward was finite. One such Gaussian
-// must not end a long run: its gradient row is dropped for the step. Many of them mean the run has
-// diverged, which is an error, not something to paper over.
+// A Gaussian whose render gradient is not finite must not end a long run: its gradient row is
+// dropped for the step. Many of them mean the run has diverged, which is an error, not something
+// to paper over. (What first produced such rows, the projection backward of a Gaussian kilometres
+// across, which a field's Δscale can make, is fixed at its cause: render/common/projection_math.h
+// ProjectCovariance. The guard stays as the net for anything else.)
 #include <cstddef>
 #include <cstdint>
 

@@ -101,7 +101,7 @@ void main() {
 
   vec4 s0 = vec4(0.0), s1 = vec4(0.0), s2 = vec4(0.0);
   if (ok) {
-    // Sigma = R S S^T R^T (projection_math.h: QuatToRotation, Covariance3D).
+    // M = R diag(s) (projection_math.h: QuatToRotation, ScaledRotation).
     const float inv = 1.0 / sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w);
     const float w = q.x * inv, x = q.y * inv, y = q.z * inv, z = q.w * inv;
     float Rq[9];
@@ -113,13 +113,6 @@ void main() {
     float M[9];
     for (int r = 0; r < 3; ++r)
       for (int k = 0; k < 3; ++k) M[r * 3 + k] = Rq[r * 3 + k] * s[k];
-    float Sg[6];
-    Sg[0] = M[0] * M[0] + M[1] * M[1] + M[2] * M[2];
-    Sg[1] = M[0] * M[3] + M[1] * M[4] + M[2] * M[5];
-    Sg[2] = M[0] * M[6] + M[1] * M[7] + M[2] * M[8];
-    Sg[3] = M[3] * M[3] + M[4] * M[4] + M[5] * M[5];
-    Sg[4] = M[3] * M[6] + M[4] * M[7] + M[5] * M[8];
-    Sg[5] = M[6] * M[6] + M[7] * M[7] + M[8] * M[8];
 
     // Spherical projection and its Jacobian at the sensor-frame mean:
     //   u = (pi - atan2(y, x)) W / 2pi - 0.5:  du/dp = W/2pi (y, -x, 0) / rho^2
@@ -145,17 +138,21 @@ void main() {
       T0[c] = J0[0] * R[c] + J0[1] * R[3 + c] + J0[2] * R[6 + c];
       T1[c] = J1[0] * R[c] + J1[1] * R[3 + c] + J1[2] * R[6 + c];
     }
-    float S0[3], S1[3];
-    S0[0] = Sg[0] * T0[0] + Sg[1] * T0[1] + Sg[2] * T0[2];
-    S0[1] = Sg[1] * T0[0] + Sg[3] * T0[1] + Sg[4] * T0[2];
-    S0[2] = Sg[2] * T0[0] + Sg[4] * T0[1] + Sg[5] * T0[2];
-    S1[0] = Sg[0] * T1[0] + Sg[1] * T1[1] + Sg[2] * T1[2];
-    S1[1] = Sg[1] * T1[0] + Sg[3] * T1[1] + Sg[4] * T1[2];
-    S1[2] = Sg[2] * T1[0] + Sg[4] * T1[1] + Sg[5] * T1[2];
-    const float cxx = T0[0] * S0[0] + T0[1] * S0[1] + T0[2] * S0[2] + 0.3;
-    const float cxy = T0[0] * S1[0] + T0[1] * S1[1] + T0[2] * S1[2];
-    const float cyy = T1[0] * S1[0] + T1[1] * S1[1] + T1[2] * S1[2] + 0.3;
-    const float det = cxx * cyy - cxy * cxy;
+    // ProjectCovariance: cov = P P^T + 0.3 I with P = T M, det by Lagrange's identity.
+    float p0[3], p1[3];
+    for (int c = 0; c < 3; ++c) {
+      p0[c] = T0[0] * M[c] + T0[1] * M[3 + c] + T0[2] * M[6 + c];
+      p1[c] = T1[0] * M[c] + T1[1] * M[3 + c] + T1[2] * M[6 + c];
+    }
+    const float n0 = p0[0] * p0[0] + p0[1] * p0[1] + p0[2] * p0[2];
+    const float n1 = p1[0] * p1[0] + p1[1] * p1[1] + p1[2] * p1[2];
+    const float q0 = p0[1] * p1[2] - p0[2] * p1[1];
+    const float q1 = p0[2] * p1[0] - p0[0] * p1[2];
+    const float q2 = p0[0] * p1[1] - p0[1] * p1[0];
+    const float cxx = n0 + 0.3;
+    const float cxy = p0[0] * p1[0] + p0[1] * p1[1] + p0[2] * p1[2];
+    const float cyy = n1 + 0.3;
+    const float det = (q0 * q0 + q1 * q1 + q2 * q2) + 0.3 * (n0 + n1) + 0.3 * 0.3;
     ok = det > 0.0 && finite(det);
     const float inv_det = 1.0 / det;
 

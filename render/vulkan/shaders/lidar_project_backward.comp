@@ -2,7 +2,7 @@
 // Mirrors render/lidar/lidar_backward.cc (ProjectGaussianBackwardRef) in float, recomputing the
 // forward as lidar_project.comp does (the pose table entry it used, read from its splat record;
 // the same beam segment search and atan2), formulas in
-// docs/lidar.md "Backward pass": conic <- 2D covariance (+0.3) <- T = J W <- Sigma = R S S^T R^T
+// docs/lidar.md "Backward pass": conic <- 2D covariance P P^T (+0.3) <- P = T M, T = J W, M = R S
 // <- (quaternion, log-scale); J (the spherical Jacobian, its beam segment fixed), u, v and the
 // range <- sensor-frame mean <- mean. The pose column is a constant (not differentiated).
 #version 460
@@ -75,10 +75,6 @@ void main() {
   float M[9];
   for (int r = 0; r < 3; ++r)
     for (int k = 0; k < 3; ++k) M[r * 3 + k] = Rq[r * 3 + k] * s[k];
-  float Sg[9];
-  for (int r = 0; r < 3; ++r)
-    for (int k = 0; k < 3; ++k)
-      Sg[r * 3 + k] = M[r * 3] * M[k * 3] + M[r * 3 + 1] * M[k * 3 + 1] + M[r * 3 + 2] * M[k * 3 + 2];
 
   // The beam segment of the mean's elevation (lidar_project.comp's search), its slope fixed.
   const float el = LidarAtan2(pz, rho);
@@ -98,45 +94,43 @@ void main() {
     T0[c] = J0.x * W[c] + J0.y * W[3 + c] + J0.z * W[6 + c];
     T1[c] = J1.x * W[c] + J1.y * W[3 + c] + J1.z * W[6 + c];
   }
-  vec3 S0, S1;
-  for (int r = 0; r < 3; ++r) {
-    S0[r] = Sg[r * 3] * T0.x + Sg[r * 3 + 1] * T0.y + Sg[r * 3 + 2] * T0.z;
-    S1[r] = Sg[r * 3] * T1.x + Sg[r * 3 + 1] * T1.y + Sg[r * 3 + 2] * T1.z;
+  // ProjectCovariance: cov = P P^T + 0.3 I, P = T M, det by Lagrange's identity.
+  vec3 p0, p1;
+  for (int c = 0; c < 3; ++c) {
+    p0[c] = T0.x * M[c] + T0.y * M[3 + c] + T0.z * M[6 + c];
+    p1[c] = T1.x * M[c] + T1.y * M[3 + c] + T1.z * M[6 + c];
   }
-  const float cxx = dot(T0, S0) + 0.3;
-  const float cxy = dot(T0, S1);
-  const float cyy = dot(T1, S1) + 0.3;
-  const float inv_det = 1.0 / (cxx * cyy - cxy * cxy);
-  const float inv_det2 = inv_det * inv_det;
+  const vec3 q3 = cross(p0, p1);
+  const float cxx = dot(p0, p0) + 0.3;
+  const float cxy = dot(p0, p1);
+  const float cyy = dot(p1, p1) + 0.3;
+  const float inv_det = 1.0 / (dot(q3, q3) + 0.3 * (dot(p0, p0) + dot(p1, p1)) + 0.3 * 0.3);
 
-  // conic (a, b, c) = (cyy, -cxy, cxx) / det -> 2D covariance.
-  const float d_cxx = -g_a * cyy * cyy * inv_det2 + g_b * cxy * cyy * inv_det2 +
-                      g_c * (inv_det - cxx * cyy * inv_det2);
-  const float d_cyy = g_a * (inv_det - cxx * cyy * inv_det2) + g_b * cxy * cxx * inv_det2 -
-                      g_c * cxx * cxx * inv_det2;
-  const float d_cxy = g_a * 2.0 * cxy * cyy * inv_det2 +
-                      g_b * (-inv_det - 2.0 * cxy * cxy * inv_det2) + g_c * 2.0 * cxy * cxx * inv_det2;
-  // cov = T Sigma T^T -> T, Sigma; Sigma = M M^T, M = R diag(s).
-  const vec3 dT0 = 2.0 * d_cxx * S0 + d_cxy * S1;
-  const vec3 dT1 = 2.0 * d_cyy * S1 + d_cxy * S0;
-  float dSig[9];
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c)
-      dSig[r * 3 + c] = d_cxx * T0[r] * T0[c] + d_cxy * T0[r] * T1[c] + d_cyy * T1[r] * T1[c];
+  // CovarianceChainBackward (render/common/projection_backward_math.h): dL/dP = -2 C G W with
+  // W = C P = adj(cov) P / det through the cross products (no cancellation for needle splats),
+  // and d/d log s_k = -2 w_k^T G w_k directly.
+  const float ca = cyy * inv_det, cb = -cxy * inv_det, cc = cxx * inv_det;
+  const vec3 w0 = (cross(p1, q3) + 0.3 * p0) * inv_det;
+  const vec3 w1 = (cross(q3, p0) + 0.3 * p1) * inv_det;
+  const vec3 gw0 = g_a * w0 + 0.5 * g_b * w1;
+  const vec3 gw1 = 0.5 * g_b * w0 + g_c * w1;
+  const vec3 dP0 = -2.0 * (ca * gw0 + cb * gw1);
+  const vec3 dP1 = -2.0 * (cb * gw0 + cc * gw1);
+  const vec3 ds_times_s = -2.0 * (w0 * gw0 + w1 * gw1);
+  vec3 dT0, dT1;
+  for (int r = 0; r < 3; ++r) {
+    dT0[r] = M[r * 3] * dP0.x + M[r * 3 + 1] * dP0.y + M[r * 3 + 2] * dP0.z;
+    dT1[r] = M[r * 3] * dP1.x + M[r * 3 + 1] * dP1.y + M[r * 3 + 2] * dP1.z;
+  }
   float dM[9];
   for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c) {
-      float acc = 0.0;
-      for (int m = 0; m < 3; ++m) acc += (dSig[r * 3 + m] + dSig[m * 3 + r]) * M[m * 3 + c];
-      dM[r * 3 + c] = acc;
-    }
+    for (int c = 0; c < 3; ++c) dM[r * 3 + c] = T0[r] * dP0[c] + T1[r] * dP1[c];
   float dR[9];
   for (int r = 0; r < 3; ++r)
     for (int c = 0; c < 3; ++c) dR[r * 3 + c] = dM[r * 3 + c] * s[c];
   vec3 d_log_scale;
   for (int c = 0; c < 3; ++c) {
-    const float ds = dM[c] * Rq[c] + dM[3 + c] * Rq[3 + c] + dM[6 + c] * Rq[6 + c];
-    d_log_scale[c] = (ls[c] > -30.0 && ls[c] < 30.0) ? ds * s[c] : 0.0;  // the forward's clamp
+    d_log_scale[c] = (ls[c] > -30.0 && ls[c] < 30.0) ? ds_times_s[c] : 0.0;  // the forward's clamp
   }
   vec4 dqn;
   dqn.x = 2.0 * (-qz * dR[1] + qy * dR[2] + qz * dR[3] - qx * dR[5] - qy * dR[6] + qx * dR[7]);

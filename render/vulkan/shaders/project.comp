@@ -109,13 +109,6 @@ bool Project(uint i, out vec4 s0, out vec4 s1, out vec4 s2, out ivec4 rect) {
   float M[9];
   for (int r = 0; r < 3; ++r)
     for (int k = 0; k < 3; ++k) M[r * 3 + k] = Rq[r * 3 + k] * s[k];
-  float Sg[6];
-  Sg[0] = M[0] * M[0] + M[1] * M[1] + M[2] * M[2];
-  Sg[1] = M[0] * M[3] + M[1] * M[4] + M[2] * M[5];
-  Sg[2] = M[0] * M[6] + M[1] * M[7] + M[2] * M[8];
-  Sg[3] = M[3] * M[3] + M[4] * M[4] + M[5] * M[5];
-  Sg[4] = M[3] * M[6] + M[4] * M[7] + M[5] * M[8];
-  Sg[5] = M[6] * M[6] + M[7] * M[7] + M[8] * M[8];
 
   const float inv_z = 1.0 / pz;
   const float tan_half_x = 0.5 * float(cam.width) / cam.fx;
@@ -132,17 +125,22 @@ bool Project(uint i, out vec4 s0, out vec4 s1, out vec4 s2, out ivec4 rect) {
                                j00 * cam.R[2] + j02 * cam.R[8]);
   const float T1[3] = float[3](j11 * cam.R[3] + j12 * cam.R[6], j11 * cam.R[4] + j12 * cam.R[7],
                                j11 * cam.R[5] + j12 * cam.R[8]);
-  float S0[3], S1[3];
-  S0[0] = Sg[0] * T0[0] + Sg[1] * T0[1] + Sg[2] * T0[2];
-  S0[1] = Sg[1] * T0[0] + Sg[3] * T0[1] + Sg[4] * T0[2];
-  S0[2] = Sg[2] * T0[0] + Sg[4] * T0[1] + Sg[5] * T0[2];
-  S1[0] = Sg[0] * T1[0] + Sg[1] * T1[1] + Sg[2] * T1[2];
-  S1[1] = Sg[1] * T1[0] + Sg[3] * T1[1] + Sg[4] * T1[2];
-  S1[2] = Sg[2] * T1[0] + Sg[4] * T1[1] + Sg[5] * T1[2];
-  const float cov_xx = T0[0] * S0[0] + T0[1] * S0[1] + T0[2] * S0[2] + 0.3;
-  const float cov_xy = T0[0] * S1[0] + T0[1] * S1[1] + T0[2] * S1[2];
-  const float cov_yy = T1[0] * S1[0] + T1[1] * S1[1] + T1[2] * S1[2] + 0.3;
-  const float det = cov_xx * cov_yy - cov_xy * cov_xy;
+  // ProjectCovariance: cov = P P^T + 0.3 I with P = T M, and its determinant through Lagrange's
+  // identity (no cancellation for needle splats).
+  float p0[3], p1[3];
+  for (int k = 0; k < 3; ++k) {
+    p0[k] = T0[0] * M[k] + T0[1] * M[3 + k] + T0[2] * M[6 + k];
+    p1[k] = T1[0] * M[k] + T1[1] * M[3 + k] + T1[2] * M[6 + k];
+  }
+  const float n0 = p0[0] * p0[0] + p0[1] * p0[1] + p0[2] * p0[2];
+  const float n1 = p1[0] * p1[0] + p1[1] * p1[1] + p1[2] * p1[2];
+  const float x0 = p0[1] * p1[2] - p0[2] * p1[1];
+  const float x1 = p0[2] * p1[0] - p0[0] * p1[2];
+  const float x2 = p0[0] * p1[1] - p0[1] * p1[0];
+  const float cov_xx = n0 + 0.3;
+  const float cov_xy = p0[0] * p1[0] + p0[1] * p1[1] + p0[2] * p1[2];
+  const float cov_yy = n1 + 0.3;
+  const float det = (x0 * x0 + x1 * x1 + x2 * x2) + 0.3 * (n0 + n1) + 0.3 * 0.3;
   if (!(det > 0.0) || !finite(det)) return false;
   const float inv_det = 1.0 / det;
 

@@ -1,7 +1,7 @@
 // Projection backward: one thread per visible Gaussian (depth rank j < V), dL/d(splat) ->
 // dL/d(raw parameters). Mirrors render/cpu/project_backward.h (ProjectGaussianBackward) operation
 // for operation in float, recomputing the forward (project.comp) rather than storing it:
-// conic <- cov2D (+0.3 low-pass) <- T = J W <- Sigma = R S S^T R^T <- (quaternion, scale);
+// conic <- cov2D = P P^T (+0.3 low-pass) <- P = T M, T = J W, M = R S <- (quaternion, scale);
 // J (EWA Jacobian with its frustum clamp) and the screen position <- camera-space mean <- mean;
 // rgb <- SH basis(direction(mean - camera centre)) and the SH coefficients.
 #version 460
@@ -97,10 +97,6 @@ void main() {
   float M[9];
   for (int r = 0; r < 3; ++r)
     for (int k = 0; k < 3; ++k) M[r * 3 + k] = Rq[r * 3 + k] * s[k];
-  float Sg[9];
-  for (int r = 0; r < 3; ++r)
-    for (int k = 0; k < 3; ++k)
-      Sg[r * 3 + k] = M[r * 3] * M[k * 3] + M[r * 3 + 1] * M[k * 3 + 1] + M[r * 3 + 2] * M[k * 3 + 2];
 
   const float inv_z = 1.0 / pz;
   const float tan_half_x = 0.5 * float(cam.width) / cam.fx;
@@ -118,48 +114,45 @@ void main() {
   const float j11 = cam.fy * inv_z, j12 = -cam.fy * uy_c * inv_z;
   const vec3 T0 = vec3(j00 * W[0] + j02 * W[6], j00 * W[1] + j02 * W[7], j00 * W[2] + j02 * W[8]);
   const vec3 T1 = vec3(j11 * W[3] + j12 * W[6], j11 * W[4] + j12 * W[7], j11 * W[5] + j12 * W[8]);
-  vec3 S0, S1;
-  for (int r = 0; r < 3; ++r) {
-    S0[r] = Sg[r * 3] * T0.x + Sg[r * 3 + 1] * T0.y + Sg[r * 3 + 2] * T0.z;
-    S1[r] = Sg[r * 3] * T1.x + Sg[r * 3 + 1] * T1.y + Sg[r * 3 + 2] * T1.z;
+  // ProjectCovariance (project.comp): cov = P P^T + 0.3 I, P = T M, det by Lagrange's identity.
+  vec3 p0, p1;
+  for (int k = 0; k < 3; ++k) {
+    p0[k] = T0.x * M[k] + T0.y * M[3 + k] + T0.z * M[6 + k];
+    p1[k] = T1.x * M[k] + T1.y * M[3 + k] + T1.z * M[6 + k];
   }
-  const float cxx = dot(T0, S0) + 0.3;
-  const float cxy = dot(T0, S1);
-  const float cyy = dot(T1, S1) + 0.3;
-  const float det = cxx * cyy - cxy * cxy;
+  const float n0 = dot(p0, p0), n1 = dot(p1, p1);
+  const vec3 q3 = cross(p0, p1);
+  const float cxx = n0 + 0.3;
+  const float cxy = dot(p0, p1);
+  const float cyy = n1 + 0.3;
+  const float det = dot(q3, q3) + 0.3 * (n0 + n1) + 0.3 * 0.3;
   const float inv_det = 1.0 / det;
-  const float inv_det2 = inv_det * inv_det;
   const float mid = 0.5 * (cxx + cyy);
   const float lambda_max = mid + sqrt(smax(0.1, mid * mid - det));
   const float radius = ceil(3.0 * sqrt(lambda_max));
 
-  // conic (a, b, c) = (cyy, -cxy, cxx) / det.
-  const float d_cxx = -g_a * cyy * cyy * inv_det2 + g_b * cxy * cyy * inv_det2 +
-                      g_c * (inv_det - cxx * cyy * inv_det2);
-  const float d_cyy = g_a * (inv_det - cxx * cyy * inv_det2) + g_b * cxy * cxx * inv_det2 -
-                      g_c * cxx * cxx * inv_det2;
-  const float d_cxy = g_a * 2.0 * cxy * cyy * inv_det2 +
-                      g_b * (-inv_det - 2.0 * cxy * cxy * inv_det2) + g_c * 2.0 * cxy * cxx * inv_det2;
-  const vec3 dT0 = 2.0 * d_cxx * S0 + d_cxy * S1;
-  const vec3 dT1 = 2.0 * d_cyy * S1 + d_cxy * S0;
-  float dSig[9];
-  for (int r = 0; r < 3; ++r)
-    for (int k = 0; k < 3; ++k)
-      dSig[r * 3 + k] = d_cxx * T0[r] * T0[k] + d_cxy * T0[r] * T1[k] + d_cyy * T1[r] * T1[k];
+  // CovarianceChainBackward (render/common/projection_backward_math.h): dL/dP = -2 C G W with
+  // W = C P = adj(cov) P / det through the cross products (no cancellation for needle splats),
+  // and d/d log s_k = -2 w_k^T G w_k directly.
+  const float ca = cyy * inv_det, cb = -cxy * inv_det, cc = cxx * inv_det;
+  const vec3 w0 = (cross(p1, q3) + 0.3 * p0) * inv_det;
+  const vec3 w1 = (cross(q3, p0) + 0.3 * p1) * inv_det;
+  const vec3 gw0 = g_a * w0 + 0.5 * g_b * w1;
+  const vec3 gw1 = 0.5 * g_b * w0 + g_c * w1;
+  const vec3 dP0 = -2.0 * (ca * gw0 + cb * gw1);
+  const vec3 dP1 = -2.0 * (cb * gw0 + cc * gw1);
+  const vec3 d_log_scale = -2.0 * (w0 * gw0 + w1 * gw1);
+  vec3 dT0, dT1;
+  for (int r = 0; r < 3; ++r) {
+    dT0[r] = M[r * 3] * dP0.x + M[r * 3 + 1] * dP0.y + M[r * 3 + 2] * dP0.z;
+    dT1[r] = M[r * 3] * dP1.x + M[r * 3 + 1] * dP1.y + M[r * 3 + 2] * dP1.z;
+  }
   float dM[9];
   for (int r = 0; r < 3; ++r)
-    for (int k = 0; k < 3; ++k) {
-      float acc = 0.0;
-      for (int m = 0; m < 3; ++m) acc += (dSig[r * 3 + m] + dSig[m * 3 + r]) * M[m * 3 + k];
-      dM[r * 3 + k] = acc;
-    }
+    for (int k = 0; k < 3; ++k) dM[r * 3 + k] = T0[r] * dP0[k] + T1[r] * dP1[k];
   float dR[9];
   for (int r = 0; r < 3; ++r)
     for (int k = 0; k < 3; ++k) dR[r * 3 + k] = dM[r * 3 + k] * s[k];
-  vec3 d_log_scale;
-  for (int k = 0; k < 3; ++k) {
-    d_log_scale[k] = (dM[k] * Rq[k] + dM[3 + k] * Rq[3 + k] + dM[6 + k] * Rq[6 + k]) * s[k];
-  }
   vec4 dqn;
   dqn.x = 2.0 * (-qz * dR[1] + qy * dR[2] + qz * dR[3] - qx * dR[5] - qy * dR[6] + qx * dR[7]);
   dqn.y = 2.0 * (qy * dR[1] + qz * dR[2] + qy * dR[3] - 2.0 * qx * dR[4] - qw * dR[5] + qz * dR[6] +
