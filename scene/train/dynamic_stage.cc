@@ -15,6 +15,7 @@
 #include "scene/field/field_regularizers.h"
 #include "scene/field/spatial_order.h"
 #include "scene/field/vulkan/vulkan_deformed_scene.h"
+#include "scene/train/gradient_guard.h"
 
 namespace streetsim::train {
 
@@ -36,9 +37,15 @@ field::RegularizerWeights PlaneRegularizerWeights(const field::FieldHyper& hyper
 // The base field's plane regularizers (their gradient added into d_field) and its Adam step on the
 // host, as both the S3Gaussian and the extended stage take them; returns the regularizers'
 // weighted loss.
-double RegularizeAndStepBaseField(const field::FieldHyper& hyper, int64_t fine_iteration, double extent,
-                                  ThreadPool& pool, field::DeformationField& base, std::vector<float>& d_field,
-                                  field::FieldAdamState* adam, FineStageTimings* timings) {
+absl::StatusOr<double> RegularizeAndStepBaseField(const field::FieldHyper& hyper, int64_t fine_iteration,
+                                                  double extent, ThreadPool& pool, field::DeformationField& base,
+                                                  std::vector<float>& d_field, field::FieldAdamState* adam,
+                                                  FineStageTimings* timings) {
+  if (absl::Status s = CheckFiniteNetworkGradient(fine_iteration, "deformation field", d_field.data(),
+                                                  d_field.size(), pool);
+      !s.ok()) {
+    return s;
+  }
   const field::RegularizerWeights w = PlaneRegularizerWeights(hyper);
   auto t0 = Clock::now();
   const field::RegularizerLosses reg =
@@ -320,14 +327,15 @@ absl::StatusOr<double> DynamicStage::Backward(const TrainState& st, int active_d
           : field::DeformBackward(field_, c, deformed_, active_degree, hyper_, pool, *ws_, grads, &d_field_);
   if (!dl.ok()) return dl.status();
   timings_.backward_ms += MsSince(t0);
-  const double reg =
+  const absl::StatusOr<double> reg =
       RegularizeAndStepBaseField(hyper_, fine_iteration, st.extent, pool, field_, d_field_, &adam_, &timings_);
+  if (!reg.ok()) return reg.status();
   if (vk_) {
     t0 = Clock::now();
     if (absl::Status s = vk_->UpdateParams(field_.params()); !s.ok()) return s;
     timings_.upload_ms += MsSince(t0);
   }
-  return dl->weighted + reg;
+  return dl->weighted + *reg;
 }
 
 absl::StatusOr<double> DynamicStage::BackwardOnDevice(const TrainState& st, int active_degree,
@@ -517,7 +525,13 @@ absl::StatusOr<double> DynamicStage::BackwardExtended(const TrainState& st, int 
                                &d_ext_, ext_eval_);
   if (!dl.ok()) return dl.status();
   timings_.backward_ms += MsSince(t0);
-  const double reg = RegularizeAndStepBaseField(hyper_, fine_iteration, st.extent, pool, base, d_field_, &adam_, &timings_);
+  if (absl::Status s = CheckFiniteNetworkGradient(fine_iteration, "field extension", d_ext_.data(), d_ext_.size(), pool);
+      !s.ok()) {
+    return s;
+  }
+  const absl::StatusOr<double> reg =
+      RegularizeAndStepBaseField(hyper_, fine_iteration, st.extent, pool, base, d_field_, &adam_, &timings_);
+  if (!reg.ok()) return reg.status();
   t0 = Clock::now();
   field::ExtAdamStep(ext_->mutable_params().data(), d_ext_.data(), d_ext_.size(), &ext_adam_,
                      field::ExtNetworkLr(ext_hyper_, fine_iteration));
@@ -527,7 +541,7 @@ absl::StatusOr<double> DynamicStage::BackwardExtended(const TrainState& st, int 
     if (absl::Status s = vk_ext_->UpdateParams(base.params(), ext_->params()); !s.ok()) return s;
     timings_.upload_ms += MsSince(t0);
   }
-  return dl->weighted + reg;
+  return dl->weighted + *reg;
 }
 
 }  // namespace streetsim::train

@@ -89,4 +89,22 @@ absl::Status GuardGradients(int64_t iteration, size_t n, double max_fraction, Ga
   return absl::OkStatus();
 }
 
+absl::Status CheckFiniteNetworkGradient(int64_t iteration, const char* what, const float* grad, size_t n,
+                                        ThreadPool& pool) {
+  std::atomic<int64_t> first{INT64_MAX};
+  pool.ParallelFor(static_cast<int64_t>(n), 1 << 18, [&](int64_t b, int64_t e, int) {
+    if (!AnyNonFinite(grad + b, static_cast<size_t>(e - b))) return;
+    int64_t i = b;
+    while (i < e && std::isfinite(grad[i])) ++i;
+    int64_t cur = first.load();
+    while (i < cur && !first.compare_exchange_weak(cur, i)) {
+    }
+  });
+  if (first.load() == INT64_MAX) return absl::OkStatus();
+  return absl::InternalError(absl::StrCat("training diverged at fine iteration ", iteration, ": the ", what,
+                                          "'s gradient is not finite (first at parameter ", first.load(), " of ", n,
+                                          "); its parameters were not stepped: resume from the last checkpoint with "
+                                          "lower learning rates"));
+}
+
 }  // namespace streetsim::train

@@ -27,4 +27,12 @@ NonFiniteRows ZeroNonFiniteGradientRows(size_t n, GaussianGrads* grads, ThreadPo
 // otherwise (the first time, then every 100th iteration that drops rows).
 absl::Status GuardGradients(int64_t iteration, size_t n, double max_fraction, GaussianGrads* grads, ThreadPool& pool);
 
+// For a network's flat gradient (the deformation field's planes and MLP, the extension's
+// network): an error naming `what` and the iteration when any value is nan or inf, before its
+// Adam step would write that into every parameter. Unlike a Gaussian's row nothing can be dropped
+// here (every parameter is shared by all Gaussians), so the run stops with its parameters and last
+// checkpoint intact.
+absl::Status CheckFiniteNetworkGradient(int64_t iteration, const char* what, const float* grad, size_t n,
+                                        ThreadPool& pool);
+
 }  // namespace streetsim::train

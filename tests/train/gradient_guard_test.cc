@@ -86,5 +86,34 @@ TEST(GradientGuard, ManyNonFiniteRowsAreDivergence) {
   EXPECT_THAT(std::string(s.message()), ::testing::HasSubstr("diverged at iteration 42: 11 of 1000 Gaussians"));
 }
 
+// A network's gradient: finite passes untouched; one nan or inf anywhere (several chunks of the
+// parallel scan, the first of them reported) stops the run with the iteration and the index.
+TEST(GradientGuard, NonFiniteNetworkGradientIsAnError) {
+  ThreadPool pool(2);
+  std::vector<float> g(1'000'003);
+  std::mt19937 rng(11);
+  std::normal_distribution<float> d(0.0f, 1e30f);  // huge but finite
+  for (float& x : g) x = d(rng);
+  const std::vector<float> clean = g;
+  EXPECT_TRUE(CheckFiniteNetworkGradient(5, "deformation field", g.data(), g.size(), pool).ok());
+  EXPECT_EQ(g, clean);
+  g[999'999] = std::numeric_limits<float>::infinity();
+  g[700'001] = -std::numeric_limits<float>::infinity();
+  g[300'017] = std::nanf("");
+  const absl::Status s = CheckFiniteNetworkGradient(77, "field extension", g.data(), g.size(), pool);
+  EXPECT_EQ(s.code(), absl::StatusCode::kInternal);
+  EXPECT_THAT(std::string(s.message()),
+              ::testing::HasSubstr("diverged at fine iteration 77: the field extension's gradient is not finite "
+                                   "(first at parameter 300017 of 1000003)"));
+  g[300'017] = 0.0f;
+  g[700'001] = 0.0f;
+  EXPECT_THAT(std::string(CheckFiniteNetworkGradient(78, "x", g.data(), g.size(), pool).message()),
+              ::testing::HasSubstr("first at parameter 999999 "));
+  g[999'999] = 0.0f;
+  g.back() = std::nanf("");  // the tail chunk
+  EXPECT_FALSE(CheckFiniteNetworkGradient(79, "x", g.data(), g.size(), pool).ok());
+  EXPECT_TRUE(CheckFiniteNetworkGradient(80, "x", g.data(), 0, pool).ok());
+}
+
 }  // namespace
 }  // namespace streetsim::train
