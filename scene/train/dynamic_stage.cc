@@ -41,13 +41,15 @@ absl::StatusOr<double> RegularizeAndStepBaseField(const field::FieldHyper& hyper
                                                   double extent, ThreadPool& pool, field::DeformationField& base,
                                                   std::vector<float>& d_field, field::FieldAdamState* adam,
                                                   FineStageTimings* timings) {
+  auto t0 = Clock::now();
   if (absl::Status s = CheckFiniteNetworkGradient(fine_iteration, "deformation field", d_field.data(),
                                                   d_field.size(), pool);
       !s.ok()) {
     return s;
   }
+  timings->gradient_check_ms += MsSince(t0);
   const field::RegularizerWeights w = PlaneRegularizerWeights(hyper);
-  auto t0 = Clock::now();
+  t0 = Clock::now();
   const field::RegularizerLosses reg =
       field::PlaneRegularizers<float>(base.layout(), base.params().data(), w, d_field.data(), pool);
   timings->regularizers_ms += MsSince(t0);
@@ -257,8 +259,9 @@ std::string FineStageTimings::Summary() const {
   }
   return absl::StrFormat(
       "fine stage: %d iterations, ms per iteration: field forward %.1f, field backward %.1f, plane "
-      "regularisers %.1f, field Adam %.1f, parameter upload %.1f",
-      iterations, deform_ms / n, backward_ms / n, regularizers_ms / n, adam_ms / n, upload_ms / n);
+      "regularisers %.1f, gradient check %.1f, field Adam %.1f, parameter upload %.1f",
+      iterations, deform_ms / n, backward_ms / n, regularizers_ms / n, gradient_check_ms / n, adam_ms / n,
+      upload_ms / n);
 }
 
 std::string ExtendedCheckpointPath(const std::string& field_checkpoint_path) {
@@ -525,10 +528,12 @@ absl::StatusOr<double> DynamicStage::BackwardExtended(const TrainState& st, int 
                                &d_ext_, ext_eval_);
   if (!dl.ok()) return dl.status();
   timings_.backward_ms += MsSince(t0);
+  t0 = Clock::now();
   if (absl::Status s = CheckFiniteNetworkGradient(fine_iteration, "field extension", d_ext_.data(), d_ext_.size(), pool);
       !s.ok()) {
     return s;
   }
+  timings_.gradient_check_ms += MsSince(t0);
   const absl::StatusOr<double> reg =
       RegularizeAndStepBaseField(hyper_, fine_iteration, st.extent, pool, base, d_field_, &adam_, &timings_);
   if (!reg.ok()) return reg.status();

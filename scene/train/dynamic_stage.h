@@ -96,6 +96,7 @@ struct FineStageTimings {
   double backward_ms = 0;      // the field's backward, its gradients on the host
   double regularizers_ms = 0;  // plane TV / time smoothness / time-plane L1 (host)
   double adam_ms = 0;          // the field's Adam (host)
+  double gradient_check_ms = 0;  // the non-finite check of the networks' gradients before Adam (host)
   double upload_ms = 0;        // the stepped parameters back to the device (Vulkan field)
   // The optimiser on the device (FieldOptions::optimizer): regularizers_ms is 0 and adam_ms holds the
   // device's regularisers + Adam.

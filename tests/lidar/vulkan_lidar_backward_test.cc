@@ -20,6 +20,7 @@
 #include "render/lidar/lidar_renderer.h"
 #include "render/vulkan/lidar_renderer_vk.h"
 #include "scene/gaussians/synthetic_street.h"
+#include "tests/common/needle_splats.h"
 #include "tests/lidar/lidar_test_scenes.h"
 
 namespace streetsim {
@@ -172,12 +173,7 @@ TEST(VulkanLidarBackward, NeedleSplatsAgreeWithTheDoubleReference) {
   ThreadPool pool(2);
   Scene s = RandomScene(23, 300, false);
   std::mt19937 rng(23);
-  std::uniform_real_distribution<float> u(-1, 1);
-  for (size_t i = 0; i < s.store.size(); ++i) {
-    for (int k = 0; k < 3; ++k) {
-      s.store.log_scales[i * 3 + k] = k == static_cast<int>(i % 3) ? 7.5f + 2.5f * u(rng) : -4.0f + 2.0f * u(rng);
-    }
-  }
+  testing::MakeNeedles(7.5f, 2.5f, rng, &s.store);
   const std::vector<double> wr(s.w_range.begin(), s.w_range.end()), wa(s.w_alpha.begin(), s.w_alpha.end()),
       wi(s.w_intensity.begin(), s.w_intensity.end());
   const LidarUpstreamGradsT<double> up_d{wr.data(), wa.data(), wi.data()};

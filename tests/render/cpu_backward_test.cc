@@ -19,6 +19,7 @@
 #include "render/cpu/simd_dispatch.h"
 #include "scene/gaussians/synthetic_street.h"
 #include "tests/common/grad_check_scene.h"
+#include "tests/common/needle_splats.h"
 #include "tests/common/params_view.h"
 
 namespace streetsim {
@@ -188,13 +189,8 @@ TEST(CpuBackward, NeedleSplatsGiveFiniteGradients) {
   ThreadPool pool(2);
   gradcheck::Scene s = gradcheck::RandomScene(77, 4000, 3, 160, 96);
   std::mt19937 rng(77);
+  testing::MakeNeedles(8.0f, 4.0f, rng, &s.store);
   std::uniform_real_distribution<float> u(-1, 1);
-  for (size_t i = 0; i < s.store.size(); ++i) {
-    const int long_axis = static_cast<int>(i % 3);
-    for (int k = 0; k < 3; ++k) {
-      s.store.log_scales[i * 3 + k] = k == long_axis ? 8.0f + 4.0f * u(rng) : -4.0f + 2.0f * u(rng);
-    }
-  }
   const cpu::SceneSoa soa = cpu::SceneSoa::FromStore(s.store);
   const auto cam = cpu::MakeCameraParams<float>(s.cam);
   const cpu::Frame<float> f = Project(pool, soa, cam);

@@ -21,6 +21,7 @@
 #include "scene/gaussians/synthetic_street.h"
 #include "tests/common/finite_differences.h"
 #include "tests/common/grad_check_scene.h"
+#include "tests/common/needle_splats.h"
 
 namespace streetsim {
 namespace {
@@ -142,12 +143,7 @@ TEST_F(VulkanBackward, NeedleSplatsAgreeWithCpuDouble) {
   auto cpu_double = CreateCpuEngine({.precision = CpuPrecision::kDouble});
   Scene s = RandomScene(91, 240, 1, 96, 64);
   std::mt19937 rng(91);
-  std::uniform_real_distribution<float> u(-1, 1);
-  for (size_t i = 0; i < s.store.size(); ++i) {
-    for (int k = 0; k < 3; ++k) {
-      s.store.log_scales[i * 3 + k] = k == static_cast<int>(i % 3) ? 7.5f + 2.5f * u(rng) : -4.0f + 2.0f * u(rng);
-    }
-  }
+  testing::MakeNeedles(7.5f, 2.5f, rng, &s.store);
   auto cpu_simd = CreateCpuEngine();
   const GaussianGrads ref = Analytic(*cpu_double, s);
   const GaussianGrads simd = Analytic(*cpu_simd, s);
