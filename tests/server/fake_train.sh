@@ -1,7 +1,7 @@
 #!/bin/sh
 # Test double of `streetsim train --log LOG --out DIR --iterations N [--resume]` for the
 # training-job tests. Prints the trainer's progress lines on stderr, one per iteration, keeps a
-# "checkpoint" (DIR/checkpoint.bin = last iteration) and on --resume continues from it (noted in
+# "checkpoint" (DIR/checkpoint.bin = last iteration, replaced by rename) and on --resume continues from it (noted in
 # DIR/resumed). LOG/train_sleep_s: pause per iteration; LOG/train_fail: exit 5; LOG/preview.png:
 # copied to DIR/preview/ (as the trainer's held-out previews). Leaves
 # DIR/scene.ply (from init) as it is and writes DIR/trained.
@@ -31,7 +31,9 @@ while [ "$i" -lt "$n" ]; do
   echo "I1122 12:00:00.000 trainer.cc:1] a log line that is not progress" >&2
   printf '[####..........] %d/%d  loss %d.%04d  psnr %d.50 dB  4000 Gaussians  12.50 it/s  ETA 0:00:%02d\n' \
     "$i" "$n" 0 "$((1000 - i))" "$((20 + i))" "$((n - i))" >&2
-  echo "$i" > "$out/checkpoint.bin"
+  # Atomic like the real trainer's: a stop between truncate and write must not lose the count.
+  echo "$i" > "$out/checkpoint.bin.tmp"
+  mv "$out/checkpoint.bin.tmp" "$out/checkpoint.bin"
 done
 if [ -f "$log/preview.png" ]; then
   mkdir -p "$out/preview"; cp "$log/preview.png" "$out/preview/heldout_frame0001_cam0.png"
