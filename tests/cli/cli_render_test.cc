@@ -12,6 +12,7 @@
 
 #include "client/cli/camera_json.h"
 #include "gtest/gtest.h"
+#include "tests/common/scratch_dir.h"
 #include "render/cpu/cpu_engine.h"
 #include "scene/gaussians/ply_io.h"
 
@@ -29,8 +30,9 @@ struct ProcessResult {
 };
 
 ProcessResult Exec(const std::string& args) {
-  // Per process: ctest runs the tests of this file in parallel processes.
-  const std::string err = testing::TempDir() + "/cli_render_stderr_" + std::to_string(getpid()) + ".txt";
+  // Per process (ctest runs the tests of this file in parallel processes); removed at the end.
+  static const std::string io_dir = testing::ScratchDir("cli_render", "io");
+  const std::string err = io_dir + "/stderr.txt";
   const std::string cmd = kBinary + " " + args + " 2>" + err + " >/dev/null";
   const int status = std::system(cmd.c_str());
   std::ifstream f(err);
@@ -44,13 +46,10 @@ int Lines(const std::string& s) {
   return n;
 }
 
-class CliRender : public testing::Test {
+class CliRender : public ::testing::Test {
  protected:
   void SetUp() override {
-    dir_ = testing::TempDir() + "/cli_render_" +
-           testing::UnitTest::GetInstance()->current_test_info()->name();
-    fs::remove_all(dir_);
-    fs::create_directories(dir_);
+    dir_ = testing::ScratchDir("cli_render", ::testing::UnitTest::GetInstance()->current_test_info()->name());
     camera_ = dir_ + "/camera.json";
     const ProcessResult r = Exec("ply-info " + kPly + " --camera-out " + camera_ + " --width 320 --height 240");
     ASSERT_EQ(r.exit_code, 0) << r.stderr_text;

@@ -13,6 +13,7 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "gtest/gtest.h"
+#include "tests/common/scratch_dir.h"
 #include "scene/gaussians/ply_io.h"
 
 namespace streetsim {
@@ -27,9 +28,15 @@ struct Result {
   std::string err;
 };
 
+// This process's scratch directory (ctest runs the tests of this file in parallel processes);
+// removed when the tests end, pass or fail.
+const std::string& Scratch() {
+  static const std::string dir = testing::ScratchDir("cli_init", "run");
+  return dir;
+}
+
 Result Exec(const std::string& args) {
-  // Per process: ctest runs the tests of this file in parallel processes.
-  const std::string err = testing::TempDir() + "/cli_init_stderr." + std::to_string(getpid()) + ".txt";
+  const std::string err = Scratch() + "/stderr.txt";
   const int status = std::system((kBinary + " " + args + " >/dev/null 2>" + err).c_str());
   std::ifstream f(err);
   return {WIFEXITED(status) ? WEXITSTATUS(status) : -1,
@@ -46,8 +53,7 @@ double Psnr(const cv::Mat& a, const cv::Mat& b) {
 }
 
 TEST(CliInit, InitialSceneRendersLikeTheLoggedImage) {
-  const std::string dir = testing::TempDir() + "/cli_init_" + std::to_string(getpid());
-  std::filesystem::create_directories(dir);
+  const std::string dir = testing::ScratchDir("cli_init", "render");
   const std::string ply = dir + "/init.ply", cam = dir + "/cam20.json", png = dir + "/render20.png";
   Result r = Exec("init " + kRaw + " --out " + ply + " --frames 0:40 --voxel 0.1 --sky");
   ASSERT_EQ(r.exit_code, 0) << r.err;
@@ -66,13 +72,11 @@ TEST(CliInit, InitialSceneRendersLikeTheLoggedImage) {
   const double blank = Psnr(cv::Mat::zeros(image.size(), image.type()), image);
   std::printf("streetsim render of the init from logged camera 20: PSNR %.2f dB (black image %.2f dB)\n", psnr, blank);
   EXPECT_GT(psnr, blank + 4);
-  std::filesystem::remove_all(dir);  // kept only when an assertion above stopped the test
 }
 
 TEST(CliInit, SceneDirectoryGetsTheLogManifest) {
   // DIR/scene.ply -> DIR/scene.json with the rig, time range and trajectory the server serves.
-  const std::string dir = testing::TempDir() + "/cli_init_scene_" + std::to_string(getpid());
-  std::filesystem::create_directories(dir);
+  const std::string dir = testing::ScratchDir("cli_init", "scene");
   const Result r = Exec("init " + kRaw + " --out " + dir + "/scene.ply --frames 0:10 --voxel 0.3");
   ASSERT_EQ(r.exit_code, 0) << r.err;
   std::ifstream f(dir + "/scene.json");
@@ -83,19 +87,17 @@ TEST(CliInit, SceneDirectoryGetsTheLogManifest) {
   // Any other output name writes no manifest.
   ASSERT_EQ(Exec("init " + kRaw + " --out " + dir + "/other.ply --frames 0:10 --voxel 0.3").exit_code, 0);
   EXPECT_FALSE(std::filesystem::exists(dir + "/other.json"));
-  std::filesystem::remove_all(dir);
 }
 
 TEST(CliInit, CameraOnlyLogSaysItUsesRandomPoints) {
-  const std::string ply = testing::TempDir() + "/random." + std::to_string(getpid()) + ".ply";
+  const std::string ply = Scratch() + "/random.ply";
   const Result r = Exec("init " + kData + "/kitti_odometry_excerpt/seq_a --out " + ply + " --random-points 2000 --frames 0:5");
   ASSERT_EQ(r.exit_code, 0) << r.err;
   EXPECT_NE(r.err.find("random points in the camera frusta"), std::string::npos) << r.err;
-  std::filesystem::remove(ply);
 }
 
 TEST(CliInit, BadInputIsExitTwoAndOneLine) {
-  const std::string out = testing::TempDir() + "/x.ply";
+  const std::string out = Scratch() + "/x.ply";
   for (const auto& [args, says] : std::vector<std::pair<std::string, std::string>>{
            {"init", "expects exactly one log PATH"},
            {"init " + kRaw, "--out is required"},

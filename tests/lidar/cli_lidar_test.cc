@@ -8,6 +8,7 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "gtest/gtest.h"
+#include "tests/common/scratch_dir.h"
 #include "render/lidar/lidar_model.h"
 #include "scene/gaussians/ply_io.h"
 
@@ -17,7 +18,8 @@ namespace {
 const std::string kBin = std::string(STREETSIM_BINARY_DIR) + "/bin/streetsim";
 
 int RunCli(const std::string& args, std::string* err = nullptr) {
-  const std::string log = ::testing::TempDir() + "/lidar_cli_stderr.txt";
+  static const std::string io_dir = testing::ScratchDir("cli_lidar", "io");
+  const std::string log = io_dir + "/stderr.txt";
   const int rc = std::system((kBin + " " + args + " 2> " + log).c_str());
   std::ifstream f(log);
   const std::string text((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
@@ -26,8 +28,7 @@ int RunCli(const std::string& args, std::string* err = nullptr) {
 }
 
 TEST(CliLidar, RendersAWallToTiffPngAndPly) {
-  const std::string dir = ::testing::TempDir() + "/lidar_cli";
-  std::filesystem::create_directories(dir);
+  const std::string dir = testing::ScratchDir("cli_lidar", "wall");
   // A wall 12 m ahead of a sensor at (5, 2, 1.7) in the world (plane x = 17).
   GaussianStore s;
   for (double y = -4; y <= 8; y += 0.05) {

@@ -17,6 +17,7 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "gtest/gtest.h"
+#include "tests/common/scratch_dir.h"
 #include "render/lidar/lidar_model.h"
 #include "render/lidar/lidar_renderer.h"
 #include "render/lidar/lidar_sweep.h"
@@ -391,8 +392,7 @@ TEST(VulkanLidar, RejectsBadInputs) {
 // (within float tolerance), and the PLY of points.
 TEST(VulkanLidar, CliRendersWithTheVulkanBackend) {
   const std::string bin = std::string(STREETSIM_BINARY_DIR) + "/bin/streetsim";
-  const std::string dir = ::testing::TempDir() + "/vulkan_lidar_cli";
-  std::filesystem::create_directories(dir);
+  const std::string dir = testing::ScratchDir("vulkan_lidar", "cli");
   GaussianStore s;
   for (double y = -4; y <= 8; y += 0.05) {
     for (double z = 0; z <= 4; z += 0.05) AddGaussian(&s, Eigen::Vector3d(17, y, z), Eigen::Vector3d(0.005, 0.05, 0.05), 0.73f);

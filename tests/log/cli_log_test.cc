@@ -12,6 +12,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "gtest/gtest.h"
+#include "tests/common/scratch_dir.h"
 #include "scene/log/poses_file.h"
 
 namespace streetsim {
@@ -31,11 +32,16 @@ std::string Slurp(const std::string& p) {
   return std::string((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
 }
 
+// This process's scratch directory (ctest runs the tests of this file in parallel processes);
+// removed when the tests end.
+const std::string& Scratch() {
+  static const std::string dir = testing::ScratchDir("cli_log", "run");
+  return dir;
+}
+
 Result Exec(const std::string& args) {
-  // Per process: ctest runs the tests of this file in parallel processes.
-  const std::string tag = std::to_string(getpid());
-  const std::string out = testing::TempDir() + "/cli_log_stdout." + tag + ".txt";
-  const std::string err = testing::TempDir() + "/cli_log_stderr." + tag + ".txt";
+  const std::string out = Scratch() + "/stdout.txt";
+  const std::string err = Scratch() + "/stderr.txt";
   const int status = std::system((kBinary + " " + args + " >" + out + " 2>" + err).c_str());
   return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, Slurp(out), Slurp(err)};
 }
@@ -73,7 +79,7 @@ TEST(CliLog, InfoWorksOnEverySharedLog) {
 }
 
 TEST(CliLog, PreviewDrawsLidarOnTheImage) {
-  const std::string out = testing::TempDir() + "/" + std::to_string(getpid()) + "_preview.png";
+  const std::string out = Scratch() + "/preview.png";
   fs::remove(out);
   const Result r = Exec("log preview " + kData + "/kitti_raw/2011_09_26 --frame 10 --out " + out);
   ASSERT_EQ(r.exit_code, 0) << r.err;
@@ -92,7 +98,7 @@ TEST(CliLog, PreviewDrawsLidarOnTheImage) {
 }
 
 TEST(CliLog, PosesFromLidarCompareWithTheProvidedEstimate) {
-  const std::string out = testing::TempDir() + "/" + std::to_string(getpid()) + "_poses.txt";
+  const std::string out = Scratch() + "/poses.txt";
   const Result r = Exec("log poses " + kData + "/kitti_raw/2011_09_26 --from-lidar --frames 0:12 --out " + out);
   ASSERT_EQ(r.exit_code, 0) << r.err;
   EXPECT_NE(r.out.find("against poses_velo_icp_estimated.txt"), std::string::npos) << r.out;
@@ -104,7 +110,7 @@ TEST(CliLog, PosesFromLidarCompareWithTheProvidedEstimate) {
 }
 
 TEST(CliLog, CameraWritesARenderableCamera) {
-  const std::string out = testing::TempDir() + "/" + std::to_string(getpid()) + "_cam.json";
+  const std::string out = Scratch() + "/cam.json";
   const Result r = Exec("log camera " + kData + "/kitti_odometry_excerpt/seq_a --frame 5 --out " + out);
   ASSERT_EQ(r.exit_code, 0) << r.err;
   EXPECT_NE(Slurp(out).find("\"width\": 1226"), std::string::npos) << Slurp(out);
