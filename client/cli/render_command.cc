@@ -16,6 +16,7 @@
 #include "scene/gaussians/ply_io.h"
 #include "scene/train/clips.h"
 #include "scene/train/dynamic_stage.h"
+#include "scene/train/trainer.h"
 
 namespace streetsim {
 namespace {
@@ -105,6 +106,12 @@ int RunRenderCommand(const std::vector<std::string>& argv) {
     absl::StatusOr<Eigen::Vector3f> parsed = ParseBackground(*bg);
     if (!parsed.ok()) return Fail(2, parsed.status());
     options.background = *parsed;
+  } else if (!scene_dir.empty()) {
+    // A trained scene renders over the sky colour it learned (DIR/train_meta.json), as the server
+    // and `streetsim eval` render it: on black, its sky would look like a hole.
+    absl::StatusOr<train::SceneMeta> meta = train::ReadSceneMeta(scene_dir);
+    if (!meta.ok()) return Fail(2, meta.status());
+    options.background = meta->background;
   }
   absl::StatusOr<Backend> backend = ParseBackend(args->Get("backend").value_or("auto"));
   if (!backend.ok()) return Fail(2, backend.status());

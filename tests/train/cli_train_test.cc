@@ -9,6 +9,8 @@
 #include <sstream>
 
 #include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
 
 #include "gtest/gtest.h"
 #include "tests/common/scratch_dir.h"
@@ -66,6 +68,37 @@ TEST(CliTrain, TrainThenEvalGivesTheJsonContract) {
   EXPECT_EQ(j["frames"].size(), 19u);  // frames 3, 7, ..., 75 of 78
   EXPECT_EQ(j["frames"][0]["frame"], 3);
   EXPECT_NE(r.err.find("mean"), std::string::npos);  // the table
+
+  // `render --scene DIR` composites over the sky colour the run learned (as eval and the server
+  // do): default render minus a render on black = (1 - alpha) x sky, pixel by pixel.
+  const nlohmann::json meta = nlohmann::json::parse(std::ifstream(dir + "/train_meta.json"));
+  const cv::Vec3f sky_bgr(meta["background"][2].get<float>(), meta["background"][1].get<float>(),
+                          meta["background"][0].get<float>());
+  ASSERT_GT(std::max({sky_bgr[0], sky_bgr[1], sky_bgr[2]}), 0.05f) << meta.dump();
+  ASSERT_EQ(RunCli("log camera " + kKitti + " --frame 3 --out " + dir + "/cam3.json").code, 0);
+  const std::string view = "render --scene " + dir + " --time-us 300000 --camera " + dir + "/cam3.json --out-rgb ";
+  r = RunCli(view + dir + "/sky.png --out-alpha " + dir + "/alpha.tiff");
+  ASSERT_EQ(r.code, 0) << r.err;
+  ASSERT_EQ(RunCli(view + dir + "/black.png --background 0,0,0").code, 0);
+  const cv::Mat sky = cv::imread(dir + "/sky.png"), black = cv::imread(dir + "/black.png");
+  const cv::Mat alpha = cv::imread(dir + "/alpha.tiff", cv::IMREAD_UNCHANGED);
+  ASSERT_FALSE(sky.empty());
+  ASSERT_EQ(sky.size(), black.size());
+  ASSERT_EQ(alpha.size(), sky.size());
+  int compared = 0, off = 0;
+  for (int y = 0; y < sky.rows; ++y) {
+    for (int x = 0; x < sky.cols; ++x) {
+      const float t = 1.0f - alpha.at<float>(y, x);
+      for (int c = 0; c < 3; ++c) {
+        if (sky.at<cv::Vec3b>(y, x)[c] == 255) continue;  // clamped
+        ++compared;
+        const float got = float(sky.at<cv::Vec3b>(y, x)[c]) - float(black.at<cv::Vec3b>(y, x)[c]);
+        off += std::abs(got - 255.0f * t * sky_bgr[c]) > 1.01f;
+      }
+    }
+  }
+  EXPECT_GT(compared, sky.rows * sky.cols);
+  EXPECT_EQ(off, 0) << "of " << compared;
 }
 
 TEST(CliTrain, BadArgumentsExitTwoWithOneLine) {
