@@ -22,6 +22,7 @@
 #include "client/cli/commands.h"
 #include "client/cli/image_io.h"
 #include "client/cpp/streetsim_client.h"
+#include "scene/common/checked_file.h"
 
 namespace streetsim {
 namespace {
@@ -73,19 +74,6 @@ absl::StatusOr<std::unique_ptr<client::Client>> ConnectFromFlags(const ParsedArg
     }
   }
   return client::Client::Connect(o);
-}
-
-absl::Status WriteBytesAtomic(const std::string& path, const std::string& bytes) {
-  const std::string tmp = path + ".tmp";
-  {
-    std::ofstream out(tmp, std::ios::binary);
-    out.write(bytes.data(), bytes.size());
-    if (!out) return absl::InternalError(absl::StrCat("cannot write ", path));
-  }
-  std::error_code ec;
-  fs::rename(tmp, path, ec);
-  if (ec) return absl::InternalError(absl::StrCat("cannot write ", path, ": ", ec.message()));
-  return absl::OkStatus();
 }
 
 absl::Status WriteFloatImage(const std::string& path, const v1::Image& image) {
@@ -352,7 +340,7 @@ int RunRemoteRenderCommand(const std::vector<std::string>& argv) {
   absl::StatusOr<v1::RenderResponse> resp = (*c)->Render(req);
   if (!resp.ok()) return Fail("render", CodeFor(resp.status()), resp.status());
   const v1::SensorFrame& f = resp->frames(0);
-  if (absl::Status s = WriteBytesAtomic(*out_rgb, f.rgb().data()); !s.ok()) return Fail("render", 1, s);
+  if (absl::Status s = checked_file::WriteAtomically(*out_rgb, f.rgb().data()); !s.ok()) return Fail("render", 1, s);
   if (auto p = args->Get("out-depth")) {
     if (absl::Status s = WriteFloatImage(*p, f.depth()); !s.ok()) return Fail("render", 1, s);
   }
@@ -499,7 +487,8 @@ int RunReplayCommand(const std::vector<std::string>& argv) {
     for (const v1::SensorFrame& f : r->frames()) {
       const std::string name = absl::StrCat("step_", std::string(5 - std::min<size_t>(5, std::to_string(k).size()), '0'),
                                             k, "_", f.sensor_id(), jpeg ? ".jpg" : ".png");
-      if (absl::Status s = WriteBytesAtomic((fs::path(out_dir) / "frames" / name).string(), f.rgb().data()); !s.ok()) {
+      if (absl::Status s = checked_file::WriteAtomically((fs::path(out_dir) / "frames" / name).string(), f.rgb().data());
+          !s.ok()) {
         return Fail("replay", 1, s);
       }
       frames[f.sensor_id()] = {{"file", "frames/" + name}, {"digest", f.rgb().digest()}};
@@ -528,7 +517,7 @@ int RunReplayCommand(const std::vector<std::string>& argv) {
                                        {"p99", Percentile(latencies, 0.99)}}},
                   {"videos", json::array()}, {"steps", steps}};
   for (auto& [id, vw] : videos) summary["videos"].push_back(id + ".avi");
-  if (absl::Status s = WriteBytesAtomic((fs::path(out_dir) / "summary.json").string(), summary.dump(1)); !s.ok()) {
+  if (absl::Status s = checked_file::WriteAtomically((fs::path(out_dir) / "summary.json").string(), summary.dump(1)); !s.ok()) {
     return Fail("replay", 1, s);
   }
   std::fprintf(stderr, "streetsim replay: %d steps of %s, step latency p50 %.1f ms p99 %.1f ms; wrote %s/\n", num_steps,

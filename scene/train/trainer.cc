@@ -11,18 +11,19 @@
 #include <optional>
 
 #include <nlohmann/json.hpp>
-#include <opencv2/imgcodecs.hpp>
-#include <opencv2/imgproc.hpp>
+#include <opencv2/core.hpp>
 
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
 #include "render/common/thread_pool.h"
+#include "scene/common/checked_file.h"
 #include "scene/gaussians/ply_io.h"
 #include "scene/init/initial_scene.h"
 #include "scene/field/field_io.h"
 #include "scene/train/dynamic_pixels.h"
 #include "scene/train/gradient_guard.h"
 #include "scene/train/losses.h"
+#include "scene/train/train_outputs.h"
 
 namespace streetsim::train {
 namespace {
@@ -51,78 +52,6 @@ int NextView(TrainState* s, int num_views) {
   const int v = s->view_queue[k];
   s->view_queue.erase(s->view_queue.begin() + static_cast<std::ptrdiff_t>(k));
   return v;
-}
-
-absl::Status WriteText(const std::string& path, const std::string& text) {
-  const std::string tmp = path + ".tmp";
-  {
-    std::ofstream f(tmp, std::ios::trunc);
-    f << text;
-    if (!f) return absl::InternalError(absl::StrCat("cannot write ", tmp));
-  }
-  std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  if (ec) return absl::InternalError(absl::StrCat("cannot rename ", tmp, ": ", ec.message()));
-  return absl::OkStatus();
-}
-
-absl::Status WritePng(const std::string& path, const cv::Mat& rgb8) {
-  cv::Mat bgr;
-  cv::cvtColor(rgb8, bgr, cv::COLOR_RGB2BGR);
-  const std::string tmp = path + ".tmp.png";
-  if (!cv::imwrite(tmp, bgr)) return absl::InternalError(absl::StrCat("cannot write ", path));
-  std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  if (ec) return absl::InternalError(absl::StrCat("cannot rename ", tmp, ": ", ec.message()));
-  return absl::OkStatus();
-}
-
-cv::Mat ToRgb8(const std::vector<float>& rgb, int w, int h) {
-  cv::Mat m(h, w, CV_8UC3);
-  for (int y = 0; y < h; ++y) {
-    uint8_t* row = m.ptr<uint8_t>(y);
-    for (int i = 0; i < w * 3; ++i) {
-      const float v = rgb[static_cast<size_t>(y) * w * 3 + i];
-      row[i] = static_cast<uint8_t>(std::lround(std::min(std::max(v, 0.0f), 1.0f) * 255.0f));
-    }
-  }
-  return m;
-}
-
-// Loss (log scale, left axis) and PSNR (right axis) against iteration.
-cv::Mat PlotCurve(const std::vector<double>& curve) {
-  const int W = 900, H = 420, L = 70, R = 70, T = 30, B = 50;
-  cv::Mat img(H, W, CV_8UC3, cv::Scalar(255, 255, 255));
-  const size_t n = curve.size() / 3;
-  if (n < 2) return img;
-  double it_max = curve[(n - 1) * 3], lmin = 1e9, lmax = -1e9, pmin = 1e9, pmax = -1e9;
-  for (size_t i = 0; i < n; ++i) {
-    const double l = std::log10(std::max(curve[i * 3 + 1], 1e-6));
-    lmin = std::min(lmin, l), lmax = std::max(lmax, l);
-    pmin = std::min(pmin, curve[i * 3 + 2]), pmax = std::max(pmax, curve[i * 3 + 2]);
-  }
-  if (lmax - lmin < 1e-3) lmax = lmin + 1;
-  if (pmax - pmin < 1e-3) pmax = pmin + 1;
-  auto px = [&](double it) { return L + static_cast<int>((W - L - R) * it / std::max(it_max, 1.0)); };
-  auto py = [&](double v, double lo, double hi) { return T + static_cast<int>((H - T - B) * (1 - (v - lo) / (hi - lo))); };
-  cv::rectangle(img, {L, T}, {W - R, H - B}, cv::Scalar(0, 0, 0));
-  for (size_t i = 1; i < n; ++i) {
-    const double l0 = std::log10(std::max(curve[(i - 1) * 3 + 1], 1e-6)), l1 = std::log10(std::max(curve[i * 3 + 1], 1e-6));
-    cv::line(img, {px(curve[(i - 1) * 3]), py(l0, lmin, lmax)}, {px(curve[i * 3]), py(l1, lmin, lmax)}, cv::Scalar(200, 60, 30), 1);
-    cv::line(img, {px(curve[(i - 1) * 3]), py(curve[(i - 1) * 3 + 2], pmin, pmax)},
-             {px(curve[i * 3]), py(curve[i * 3 + 2], pmin, pmax)}, cv::Scalar(30, 60, 200), 1);
-  }
-  auto text = [&](const std::string& s, int x, int y, cv::Scalar c) {
-    cv::putText(img, s, {x, y}, cv::FONT_HERSHEY_SIMPLEX, 0.45, c, 1);
-  };
-  text(absl::StrCat("loss ", std::to_string(std::pow(10, lmax)).substr(0, 6)), 5, T + 10, cv::Scalar(200, 60, 30));
-  text(std::to_string(std::pow(10, lmin)).substr(0, 6), 5, H - B, cv::Scalar(200, 60, 30));
-  text(absl::StrCat(std::to_string(pmax).substr(0, 5), " dB"), W - R + 3, T + 10, cv::Scalar(30, 60, 200));
-  text(absl::StrCat(std::to_string(pmin).substr(0, 5), " dB"), W - R + 3, H - B, cv::Scalar(30, 60, 200));
-  text(absl::StrCat("iteration 0 .. ", static_cast<int64_t>(it_max),
-                    "   (red: loss, log scale; blue: training-view PSNR, 50-view mean)"), L, H - 15, cv::Scalar(0, 0, 0));
-  // The plot was drawn in RGB order.
-  return img;
 }
 
 absl::Status CheckFieldOptions(const TrainOptions& opt) {
@@ -574,12 +503,13 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     } else {
       std::filesystem::remove(field_path, ec);  // a static run replaces an earlier field scene
     }
-    if (absl::Status s = WriteText((std::filesystem::path(out_dir) / "train_meta.json").string(), meta.dump(2) + "\n");
+    if (absl::Status s = checked_file::WriteAtomically((std::filesystem::path(out_dir) / "train_meta.json").string(),
+                                                    meta.dump(2) + "\n");
         !s.ok()) {
       return s;
     }
     cv::Mat plot = PlotCurve(st.curve);
-    if (absl::Status s = WritePng((std::filesystem::path(out_dir) / "curve.png").string(), plot); !s.ok()) return s;
+    if (absl::Status s = WriteRgbPng((std::filesystem::path(out_dir) / "curve.png").string(), plot); !s.ok()) return s;
     // Held-out previews (render | ground truth) and metrics.
     if (!heldout.empty()) {
       const std::vector<View>* test = &heldout;
@@ -606,7 +536,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
         cv::hconcat(ToRgb8(out.rgb, v.camera.width, v.camera.height), v.rgb8, both);
         char name[64];
         std::snprintf(name, sizeof(name), "heldout_frame%04d_cam%d.png", v.frame, v.camera_obs);
-        if (absl::Status s = WritePng((pdir / name).string(), both); !s.ok()) return s;
+        if (absl::Status s = WriteRgbPng((pdir / name).string(), both); !s.ok()) return s;
       }
     }
   }

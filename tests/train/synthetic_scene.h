@@ -17,6 +17,7 @@
 
 #include "gtest/gtest.h"
 #include "render/engine.h"
+#include "scene/train/train_outputs.h"
 #include "scene/train/trainer.h"
 
 namespace streetsim::train::synthetic {
@@ -43,15 +44,8 @@ inline PinholeCamera LookAtOrigin(const Eigen::Vector3d& eye, int w, int h) {
   return c;
 }
 
-// A rendered float RGB image (row-major, [0, 1]) as the 8-bit image a View carries.
-inline cv::Mat ToRgb8(const std::vector<float>& rgb, int w, int h) {
-  cv::Mat m(h, w, CV_8UC3);
-  for (int y = 0; y < h; ++y)
-    for (int x = 0; x < w * 3; ++x)
-      m.ptr<uint8_t>(y)[x] =
-          static_cast<uint8_t>(std::lround(std::clamp(rgb[static_cast<size_t>(y) * w * 3 + x], 0.0f, 1.0f) * 255));
-  return m;
-}
+// A rendered float RGB image as the 8-bit image a View carries (as the trainer writes previews).
+using train::ToRgb8;
 
 // The moving-cluster scene.
 inline constexpr int kClusterSize = 40;
