@@ -10,7 +10,7 @@
 // (train::LoadSceneField, train::MakeServedScene); with field_ext.bin (--field extended) only the
 // static share and the served cost per threshold pair. The ranges are AnalyseStatic's: per
 // Gaussian the diagonal of its Δx box and the largest ΔSH range over the samples (times spread
-// over the log, ends included).
+// over the log, ends included). With the extended decoder: how far its Δlog-scale reaches.
 #include <algorithm>
 #include <cmath>
 #include <chrono>
@@ -212,6 +212,35 @@ int main(int argc, char** argv) {
     std::printf("\n%-28s", "max ΔSH range");
     for (double q : {0.1, 0.5, 0.9, 0.99, 1.0}) std::printf(" %9.4f", Quantile(colour, q));
     std::printf("\n");
+  }
+  if (ext && ext->config().decoder) {
+    // The decoder's Δlog-scale is unbounded (method.md item 6 adds it to the canonical value): how
+    // far it reaches on a trained scene, per Gaussian the largest |Δ| over axes and times, and
+    // the largest deformed log-scale (exp of it = the longest axis in metres).
+    auto t0 = Clock::now();
+    std::vector<float> reach(n, 0.0f), longest(n, -1e30f);
+    for (int smp = 0; smp < samples; ++smp) {
+      const int64_t t_us =
+          f.time_range().start_us + (f.time_range().end_us - f.time_range().start_us) * smp / (samples - 1);
+      absl::StatusOr<GaussianStore> d = train::DeformedStore(f, *g, t_us, pool);
+      if (!d.ok()) Die(1, std::string(d.status().message()));
+      for (size_t i = 0; i < n * 3; ++i) {
+        reach[i / 3] = std::max(reach[i / 3], std::abs(d->log_scales[i] - g->log_scales[i]));
+        longest[i / 3] = std::max(longest[i / 3], d->log_scales[i]);
+      }
+    }
+    size_t over_ln10 = 0, over_5 = 0, over_1km = 0;
+    for (size_t i = 0; i < n; ++i) {
+      over_ln10 += reach[i] > std::log(10.0f), over_5 += reach[i] > 5.0f, over_1km += longest[i] > std::log(1000.0f);
+    }
+    std::printf("decoder over the log (%.0f ms):\n%-28s %9s %9s %9s %9s %9s\n", Ms(t0), "per Gaussian", "p50", "p90",
+                "p99", "p99.9", "max");
+    std::printf("%-28s", "max |Δlog-scale|");
+    for (double q : {0.5, 0.9, 0.99, 0.999, 1.0}) std::printf(" %9.3f", Quantile(reach, q));
+    std::printf("\n%-28s", "max deformed log-scale");
+    for (double q : {0.5, 0.9, 0.99, 0.999, 1.0}) std::printf(" %9.3f", Quantile(longest, q));
+    std::printf("\n|Δlog-scale| > ln 10: %zu Gaussians, > 5: %zu; an axis over 1 km at some time: %zu\n", over_ln10,
+                over_5, over_1km);
   }
   std::printf("\n%10s %8s | %9s %9s %9s | %10s %14s\n", "motion m", "ΔSH", "motion ok", "ΔSH ok", "static",
               "setup ms", "ms / timestamp");

@@ -43,6 +43,7 @@ constexpr char kUsage[] =
                "              [--checkpoint-every N] [--no-sky] [--exposure] [--no-depth] [--deterministic] [--voxel M]\n"
                "              [--lidar-weight W] [--lidar-every K] [--no-lidar-loss] [--backend cpu|vulkan|auto]\n"
                "              [--field static|s3gaussian|extended] [--static-iterations N] [--field-modules LIST]\n"
+               "              [--field-decoder-max-dlog-scale B]\n"
                "              [--field-device auto|cpu|vulkan] [--field-optimizer auto|device|host]\n"
                "              [--field-init spec|zero-heads] [--field-size spec|small]\n"
                "              [--field-lambda-dx W] [--field-lambda-dsh W]   (Δ sparsity weights, 1e-3)\n"

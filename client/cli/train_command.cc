@@ -101,7 +101,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
       argv, {{"log"}, {"out"}, {"iterations"}, {"resolution-scale"}, {"holdout-every"}, {"seed"}, {"resume", false},
              {"checkpoint-every"}, {"no-sky", false}, {"exposure", false}, {"no-depth", false},
              {"deterministic", false}, {"backend"}, {"voxel"}, {"field"}, {"static-iterations"}, {"field-size"},
-             {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"clip-overlap"}, {"field-modules"}, {"field-device"}, {"field-optimizer"},
+             {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"clip-overlap"}, {"field-modules"}, {"field-decoder-max-dlog-scale"}, {"field-device"}, {"field-optimizer"},
              {"field-init"}, {"field-lambda-dx"}, {"field-lambda-dsh"}, {"field-l1-time-planes"},
              {"field-lr-scale"}, {"field-lr-decay-iterations"}, {"field-time-resolution"}});
   if (!args.ok()) return Fail(2, args.status());
@@ -165,6 +165,20 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   }
   if (args->Get("field-modules") && !opt.field.extended) {
     return Fail(2, absl::InvalidArgumentError("--field-modules needs --field extended"));
+  }
+  // The bound on the decoder's Δlog-scale (docs/field.md "Extended field"; 0: unbounded, as
+  // before session 13). A new fine stage takes it; a resumed one keeps its checkpoint's.
+  if (auto v = args->Get("field-decoder-max-dlog-scale")) {
+    if (!opt.field.extended || !opt.field.extended->decoder) {
+      return Fail(2, absl::InvalidArgumentError(
+                         "--field-decoder-max-dlog-scale needs --field extended with the decoder module"));
+    }
+    double b = 0;
+    if (!absl::SimpleAtod(*v, &b) || !(b >= 0 && b <= 50)) {
+      return Fail(2, absl::InvalidArgumentError(absl::StrCat(
+                         "--field-decoder-max-dlog-scale must be a number in [0, 50] (0: unbounded), not '", *v, "'")));
+    }
+    opt.field.extended->decoder_max_dlog_scale = static_cast<float>(b);
   }
   if (auto v = args->Get("static-iterations")) {
     if (opt.field.mode != train::FieldMode::kS3Gaussian) {

@@ -3,6 +3,7 @@
 #include <unistd.h>
 
 #include <cstring>
+#include <limits>
 #include <filesystem>
 #include <fstream>
 #include <string>
@@ -10,6 +11,7 @@
 #include "gtest/gtest.h"
 #include "scene/field/extended/extended_deform.h"
 #include "scene/field/extended/extended_io.h"
+#include "scene/common/checked_file.h"
 #include "tests/field/field_test_util.h"
 
 namespace streetsim::field {
@@ -103,18 +105,20 @@ TEST(ExtendedFieldIo, DilatedBranchIsVersion2AndVersion1StaysAsItWas) {
     if (b.size() >= 12) std::memcpy(&v, b.data() + 8, 4);
     return v;
   };
-  const ExtendedField plain = MakeField(4);
-  const std::string p1 = TempPath("v1.bin");
-  ASSERT_TRUE(SaveExtendedField(plain, p1).ok());
-  EXPECT_EQ(version_of(p1), 1u);
   ExtendedFieldConfig c = ExtendedFieldConfig::AllOn();
+  c.decoder_max_dlog_scale = 0;  // the decoder unbounded, as before version 3
+  absl::StatusOr<ExtendedField> plain = ExtendedField::Create(MakeField(4).base(), c, 4);
+  ASSERT_TRUE(plain.ok()) << plain.status();
+  const std::string p1 = TempPath("v1.bin");
+  ASSERT_TRUE(SaveExtendedField(*plain, p1).ok());
+  EXPECT_EQ(version_of(p1), 1u);
   c.vae_dilation = 2;
-  absl::StatusOr<ExtendedField> dil = ExtendedField::Create(plain.base(), c, 9);
+  absl::StatusOr<ExtendedField> dil = ExtendedField::Create(plain->base(), c, 9);
   ASSERT_TRUE(dil.ok()) << dil.status();
   const std::string p2 = TempPath("v2.bin");
   ASSERT_TRUE(SaveExtendedField(*dil, p2).ok());
   EXPECT_EQ(version_of(p2), 2u);
-  absl::StatusOr<ExtendedField> back = LoadExtendedField(p2, plain.base());
+  absl::StatusOr<ExtendedField> back = LoadExtendedField(p2, plain->base());
   ASSERT_TRUE(back.ok()) << back.status();
   EXPECT_EQ(back->config().vae_dilation, 2);
   EXPECT_EQ(back->config().ModulesString(), "encoder,vae_dilated,temporal,attention,gru,decoder");
@@ -130,9 +134,79 @@ TEST(ExtendedFieldIo, DilatedBranchIsVersion2AndVersion1StaysAsItWas) {
     std::ofstream out(p2, std::ios::binary | std::ios::trunc);
     out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
   }
-  EXPECT_EQ(LoadExtendedField(p2, plain.base()).status().code(), absl::StatusCode::kDataLoss);
+  EXPECT_EQ(LoadExtendedField(p2, plain->base()).status().code(), absl::StatusCode::kDataLoss);
   std::filesystem::remove(p1);
   std::filesystem::remove(p2);
+}
+
+TEST(ExtendedFieldIo, DecoderBoundIsVersion3AndOlderFilesLoadUnbounded) {
+  auto read = [](const std::string& path) {
+    std::ifstream in(path, std::ios::binary);
+    return std::string((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  };
+  auto version_of = [&](const std::string& path) {
+    const std::string b = read(path);
+    uint32_t v = 0;
+    if (b.size() >= 12) std::memcpy(&v, b.data() + 8, 4);
+    return v;
+  };
+  // The default config bounds the decoder: version 3, the bound read back.
+  const ExtendedField f = MakeField(5);
+  ASSERT_EQ(f.config().decoder_max_dlog_scale, kDefaultDecoderMaxDlogScale);
+  const std::string p3 = TempPath("v3.bin");
+  ASSERT_TRUE(SaveExtendedField(f, p3).ok());
+  EXPECT_EQ(version_of(p3), 3u);
+  absl::StatusOr<ExtendedField> back = LoadExtendedField(p3, f.base());
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(back->config().decoder_max_dlog_scale, kDefaultDecoderMaxDlogScale);
+  EXPECT_EQ(back->params(), f.params());
+  // Unbounded: version 1, and it loads unbounded (as every file before version 3 was trained).
+  ExtendedFieldConfig c = f.config();
+  c.decoder_max_dlog_scale = 0;
+  absl::StatusOr<ExtendedField> unbounded = ExtendedField::FromParams(f.base(), c, f.params());
+  ASSERT_TRUE(unbounded.ok()) << unbounded.status();
+  const std::string p1 = TempPath("v1.bin");
+  ASSERT_TRUE(SaveExtendedField(*unbounded, p1).ok());
+  EXPECT_EQ(version_of(p1), 1u);
+  back = LoadExtendedField(p1, f.base());
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(back->config().decoder_max_dlog_scale, 0.0f);
+  // Without the decoder the bound is not written: version 1.
+  c = ExtendedFieldConfig::AllOn();
+  c.decoder = false;
+  absl::StatusOr<ExtendedField> no_decoder = ExtendedField::Create(f.base(), c, 6);
+  ASSERT_TRUE(no_decoder.ok()) << no_decoder.status();
+  ASSERT_TRUE(SaveExtendedField(*no_decoder, p1).ok());
+  EXPECT_EQ(version_of(p1), 1u);
+  // A version-3 file relabelled version 2 (a field too many for it), or with a bound out of
+  // range: refused, never misread. The checksum is recomputed so that only the content is wrong.
+  auto rewrite = [&](std::string bytes) {
+    const size_t body = bytes.size() - 8;
+    const uint64_t sum = checked_file::Checksum(bytes.data(), body);
+    std::memcpy(bytes.data() + body, &sum, 8);
+    std::ofstream out(p3, std::ios::binary | std::ios::trunc);
+    out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+  };
+  const std::string v3 = read(p3);
+  std::string relabelled = v3;
+  relabelled[8] = 2;
+  rewrite(relabelled);
+  EXPECT_EQ(LoadExtendedField(p3, f.base()).status().code(), absl::StatusCode::kDataLoss);
+  // The bound sits after the header (16 bytes), the 6 switches and the 8 int32 (7 + dilation).
+  const size_t bound_at = 16 + 6 + 8 * 4;
+  float stored = 0;
+  std::memcpy(&stored, v3.data() + bound_at, 4);
+  ASSERT_EQ(stored, kDefaultDecoderMaxDlogScale);
+  for (float bad : {-1.0f, 51.0f, std::numeric_limits<float>::quiet_NaN()}) {
+    std::string b = v3;
+    std::memcpy(b.data() + bound_at, &bad, 4);
+    rewrite(b);
+    const absl::Status s = LoadExtendedField(p3, f.base()).status();
+    EXPECT_EQ(s.code(), absl::StatusCode::kDataLoss) << bad;
+    EXPECT_NE(std::string(s.message()).find("Δlog-scale bound"), std::string::npos) << s;
+  }
+  std::filesystem::remove(p1);
+  std::filesystem::remove(p3);
 }
 
 TEST(ExtendedFieldShared, DeformedStoreFindsTheExtensionThroughTheBase) {

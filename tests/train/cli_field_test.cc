@@ -167,6 +167,15 @@ TEST(CliField, BadValuesExitTwoWithOneLine) {
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-time-resolution 1001",
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-time-resolution ten",
            train + " --iterations 20 --field static --field-time-resolution 50",
+           train + " --iterations 20 --static-iterations 5 --field extended --field-modules decoder"
+                   " --field-decoder-max-dlog-scale -1",
+           train + " --iterations 20 --static-iterations 5 --field extended --field-modules decoder"
+                   " --field-decoder-max-dlog-scale 51",
+           train + " --iterations 20 --static-iterations 5 --field extended --field-modules decoder"
+                   " --field-decoder-max-dlog-scale nan",
+           train + " --iterations 20 --static-iterations 5 --field extended --field-modules gru"
+                   " --field-decoder-max-dlog-scale 2",  // the bound needs the decoder
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-decoder-max-dlog-scale 2",
            eval + " --static-motion-m 0.1",                 // needs --served
            eval + " --served --static-sh -1",
            eval + " --served --static-motion-m nan",

@@ -24,6 +24,9 @@ absl::Status ExtendedFieldConfig::Validate(const FieldConfig& base) const {
     return bad(absl::StrCat("encoder layers ", encoder_layers, " not in 0..8"));
   }
   if (vae_dilation < 0 || vae_dilation > 16) return bad(absl::StrCat("VAE dilation ", vae_dilation, " not in 0..16"));
+  if (!(decoder_max_dlog_scale >= 0 && decoder_max_dlog_scale <= 50)) {
+    return bad(absl::StrCat("decoder Δlog-scale bound ", decoder_max_dlog_scale, " not in [0, 50]"));
+  }
   if (!(window_dt >= 0 && window_dt <= 2)) return bad(absl::StrCat("window dt ", window_dt, " not in [0, 2]"));
   if (!(kl_weight >= 0 && kl_weight < 1e6) || kl_warmup_iterations < 0) return bad("KL weight / warm-up out of range");
   return absl::OkStatus();

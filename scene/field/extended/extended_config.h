@@ -36,11 +36,21 @@
 // four taps in the order written (from 0), then multiplies by ¼. `--field-modules vae_dilated`
 // sets d = 1 (`all` keeps d = 0); a field with d > 0 is field_ext.bin version 2 (extended_io.h).
 //
+// The decoder's Δlog-scale is bounded where it is added to the canonical log-scale (session 13):
+//   log s = log s_c + B tanh(Δ / B),   B = decoder_max_dlog_scale (0: Δ as it comes, unbounded)
+// The head itself stays a Linear (the field's forward and backward, cpu and Vulkan, are unchanged);
+// DeformSceneExt / DeformBackwardExt and the serving field apply the bound and its derivative
+// 1 - tanh². Unbounded, trained KITTI decoders reached |Δ| of 300-370 (scales of exp(±300):
+// zero or infinite in float) on a few thousand Gaussians (docs/field.md "Extended field").
+// A field with B > 0 is field_ext.bin version 3; older files load with B = 0, as they were trained.
+//
 // With every module off r = 0: the field is S3Gaussian's exactly (a strict ablation, tested).
 // The extension's parameters live in their own flat array (the "network" Adam group); the planes
 // and S3Gaussian's trunk and heads stay in the DeformationField's array.
 #pragma once
 
+#include <cmath>
+#include <cstddef>
 #include <cstdint>
 #include <string>
 #include <vector>
@@ -62,6 +72,22 @@ namespace streetsim::field {
 // the 6 unique entries of Σ = R S Sᵀ Rᵀ.
 inline constexpr int kEncoderGeometryInputs = 10;
 inline constexpr int kDecoderScaleOutputs = 3, kDecoderRotationOutputs = 4, kDecoderOpacityOutputs = 1;
+inline constexpr float kDefaultDecoderMaxDlogScale = 2.302585093f;  // ln 10
+
+// The decoder's Δlog-scale as added to the canonical log-scale, in place: B tanh(Δ / B) for B > 0,
+// Δ unchanged for B = 0 (header comment).
+inline void BoundDecoderLogScales(float bound, float* dscale, size_t count) {
+  if (bound <= 0) return;
+  for (size_t i = 0; i < count; ++i) dscale[i] = bound * std::tanh(dscale[i] / bound);
+}
+// dL/dΔ from dL/d(log s), in place, given the bounded values: d(B tanh(Δ/B))/dΔ = 1 - (bounded/B)².
+inline void BoundDecoderLogScalesBackward(float bound, const float* bounded, float* grad, size_t count) {
+  if (bound <= 0) return;
+  for (size_t i = 0; i < count; ++i) {
+    const float u = bounded[i] / bound;
+    grad[i] *= 1.0f - u * u;
+  }
+}
 
 struct ExtendedFieldConfig {
   // One switch per module (method.md section 2 items 1-6).
@@ -82,6 +108,9 @@ struct ExtendedFieldConfig {
   // VAE variance branch dilation d in texels (header comment); 0: (μ, log σ²) from one Linear on q.
   int vae_dilation = 0;
   nn::Activation activation = nn::Activation::kRelu;
+  // B of the bounded decoder Δlog-scale (header comment; 0 = unbounded, the behaviour before
+  // session 13). ln 10: a Gaussian may grow or shrink by up to 10x over time.
+  float decoder_max_dlog_scale = kDefaultDecoderMaxDlogScale;
   // Δ, one frame on the field's time axis (time-coordinate units, [-1, 1] spans the log). The
   // trainer sets it from the log's frame interval; tokens t + jΔ clamp to [-1, 1] like t.
   double window_dt = 0.05;

@@ -51,10 +51,12 @@ absl::Status DeformSceneExt(const ExtendedField& field, const ExtPass& pass, con
       eval.forward ? eval.forward(pass, in, o) : ExtendedForward<float>(ModelOf(field), pass, in, o, pool, ws);
   if (!kl.ok()) return kl.status();
   out->kl_sum = *kl;
+  const float bound = field.config().decoder_max_dlog_scale;
   pool.ParallelFor(static_cast<int64_t>(n), 8192, [&](int64_t b, int64_t e, int) {
     for (int64_t i = b * 3; i < e * 3; ++i) out->means[i] = c.means[i] + out->dx[i];
     for (int64_t i = b * kShOutputs; i < e * kShOutputs; ++i) out->sh[i] = c.sh[i] + out->dsh[i];
     if (!dec) return;
+    BoundDecoderLogScales(bound, out->dscale.data() + b * 3, static_cast<size_t>(e - b) * 3);
     for (int64_t i = b * 3; i < e * 3; ++i) out->log_scales[i] = c.log_scales[i] + out->dscale[i];
     for (int64_t i = b * 4; i < e * 4; ++i) out->rotations[i] = c.rotations[i] + out->drot[i];
     for (int64_t i = b; i < e; ++i) out->opacity_logits[i] = c.opacity_logits[i] + out->dopacity[i];
@@ -103,6 +105,8 @@ absl::StatusOr<ExtDeformLosses> DeformBackwardExt(const ExtendedField& field, co
   if (dec) {  // Δ added to the parameter: its gradient is the rendered parameter's (copied first:
               // the encoder path adds into grads below)
     g_dscale = grads->log_scales;
+    BoundDecoderLogScalesBackward(field.config().decoder_max_dlog_scale, d.dscale.data(), g_dscale.data(),
+                                  g_dscale.size());
     g_drot = grads->rotations;
     g_dop = grads->opacity_logits;
   }

@@ -46,7 +46,7 @@ struct ExtCanonicalView {
 
 struct ExtDeformedScene {
   ExtPass pass;
-  std::vector<float> dx, dsh, dscale, drot, dopacity;
+  std::vector<float> dx, dsh, dscale, drot, dopacity;          // dscale as applied (bounded)
   std::vector<float> means, sh;                               // canonical + Δ
   std::vector<float> log_scales, rotations, opacity_logits;  // canonical + Δ (decoder only)
   double kl_sum = 0;

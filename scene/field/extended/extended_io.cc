@@ -13,9 +13,11 @@ namespace streetsim::field {
 namespace {
 
 constexpr char kMagic[8] = {'S', 'S', 'F', 'L', 'D', 'E', 'X', 'T'};
-// Version 2 adds i32 vae_dilation after the activation; a field without the dilated branch is
-// still written as version 1 (byte for byte what it was), so older readers keep reading it.
-constexpr uint32_t kVersion1 = 1, kVersion2 = 2;
+// Version 2 adds i32 vae_dilation after the activation; version 3 also f32
+// decoder_max_dlog_scale after it. Each file is written at the lowest version that holds it (a
+// field without the dilated branch or the bound is byte for byte what it was), so older readers
+// keep reading what they can; a version 1 or 2 file loads with the bound 0 it was trained with.
+constexpr uint32_t kVersion1 = 1, kVersion2 = 2, kVersion3 = 3;
 constexpr uint32_t kFlagAdam = 1;
 
 using checked_file::Reader;
@@ -31,15 +33,17 @@ absl::Status Save(const ExtendedField& f, const ExtAdamState* adam, const std::s
   }
   Writer w;
   w.Raw(kMagic, 8);
-  const bool v2 = c.vae_dilation != 0;
-  w.Pod<uint32_t>(v2 ? kVersion2 : kVersion1);
+  const bool bounded = c.decoder && c.decoder_max_dlog_scale != 0;  // the bound means nothing without the decoder
+  const uint32_t version = bounded ? kVersion3 : c.vae_dilation != 0 ? kVersion2 : kVersion1;
+  w.Pod<uint32_t>(version);
   w.Pod<uint32_t>(adam ? kFlagAdam : 0);
   for (bool b : {c.encoder, c.vae, c.temporal, c.attention, c.gru, c.decoder}) w.Pod<uint8_t>(b ? 1 : 0);
   for (int v : {c.heads, c.vae_latent, c.gru_hidden, c.window_k, c.fourier_frequencies, c.encoder_layers,
                 static_cast<int>(c.activation)}) {
     w.Pod<int32_t>(v);
   }
-  if (v2) w.Pod<int32_t>(c.vae_dilation);
+  if (version >= kVersion2) w.Pod<int32_t>(c.vae_dilation);
+  if (version >= kVersion3) w.Pod<float>(c.decoder_max_dlog_scale);
   w.Pod<double>(c.window_dt);
   w.Pod<double>(c.kl_weight);
   w.Pod<int32_t>(c.kl_warmup_iterations);
@@ -71,8 +75,8 @@ absl::StatusOr<ExtendedField> Load(const std::string& path, DeformationField bas
   r.Raw(magic, 8);
   uint32_t version = 0, flags = 0;
   if (!r.Pod(&version) || !r.Pod(&flags)) return corrupt("truncated header");
-  if (version != kVersion1 && version != kVersion2) {
-    return corrupt(absl::StrCat("unsupported extended field version ", version, " (want 1 or 2)"));
+  if (version != kVersion1 && version != kVersion2 && version != kVersion3) {
+    return corrupt(absl::StrCat("unsupported extended field version ", version, " (want 1, 2 or 3)"));
   }
   if (stored != Checksum(bytes.data(), body)) return corrupt("checksum mismatch (truncated or corrupt file)");
   if (flags & ~kFlagAdam) return corrupt(absl::StrCat("unknown flags ", flags));
@@ -82,7 +86,9 @@ absl::StatusOr<ExtendedField> Load(const std::string& path, DeformationField bas
   bool ok = r.Raw(sw, 6);
   for (int i = 0; i < 7 && ok; ++i) ok = r.Pod(&iv[i]);
   int32_t dilation = 0;
-  if (version == kVersion2) ok = ok && r.Pod(&dilation);
+  float dlog_scale_bound = 0;  // versions 1 and 2: trained unbounded
+  if (version >= kVersion2) ok = ok && r.Pod(&dilation);
+  if (version >= kVersion3) ok = ok && r.Pod(&dlog_scale_bound);
   ok = ok && r.Pod(&c.window_dt) && r.Pod(&c.kl_weight) && r.Pod(&warm) && r.Pod(&feature_dim) && r.Pod(&model_dim);
   uint64_t base_sum = 0, count = 0;
   ok = ok && r.Pod(&base_sum) && r.Pod(&count);
@@ -91,6 +97,7 @@ absl::StatusOr<ExtendedField> Load(const std::string& path, DeformationField bas
   c.heads = iv[0], c.vae_latent = iv[1], c.gru_hidden = iv[2], c.window_k = iv[3], c.fourier_frequencies = iv[4];
   c.encoder_layers = iv[5];
   c.vae_dilation = dilation;
+  c.decoder_max_dlog_scale = dlog_scale_bound;
   if (iv[6] < 0 || iv[6] > static_cast<int>(nn::Activation::kSilu)) return corrupt("unknown activation");
   c.activation = static_cast<nn::Activation>(iv[6]);
   c.kl_warmup_iterations = warm;

@@ -2,9 +2,10 @@
 // planes and MLP in its unchanged format, so every reader of field.bin still works), and the
 // extension's part of fine-stage checkpoints (with its Adam moments). Binary, little-endian,
 // versioned, checksummed, written to PATH.tmp and renamed (docs/field.md "Extended field"):
-//   "SSFLDEXT", u32 version (1, or 2 with the VAE's dilated branch), u32 flags (bit 0: Adam moments
-//   follow), u8 encoder, vae, temporal, attention, gru, decoder, i32 heads, vae_latent, gru_hidden,
-//   window_k, fourier_frequencies, encoder_layers, activation, [version 2: i32 vae_dilation],
+//   "SSFLDEXT", u32 version (1; 2 with the VAE's dilated branch; 3 with the decoder's Δlog-scale
+//   bound), u32 flags (bit 0: Adam moments follow), u8 encoder, vae, temporal, attention, gru,
+//   decoder, i32 heads, vae_latent, gru_hidden, window_k, fourier_frequencies, encoder_layers,
+//   activation, [version >= 2: i32 vae_dilation], [version 3: f32 decoder_max_dlog_scale],
 //   f64 window_dt, f64 kl_weight,
 //   i32 kl_warmup_iterations, i32 base feature dim, i32 base width,
 //   u64 base checksum (FNV-1a of field.bin's parameters: a field_ext.bin never pairs with another

@@ -140,13 +140,24 @@ absl::Status ExtServingField::Analyse(const StaticSkipOptions& o, ThreadPool& po
 
 absl::StatusOr<double> ExtServingField::Evaluate(const ExtPass& pass, const ExtInputs<float>& in,
                                                  const ExtOutputs<float>& out, ThreadPool& pool) {
+  absl::StatusOr<double> kl = absl::UnknownError("not evaluated");
   if (device_forward_) {
-    absl::StatusOr<double> kl = device_forward_(field_, pass, in, out);
-    if (kl.ok()) return kl;
-    DeviceFailed(kl.status());
-    device_forward_ = nullptr;
+    kl = device_forward_(field_, pass, in, out);
+    if (!kl.ok()) {
+      DeviceFailed(kl.status());
+      device_forward_ = nullptr;
+    }
   }
-  return ExtendedForward<float>(ModelOf(field_), pass, in, out, pool, *ws_);
+  if (!kl.ok()) kl = ExtendedForward<float>(ModelOf(field_), pass, in, out, pool, *ws_);
+  // The decoder's Δlog-scale as the trainer applied it (DeformSceneExt): bounded.
+  if (kl.ok() && out.dscale != nullptr) {
+    const float bound = field_.config().decoder_max_dlog_scale;
+    pool.ParallelFor(static_cast<int64_t>(in.n), 8192, [&](int64_t b, int64_t e, int) {
+      BoundDecoderLogScales(bound, out.dscale + b * kDecoderScaleOutputs,
+                            static_cast<size_t>(e - b) * kDecoderScaleOutputs);
+    });
+  }
+  return kl;
 }
 
 void ExtServingField::SetDevice(std::string device, ExtDeviceForward forward) {
