@@ -488,6 +488,10 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     meta["exposure"] = opt.exposure;
     meta["field"] = !stage ? "static" : opt.field.extended ? "extended" : "s3gaussian";
     if (stage && opt.field.extended) meta["field_modules"] = opt.field.extended->ModulesString();
+    if (stage && stage->extended() && stage->extended()->config().decoder) {
+      // The trained field's own (a resumed stage keeps its checkpoint's): 0 = unbounded.
+      meta["field_decoder_max_dlog_scale"] = stage->extended()->config().decoder_max_dlog_scale;
+    }
     const std::string field_path = (std::filesystem::path(out_dir) / field::kFieldFileName).string();
     if (stage) {
       if (absl::Status s = stage->SyncHost(); !s.ok()) return s;  // the field's optimiser may be on the device

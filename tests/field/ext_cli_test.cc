@@ -56,6 +56,8 @@ TEST(CliExtendedField, TrainEvalRenderResume) {
   const nlohmann::json meta = nlohmann::json::parse(Slurp(dir + "/train_meta.json"));
   EXPECT_EQ(meta["field"], "extended");
   EXPECT_TRUE(meta["field_modules"].is_string() && !meta["field_modules"].get<std::string>().empty()) << meta.dump();
+  // `all` includes the decoder: its Δlog-scale bound, the default ln 10.
+  EXPECT_NEAR(meta["field_decoder_max_dlog_scale"].get<double>(), std::log(10.0), 1e-6) << meta.dump();
 
   r = RunCli("eval --scene " + dir + " --log " + kKitti + " --no-lidar");
   ASSERT_EQ(r.code, 0) << r.err;
