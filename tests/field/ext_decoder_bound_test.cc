@@ -66,16 +66,25 @@ ExtendedField WithBound(const ExtendedField& f, float bound) {
   return std::move(*g);
 }
 
-TEST(DecoderBound, DeformedLogScalesStayWithinTheBound) {
-  const Canonical c = MakeCanonical();
-  const ExtendedField bounded = MakeDecoderField(kBound), raw = WithBound(bounded, 0.0f);
-  ThreadPool pool(2);
+// The canonical scene, the decoder field with the bound and without it, both deformed at one time.
+struct BoundPair {
+  Canonical c = MakeCanonical();
+  ExtendedField bounded = MakeDecoderField(kBound), raw = WithBound(bounded, 0.0f);
+  ThreadPool pool{2};
   ExtWorkspace ws;
-  ExtPass pass;
-  pass.time_coord = 0.3;
   ExtDeformedScene db, d0;
-  ASSERT_TRUE(DeformSceneExt(bounded, pass, c.view(), pool, ws, &db).ok());
-  ASSERT_TRUE(DeformSceneExt(raw, pass, c.view(), pool, ws, &d0).ok());
+  explicit BoundPair(double time_coord) {
+    ExtPass pass;
+    pass.time_coord = time_coord;
+    EXPECT_TRUE(DeformSceneExt(bounded, pass, c.view(), pool, ws, &db).ok());
+    EXPECT_TRUE(DeformSceneExt(raw, pass, c.view(), pool, ws, &d0).ok());
+  }
+};
+
+TEST(DecoderBound, DeformedLogScalesStayWithinTheBound) {
+  BoundPair p(0.3);
+  const Canonical& c = p.c;
+  const ExtDeformedScene &db = p.db, &d0 = p.d0;
   float raw_max = 0;
   for (size_t i = 0; i < kN * 3; ++i) {
     raw_max = std::max(raw_max, std::abs(d0.dscale[i]));
@@ -94,15 +103,12 @@ TEST(DecoderBound, DeformedLogScalesStayWithinTheBound) {
 TEST(DecoderBound, BackwardChainsTheBound) {
   // dL/dθ with the bound and rendered gradient G on the log-scales = dL/dθ without it and
   // gradient G (1 - (Δ_bounded / B)²): the bound's whole effect on the backward is that factor.
-  const Canonical c = MakeCanonical();
-  const ExtendedField bounded = MakeDecoderField(kBound), raw = WithBound(bounded, 0.0f);
-  ThreadPool pool(2);
-  ExtWorkspace ws;
-  ExtPass pass;
-  pass.time_coord = -0.4;
-  ExtDeformedScene db, d0;
-  ASSERT_TRUE(DeformSceneExt(bounded, pass, c.view(), pool, ws, &db).ok());
-  ASSERT_TRUE(DeformSceneExt(raw, pass, c.view(), pool, ws, &d0).ok());
+  BoundPair p(-0.4);
+  const Canonical& c = p.c;
+  const ExtendedField &bounded = p.bounded, &raw = p.raw;
+  ThreadPool& pool = p.pool;
+  ExtWorkspace& ws = p.ws;
+  const ExtDeformedScene &db = p.db, &d0 = p.d0;
   std::mt19937_64 rng(5);
   std::normal_distribution<float> g(0.0f, 1.0f);
   GaussianGrads gb;
