@@ -214,9 +214,10 @@ int main(int argc, char** argv) {
     std::printf("\n");
   }
   if (ext && ext->config().decoder) {
-    // The decoder's Δlog-scale is unbounded (method.md item 6 adds it to the canonical value): how
-    // far it reaches on a trained scene, per Gaussian the largest |Δ| over axes and times, and
-    // the largest deformed log-scale (exp of it = the longest axis in metres).
+    // The decoder's Δlog-scale as the scene applies it (unbounded before field_ext.bin version 3,
+    // docs/field.md "The decoder's Δlog-scale"): how far it reaches on a trained scene, per Gaussian
+    // the largest |Δ| over axes and times, and the largest deformed log-scale (exp of it = the
+    // longest axis in metres).
     auto t0 = Clock::now();
     std::vector<float> reach(n, 0.0f), longest(n, -1e30f);
     for (int smp = 0; smp < samples; ++smp) {

@@ -101,7 +101,8 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
       argv, {{"log"}, {"out"}, {"iterations"}, {"resolution-scale"}, {"holdout-every"}, {"seed"}, {"resume", false},
              {"checkpoint-every"}, {"no-sky", false}, {"exposure", false}, {"no-depth", false},
              {"deterministic", false}, {"backend"}, {"voxel"}, {"field"}, {"static-iterations"}, {"field-size"},
-             {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"clip-overlap"}, {"field-modules"}, {"field-decoder-max-dlog-scale"}, {"field-device"}, {"field-optimizer"},
+             {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"clip-overlap"},
+             {"field-modules"}, {"field-decoder-max-dlog-scale"}, {"field-device"}, {"field-optimizer"},
              {"field-init"}, {"field-lambda-dx"}, {"field-lambda-dsh"}, {"field-l1-time-planes"},
              {"field-lr-scale"}, {"field-lr-decay-iterations"}, {"field-time-resolution"}});
   if (!args.ok()) return Fail(2, args.status());
@@ -166,8 +167,8 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   if (args->Get("field-modules") && !opt.field.extended) {
     return Fail(2, absl::InvalidArgumentError("--field-modules needs --field extended"));
   }
-  // The bound on the decoder's Δlog-scale (docs/field.md "Extended field"; 0: unbounded, as
-  // before session 13). A new fine stage takes it; a resumed one keeps its checkpoint's.
+  // The bound on the decoder's Δlog-scale (docs/field.md "The decoder's Δlog-scale"; 0: unbounded,
+  // as before session 13). A new fine stage takes it; a resumed one keeps its checkpoint's.
   if (auto v = args->Get("field-decoder-max-dlog-scale")) {
     if (!opt.field.extended || !opt.field.extended->decoder) {
       return Fail(2, absl::InvalidArgumentError(

@@ -175,6 +175,11 @@ TEST_F(CliRender, RefusesBadFiles) {
     WriteFile(dir_ + "/bad.json", json);
     ExpectRefused("--ply " + kPly + " --camera " + dir_ + "/bad.json", 2, needle);
   }
+  // A trained scene directory whose train_meta.json (the learned sky colour) is damaged.
+  fs::create_directories(dir_ + "/scene");
+  fs::copy_file(kPly, dir_ + "/scene/scene.ply");
+  WriteFile(dir_ + "/scene/train_meta.json", "{\"background\": [0.5, ");
+  ExpectRefused("--scene " + dir_ + "/scene --camera " + camera_, 2, "train_meta.json");
 }
 
 TEST_F(CliRender, RefusesUnwritableOutputsWithoutPartialFiles) {

@@ -41,7 +41,7 @@
 // The head itself stays a Linear (the field's forward and backward, cpu and Vulkan, are unchanged);
 // DeformSceneExt / DeformBackwardExt and the serving field apply the bound and its derivative
 // 1 - tanh². Unbounded, trained KITTI decoders reached |Δ| of 300-370 (scales of exp(±300):
-// zero or infinite in float) on a few thousand Gaussians (docs/field.md "Extended field").
+// zero or infinite in float) on a few thousand Gaussians (docs/field.md "The decoder's Δlog-scale").
 // A field with B > 0 is field_ext.bin version 3; older files load with B = 0, as they were trained.
 //
 // With every module off r = 0: the field is S3Gaussian's exactly (a strict ablation, tested).
