@@ -221,6 +221,7 @@ int main(int argc, char** argv) {
   const std::vector<train::View> views = OrDie(train::LoadViews(log, dopt), 2);
   const GaussianStore canonical = OrDie(ReadGaussianPly(scene_dir + "/scene.ply"), 2);
   const std::shared_ptr<const field::DeformationField> f = OrDie(train::LoadSceneField(scene_dir), 2);
+  if (!rect.empty() && !f) Die(2, "--region needs a scene with a field");
   std::unique_ptr<Engine> engine = OrDie(CreateEngine(Backend::kCpu));
   const train::SceneForView scene_for_view = OrDie(train::MakeSceneForView(*engine, canonical, f));
   auto wanted = [&](int frame) {
@@ -271,7 +272,6 @@ int main(int argc, char** argv) {
     for (const std::string& r : offset_rows) std::printf("%s\n", r.c_str());
   }
   if (!rect.empty()) {
-    if (!f) Die(2, "--region needs a scene with a field");
     for (const train::View& v : views) {
       if (v.frame != static_cast<int>(frames[0])) continue;
       ProbeRegion(*f, canonical, v, rect, max_depth_m, f->time_range());
