@@ -222,6 +222,7 @@ int main(int argc, char** argv) {
   const GaussianStore canonical = OrDie(ReadGaussianPly(scene_dir + "/scene.ply"), 2);
   const std::shared_ptr<const field::DeformationField> f = OrDie(train::LoadSceneField(scene_dir), 2);
   if (!rect.empty() && !f) Die(2, "--region needs a scene with a field");
+  if (!offsets_ms.empty() && !f) Die(2, "--time-offsets-ms needs a scene with a field");
   std::unique_ptr<Engine> engine = OrDie(CreateEngine(Backend::kCpu));
   const train::SceneForView scene_for_view = OrDie(train::MakeSceneForView(*engine, canonical, f));
   auto wanted = [&](int frame) {
@@ -263,7 +264,7 @@ int main(int argc, char** argv) {
   if (n == 0) Die(2, "no view of the split has one of --frames");
   std::printf("| mean (%d views) | %.2f | %.2f | %+.2f | | | |\n", n, sum_base / n, sum_searched / n,
               (sum_searched - sum_base) / n);
-  if (!offsets_ms.empty() && f) {
+  if (!offsets_ms.empty()) {
     std::printf("\nPSNR with the field at the view's time plus (ms):\n\n| frame |");
     for (double ms : offsets_ms) std::printf(" %+g |", ms);
     std::printf("\n|---|");

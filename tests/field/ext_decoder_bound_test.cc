@@ -73,16 +73,18 @@ struct BoundPair {
   ThreadPool pool{2};
   ExtWorkspace ws;
   ExtDeformedScene db, d0;
+  bool deformed = false;  // both passes succeeded (tests assert it before reading db / d0)
   explicit BoundPair(double time_coord) {
     ExtPass pass;
     pass.time_coord = time_coord;
-    EXPECT_TRUE(DeformSceneExt(bounded, pass, c.view(), pool, ws, &db).ok());
-    EXPECT_TRUE(DeformSceneExt(raw, pass, c.view(), pool, ws, &d0).ok());
+    deformed = DeformSceneExt(bounded, pass, c.view(), pool, ws, &db).ok() &&
+               DeformSceneExt(raw, pass, c.view(), pool, ws, &d0).ok();
   }
 };
 
 TEST(DecoderBound, DeformedLogScalesStayWithinTheBound) {
   BoundPair p(0.3);
+  ASSERT_TRUE(p.deformed);
   const Canonical& c = p.c;
   const ExtDeformedScene &db = p.db, &d0 = p.d0;
   float raw_max = 0;
@@ -104,6 +106,7 @@ TEST(DecoderBound, BackwardChainsTheBound) {
   // dL/dθ with the bound and rendered gradient G on the log-scales = dL/dθ without it and
   // gradient G (1 - (Δ_bounded / B)²): the bound's whole effect on the backward is that factor.
   BoundPair p(-0.4);
+  ASSERT_TRUE(p.deformed);
   const Canonical& c = p.c;
   const ExtendedField &bounded = p.bounded, &raw = p.raw;
   ThreadPool& pool = p.pool;
