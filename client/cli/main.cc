@@ -40,6 +40,8 @@ constexpr char kUsage[] =
                "  replay    scripted replay through a server: streetsim replay SCENARIO.json\n"
                "  train     scene training (docs/training.md): streetsim train --log PATH --out DIR\n"
                "              [--iterations N] [--resolution-scale S] [--holdout-every K] [--seed K] [--resume]\n"
+               "              [--low-res-scale S --low-res-iterations N]   (the first N\n"
+               "               iterations at scale S, then --resolution-scale; a resume keeps them)\n"
                "              [--checkpoint-every N] [--no-sky] [--exposure] [--no-depth] [--deterministic] [--voxel M]\n"
                "              [--lidar-weight W] [--lidar-every K] [--no-lidar-loss] [--backend cpu|vulkan|auto]\n"
                "              [--field static|s3gaussian|extended] [--static-iterations N] [--field-modules LIST]\n"

@@ -17,6 +17,7 @@
 #include "scene/train/clip_training.h"
 #include "scene/train/dynamic_stage.h"
 #include "scene/train/train_state.h"
+#include "scene/train/resolution_schedule.h"
 #include "scene/train/trainer.h"
 
 namespace streetsim {
@@ -104,7 +105,8 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
              {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"clip-overlap"},
              {"field-modules"}, {"field-decoder-max-dlog-scale"}, {"field-device"}, {"field-optimizer"},
              {"field-init"}, {"field-lambda-dx"}, {"field-lambda-dsh"}, {"field-l1-time-planes"},
-             {"field-lr-scale"}, {"field-lr-decay-iterations"}, {"field-time-resolution"}});
+             {"field-lr-scale"}, {"field-lr-decay-iterations"}, {"field-time-resolution"},
+             {"low-res-scale"}, {"low-res-iterations"}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
@@ -121,6 +123,28 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   if (auto v = args->Get("resolution-scale"); v && (!absl::SimpleAtod(*v, &opt.resolution_scale) ||
                                                     !(opt.resolution_scale > 0 && opt.resolution_scale <= 1))) {
     return Fail(2, absl::InvalidArgumentError("--resolution-scale must be in (0, 1]"));
+  }
+  // Low resolution first (docs/training.md "Low resolution first"): the first N iterations at scale S.
+  // `--low-res-iterations 0` alone: none (a resume otherwise keeps the one checkpoint.json records).
+  const bool no_low_res = !args->Has("low-res-scale") && args->Get("low-res-iterations") == std::optional<std::string>("0");
+  if (!no_low_res && args->Has("low-res-scale") != args->Has("low-res-iterations")) {
+    return Fail(2, absl::InvalidArgumentError(
+                       "--low-res-scale and --low-res-iterations go together (--low-res-iterations 0 alone: none)"));
+  }
+  if (auto v = args->Get("low-res-scale")) {
+    train::LowResStage low;
+    if (!absl::SimpleAtod(*v, &low.resolution_scale) ||
+        !(low.resolution_scale > 0 && low.resolution_scale < opt.resolution_scale)) {
+      return Fail(2, absl::InvalidArgumentError(absl::StrCat("--low-res-scale must be above 0 and below "
+                                                             "--resolution-scale (", opt.resolution_scale,
+                                                             "), not '", *v, "'")));
+    }
+    const std::string n = args->Get("low-res-iterations").value_or("");
+    if (!absl::SimpleAtoi(n, &low.iterations) || low.iterations < 1 || low.iterations >= opt.iterations) {
+      return Fail(2, absl::InvalidArgumentError(absl::StrCat("--low-res-iterations must be in 1..", opt.iterations - 1,
+                                                             " (fewer than --iterations), not '", n, "'")));
+    }
+    opt.low_res = low;
   }
   if (auto v = args->Get("holdout-every"); v && (!absl::SimpleAtoi(*v, &opt.holdout_every) || opt.holdout_every < 0 ||
                                                  opt.holdout_every == 1)) {
@@ -267,10 +291,30 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
     const train::FieldCheckpointsFound found = train::FindFieldCheckpoints(*out);
     std::optional<train::FieldLrSchedule> own = recorded.ok() ? *recorded : std::nullopt;
-    if (!own && (found.base || found.extended)) own = train::FieldLrSchedule{};  // the spec's
+    if (!own && (found.base || found.extended)) {
+      // Runs between the flag and checkpoint.json's record of it have the schedule only in their
+      // train_meta.json, written when a segment ended at the checkpoint's iteration.
+      absl::StatusOr<std::optional<train::FieldLrSchedule>> meta = train::ReadTrainMetaFieldLr(*out);
+      if (!meta.ok()) return Fail(2, meta.status());
+      own = meta->value_or(train::FieldLrSchedule{});  // else the spec's, the only one then
+    }
     if (own) {
       opt.field.hyper.lr_scale = own->scale;
       opt.field.hyper.lr_decay_steps = own->decay_iterations;
+    }
+  }
+  // A resumed run keeps its low-resolution stage too, unless told (checkpoint.json records it).
+  if (args->Has("resume") && !args->Has("low-res-iterations") &&
+      std::filesystem::exists(std::filesystem::path(*out) / "checkpoint.bin")) {
+    absl::StatusOr<std::optional<train::LowResStage>> recorded = train::ReadCheckpointLowResStage(*out);
+    if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
+    if (recorded.ok() && recorded->has_value()) {
+      opt.low_res = **recorded;
+      if (absl::Status s = train::CheckLowResStage(opt); !s.ok()) {
+        return Fail(2, absl::InvalidArgumentError(absl::StrCat(
+                           *out, " was trained with a low-resolution stage that does not fit these flags: ",
+                           s.message(), " (--low-res-iterations 0: none)")));
+      }
     }
   }
   for (const char* flag : {"field-lr-scale", "field-lr-decay-iterations", "field-time-resolution"}) {
@@ -351,7 +395,10 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     std::fprintf(stderr, "%s[%s] %lld/%lld  loss %.4f  psnr %.2f dB  %zu Gaussians  %.2f it/s  ETA %s%s%s",
                  tty ? "\r" : "", bar.c_str(), static_cast<long long>(p.iteration), static_cast<long long>(p.total),
                  p.loss, p.psnr, p.gaussians, p.it_per_s, Duration(p.eta_s).c_str(),
-                 p.eta_static_stage_only ? " (static stage; the fine stage is slower)" : "",
+                 p.low_res_scale > 0
+                     ? absl::StrCat(" (low-resolution stage at scale ", p.low_res_scale, ")").c_str()
+                 : p.eta_static_stage_only ? " (static stage; the fine stage is slower)"
+                                           : "",
                  tty ? "" : "\n");
     std::fflush(stderr);
   };

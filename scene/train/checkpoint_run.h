@@ -20,12 +20,20 @@ struct FieldLrSchedule {
   int decay_iterations = 30000;
 };
 
+// Low resolution first (resolution_schedule.h): iterations 1..iterations at resolution_scale,
+// the rest of the run at TrainOptions::resolution_scale.
+struct LowResStage {
+  double resolution_scale = 0.25;
+  int64_t iterations = 0;
+};
+
 struct CheckpointRun {
   int64_t iteration = 0;
   std::string field = "static";  // "static", "s3gaussian" or "extended"
   // A run with a field (its static warm-up included): the warm-up's length and the schedule.
   std::optional<int> static_iterations;
   std::optional<FieldLrSchedule> field_lr;
+  std::optional<LowResStage> low_res;  // a run's low-resolution stage
 };
 
 absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run);
@@ -39,5 +47,16 @@ absl::StatusOr<std::string> ReadCheckpointField(const std::string& dir);
 // spec's 1 and 30000) or the run is static; NotFound without the file; DataLoss where damaged or
 // out of range.
 absl::StatusOr<std::optional<FieldLrSchedule>> ReadCheckpointFieldLr(const std::string& dir);
+
+// The field's learning-rate schedule DIR/train_meta.json records, where that file was written at
+// the iteration of DIR/checkpoint.bin (a run segment that ended there): runs trained between
+// --field-lr-scale and checkpoint.json's record of it have it only there. nullopt where the file
+// is missing, from another iteration or without the schedule; DataLoss where damaged.
+absl::StatusOr<std::optional<FieldLrSchedule>> ReadTrainMetaFieldLr(const std::string& dir);
+
+// The low-resolution stage the file records (`low_res_scale`, `low_res_iterations`); nullopt
+// where the run has none or the file predates them; NotFound without the file; DataLoss where
+// damaged or out of range.
+absl::StatusOr<std::optional<LowResStage>> ReadCheckpointLowResStage(const std::string& dir);
 
 }  // namespace streetsim::train

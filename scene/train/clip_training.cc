@@ -4,6 +4,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
+#include "scene/train/resolution_schedule.h"
 #include "scene/field/extended/extended_io.h"
 #include "scene/field/field_io.h"
 #include "scene/log/scene_manifest.h"
@@ -35,8 +36,12 @@ absl::Status SamePlan(const ClipSet& on_disk, const ClipSet& planned, const std:
 
 }  // namespace
 
-absl::StatusOr<TrainResult> TrainClip(const DriveLog& log, const ClipRange& frames, const std::string& dir,
-                                      const TrainOptions& opt, const std::function<void(const Progress&)>& progress) {
+namespace {
+
+// One clip at one resolution (opt.resolution_scale); TrainClip runs it once per resolution stage.
+absl::StatusOr<TrainResult> TrainClipAtScale(const DriveLog& log, const ClipRange& frames, const std::string& dir,
+                                             const TrainOptions& opt,
+                                             const std::function<void(const Progress&)>& progress) {
   if (frames.first_frame < 0 || frames.end_frame > static_cast<int>(log.frames.size()) || frames.size() < 1) {
     return absl::InvalidArgumentError(absl::StrCat("clip frames [", frames.first_frame, ", ", frames.end_frame,
                                                    ") are not inside the log's ", log.frames.size()));
@@ -86,6 +91,16 @@ absl::StatusOr<TrainResult> TrainClip(const DriveLog& log, const ClipRange& fram
     if (absl::Status s = WriteSceneManifest(sub, name, (fs::path(dir) / "scene.json").string()); !s.ok()) return s;
   }
   return r;
+}
+
+}  // namespace
+
+absl::StatusOr<TrainResult> TrainClip(const DriveLog& log, const ClipRange& frames, const std::string& dir,
+                                      const TrainOptions& opt, const std::function<void(const Progress&)>& progress) {
+  return TrainInResolutionStages(
+      opt, dir, progress, [&](const TrainOptions& stage, const std::function<void(const Progress&)>& stage_progress) {
+        return TrainClipAtScale(log, frames, dir, stage, stage_progress);
+      });
 }
 
 absl::StatusOr<ClipTrainResult> TrainClips(const DriveLog& log, const std::string& out_dir, const TrainOptions& opt,

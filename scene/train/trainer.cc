@@ -23,6 +23,7 @@
 #include "scene/train/dynamic_pixels.h"
 #include "scene/train/gradient_guard.h"
 #include "scene/train/losses.h"
+#include "scene/train/resolution_schedule.h"
 #include "scene/train/train_outputs.h"
 
 namespace streetsim::train {
@@ -108,8 +109,11 @@ absl::StatusOr<GaussianStore> BuildTrainingInitialScene(const DriveLog& log, int
   return built;
 }
 
-absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_dir, const TrainOptions& opt,
-                                  const std::function<void(const Progress&)>& progress) {
+namespace {
+
+// Train at one resolution (opt.resolution_scale); Train runs it once per resolution stage.
+absl::StatusOr<TrainResult> TrainLogAtScale(const DriveLog& log, const std::string& out_dir, const TrainOptions& opt,
+                                            const std::function<void(const Progress&)>& progress) {
   if (opt.iterations < 1) return absl::InvalidArgumentError("iterations must be >= 1");
   if (absl::Status s = CheckFieldOptions(opt); !s.ok()) return s;
   DatasetOptions dopt;
@@ -147,6 +151,17 @@ absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_di
   }
   if (topt.lidar_log == nullptr) topt.lidar_log = &log;
   return TrainOnViews(*views, init ? &*init : nullptr, test, out_dir, topt, progress);
+}
+
+}  // namespace
+
+absl::StatusOr<TrainResult> Train(const DriveLog& log, const std::string& out_dir, const TrainOptions& opt,
+                                  const std::function<void(const Progress&)>& progress) {
+  return TrainInResolutionStages(
+      opt, out_dir, progress,
+      [&](const TrainOptions& stage, const std::function<void(const Progress&)>& stage_progress) {
+        return TrainLogAtScale(log, out_dir, stage, stage_progress);
+      });
 }
 
 absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, const GaussianStore* init,
@@ -257,6 +272,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       run.static_iterations = static_its;
       run.field_lr = FieldLrSchedule{opt.field.hyper.lr_scale, opt.field.hyper.lr_decay_steps};
     }
+    run.low_res = opt.low_res;
     return WriteCheckpointRun(out_dir, run);
   };
 
@@ -479,6 +495,10 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     nlohmann::json meta;
     meta["background"] = {opt.sky ? st.sky[0] : 0.0f, opt.sky ? st.sky[1] : 0.0f, opt.sky ? st.sky[2] : 0.0f};
     meta["resolution_scale"] = opt.resolution_scale;
+    if (opt.low_res) {  // provenance: the run's first iterations were at this scale
+      meta["low_res_scale"] = opt.low_res->resolution_scale;
+      meta["low_res_iterations"] = opt.low_res->iterations;
+    }
     meta["holdout_every"] = opt.holdout_every;
     meta["iterations"] = st.iteration;
     meta["gaussians"] = st.size();

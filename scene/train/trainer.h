@@ -24,6 +24,10 @@ namespace streetsim::train {
 struct TrainOptions {
   int iterations = 30000;
   double resolution_scale = 1.0;
+  // Low resolution first (LowResStage, checkpoint_run.h). Unset: the whole run at resolution_scale.
+  // Train and TrainClip only (TrainOnViews takes views
+  // of one resolution).
+  std::optional<LowResStage> low_res;
   int holdout_every = 4;
   uint64_t seed = 0;
   bool resume = false;        // continue from out_dir/checkpoint.bin when it exists
@@ -62,6 +66,8 @@ struct Progress {
   // The static stage of a staged run: eta_s is to its end only (the fine stage's rate is not
   // known before it starts).
   bool eta_static_stage_only = false;
+  // > 0: the run's low-resolution stage, at this scale; eta_s is to that stage's end at most.
+  double low_res_scale = 0;
 };
 
 struct FrameMetrics {

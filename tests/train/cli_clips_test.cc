@@ -244,6 +244,32 @@ TEST_F(CliClips, DefaultOverlapIsATenthOfAClip) {
   EXPECT_NE(rr.err.find("overlap 0"), std::string::npos) << rr.err;
 }
 
+// Low resolution first applies to each clip: its first iterations (here into its fine stage,
+// which starts from the previous clip's field) at the low scale, the rest at the run's.
+TEST_F(CliClips, EachClipTrainsLowResolutionFirst) {
+  const std::string log = ShortLog(12);
+  const std::string dir = (Scratch() / "set").string();
+  const Result r = RunCli("train --log " + log + " --out " + dir +
+                          " --iterations 5 --field s3gaussian --static-iterations 2 --field-size small"
+                          " --resolution-scale 0.12 --low-res-scale 0.06 --low-res-iterations 3"
+                          " --voxel 0.5 --seed 3 --no-lidar-loss --clip-frames 6");
+  ASSERT_EQ(r.code, 0) << r.err;
+  size_t stages = 0;
+  for (size_t at = 0; (at = r.err.find("low-resolution stage: iterations 1-3 at resolution scale 0.06", at)) !=
+                      std::string::npos;
+       ++at) {
+    ++stages;
+  }
+  EXPECT_EQ(stages, 2u) << r.err;
+  for (const char* c : {"clip_000", "clip_001"}) {
+    const nlohmann::json meta = nlohmann::json::parse(Slurp(dir + "/" + c + "/train_meta.json"));
+    EXPECT_EQ(meta["iterations"], 5) << c;
+    EXPECT_DOUBLE_EQ(meta["resolution_scale"].get<double>(), 0.12) << c;
+    EXPECT_EQ(meta["low_res_iterations"], 3) << c;
+    EXPECT_TRUE(fs::exists(fs::path(dir) / c / "field.bin")) << c;
+  }
+}
+
 TEST_F(CliClips, BadClipFramesExit2) {
   const std::string log = ShortLog(4);
   for (const char* v : {"-3", "1", "3", "x", "2.5"}) {

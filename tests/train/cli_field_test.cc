@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cstdlib>
 #include <filesystem>
+#include <functional>
 #include <fstream>
 #include <sstream>
 
@@ -238,8 +239,9 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
   EXPECT_DOUBLE_EQ(staged_run["field_lr_scale"].get<double>(), 2.5);  // for a resume that does not say
   EXPECT_EQ(staged_run["field_lr_decay_iterations"], 4000);
 
-  // A resume keeps the run's own learning-rate schedule: the one checkpoint.json records, the
-  // spec's for a fine stage from before the file recorded it, and refuses a damaged one.
+  // A resume keeps the run's own learning-rate schedule: the one checkpoint.json records; for a
+  // fine stage from before the file recorded it, the one train_meta.json records where a segment
+  // ended at the checkpoint's iteration, else the spec's; and refuses a damaged one.
   auto resume_to = [&](int iterations, const std::string& extra = "") {
     return RunCli("train --log " + kKitti + " --out " + staged_dir + " --resume --iterations " +
                   std::to_string(iterations) + " --static-iterations 6" + common + extra);
@@ -248,29 +250,44 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
     const nlohmann::json m = nlohmann::json::parse(Slurp(staged_dir + "/train_meta.json"));
     return std::make_pair(m["field_lr_scale"].get<double>(), m["field_lr_decay_iterations"].get<int>());
   };
+  auto edit_json = [&](const std::string& name, const std::function<void(nlohmann::json&)>& edit) {
+    nlohmann::json j = nlohmann::json::parse(Slurp(staged_dir + "/" + name));
+    edit(j);
+    std::ofstream(staged_dir + "/" + name, std::ios::trunc) << j.dump();
+  };
+  auto drop_lr = [](nlohmann::json& j) {
+    j.erase("field_lr_scale");
+    j.erase("field_lr_decay_iterations");
+  };
   r = resume_to(11);
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(meta_lr(), std::make_pair(2.5, 4000));
-  {
-    nlohmann::json old_run = nlohmann::json::parse(Slurp(staged_dir + "/checkpoint.json"));
-    old_run.erase("field_lr_scale");
-    old_run.erase("field_lr_decay_iterations");
-    std::ofstream(staged_dir + "/checkpoint.json", std::ios::trunc) << old_run.dump();
-  }
+  edit_json("checkpoint.json", drop_lr);  // a run from before the file recorded the schedule
   r = resume_to(12);
   ASSERT_EQ(r.code, 0) << r.err;
-  EXPECT_EQ(meta_lr(), std::make_pair(1.0, 30000));  // S3Gaussian's, which that run trained with
-  r = resume_to(13, " --field-lr-scale 4");            // an explicit value wins
+  EXPECT_EQ(meta_lr(), std::make_pair(2.5, 4000));  // train_meta.json's, written at the checkpoint's 11
+  edit_json("checkpoint.json", drop_lr);
+  edit_json("train_meta.json", [](nlohmann::json& j) { j["iterations"] = 11; });  // not this checkpoint's
+  r = resume_to(13);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(meta_lr(), std::make_pair(1.0, 30000));  // S3Gaussian's, the only schedule before the flag
+  edit_json("checkpoint.json", drop_lr);
+  edit_json("train_meta.json", drop_lr);
+  r = resume_to(14);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(meta_lr(), std::make_pair(1.0, 30000));
+  r = resume_to(15, " --field-lr-scale 4");  // an explicit value wins
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(meta_lr(), std::make_pair(4.0, 30000));
-  {
-    nlohmann::json bad = nlohmann::json::parse(Slurp(staged_dir + "/checkpoint.json"));
-    bad["field_lr_scale"] = -1;
-    std::ofstream(staged_dir + "/checkpoint.json", std::ios::trunc) << bad.dump();
-  }
-  r = resume_to(14);
+  edit_json("checkpoint.json", [](nlohmann::json& j) { j["field_lr_scale"] = -1; });
+  r = resume_to(16);
   EXPECT_EQ(r.code, 2) << r.err;
   EXPECT_NE(r.err.find("checkpoint.json"), std::string::npos) << r.err;
+  edit_json("checkpoint.json", drop_lr);
+  edit_json("train_meta.json", [](nlohmann::json& j) { j["field_lr_scale"] = "ten"; });
+  r = resume_to(16);
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_NE(r.err.find("train_meta.json"), std::string::npos) << r.err;
 
   // Resume without --field: the directory decides. The checkpoints here are headers only (magic +
   // iteration), so every resume then fails loading it; what is checked is the field picked first.

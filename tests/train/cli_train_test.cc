@@ -106,11 +106,78 @@ TEST(CliTrain, BadArgumentsExitTwoWithOneLine) {
        {std::string("train --out /tmp/x"), "train --log " + kKitti + " --out /tmp/x --iterations 0",
         "train --log " + kKitti + " --out /tmp/x --resolution-scale 2",
         "train --log " + kKitti + " --out /tmp/x --holdout-every -1", std::string("train --log /nonexistent --out /tmp/x"),
-        "eval --scene /nonexistent --log " + kKitti, "eval --scene /tmp --log " + kKitti + " --split bogus"}) {
+        "eval --scene /nonexistent --log " + kKitti, "eval --scene /tmp --log " + kKitti + " --split bogus",
+        // Low resolution first: both flags (or --low-res-iterations 0 alone), a scale below the
+        // run's, a stage shorter than the run.
+        "train --log " + kKitti + " --out /tmp/x --low-res-scale 0.25",
+        "train --log " + kKitti + " --out /tmp/x --low-res-iterations 5",
+        "train --log " + kKitti + " --out /tmp/x --low-res-scale 1 --low-res-iterations 5",
+        "train --log " + kKitti + " --out /tmp/x --resolution-scale 0.5 --low-res-scale 0.5 --low-res-iterations 5",
+        "train --log " + kKitti + " --out /tmp/x --low-res-scale nan --low-res-iterations 5",
+        "train --log " + kKitti + " --out /tmp/x --low-res-scale 0.25 --low-res-iterations -3",
+        "train --log " + kKitti + " --out /tmp/x --low-res-scale 0.25 --low-res-iterations 0",
+        "train --log " + kKitti + " --out /tmp/x --iterations 10 --low-res-scale 0.25 --low-res-iterations 10"}) {
     const Result r = RunCli(args);
     EXPECT_EQ(r.code, 2) << args << ": " << r.err;
     EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << args << ": " << r.err;
   }
+}
+
+// Low resolution first (docs/training.md "Low resolution first"): the first iterations at the low
+// scale, fine stage included, then the rest resumed at the run's; the outputs are the run's
+// resolution; a resume keeps the stage checkpoint.json records unless told otherwise.
+TEST(CliTrain, LowResolutionFirstThenTheRunsOwn) {
+  const std::string dir = streetsim::testing::ScratchDir("streetsim_cli_train_lowres", "run");
+  const std::string common = "train --log " + kKitti + " --out " + dir +
+                             " --holdout-every 10 --voxel 0.5 --seed 3 --field s3gaussian"
+                             " --field-size small --static-iterations 4 --checkpoint-every 0";
+  Result r = RunCli(common + " --resolution-scale 0.12 --iterations 10 --low-res-scale 0.06 --low-res-iterations 7");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("low-resolution stage: iterations 1-7 at resolution scale 0.06, then 8-10 at 0.12"),
+            std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("resumed from " + dir + "/checkpoint.bin at iteration 7"), std::string::npos) << r.err;
+  auto progress_line = [&](const std::string& it) {
+    const size_t at = r.err.find("] " + it + " ");
+    return at == std::string::npos ? std::string() : r.err.substr(at, r.err.find('\n', at) - at);
+  };
+  EXPECT_NE(progress_line("7/10").find("(low-resolution stage at scale 0.06)"), std::string::npos) << r.err;
+  EXPECT_EQ(progress_line("10/10").find("low-resolution"), std::string::npos) << r.err;
+  EXPECT_FALSE(progress_line("10/10").empty()) << r.err;
+  EXPECT_NE(r.err.find("held-out ("), std::string::npos) << r.err;
+  nlohmann::json meta = nlohmann::json::parse(std::ifstream(dir + "/train_meta.json"));
+  EXPECT_DOUBLE_EQ(meta["resolution_scale"].get<double>(), 0.12);
+  EXPECT_DOUBLE_EQ(meta["low_res_scale"].get<double>(), 0.06);
+  EXPECT_EQ(meta["low_res_iterations"], 7);
+  EXPECT_EQ(meta["field"], "s3gaussian");  // the field began at low resolution and carried on
+  EXPECT_TRUE(std::filesystem::exists(dir + "/field.bin"));
+  const nlohmann::json run = nlohmann::json::parse(std::ifstream(dir + "/checkpoint.json"));
+  EXPECT_DOUBLE_EQ(run["low_res_scale"].get<double>(), 0.06);
+  EXPECT_EQ(run["low_res_iterations"], 7);
+  // The previews (render | ground truth) are at the run's scale: 375 rows x 0.12.
+  int previews = 0;
+  for (const auto& e : std::filesystem::directory_iterator(dir + "/preview")) {
+    const cv::Mat p = cv::imread(e.path().string());
+    EXPECT_NEAR(p.rows, 45, 1) << e.path();
+    ++previews;
+  }
+  EXPECT_GT(previews, 0);
+
+  // A resume past the switch keeps the recorded stage (for the record) and trains at 0.12.
+  r = RunCli(common + " --resolution-scale 0.12 --iterations 12 --resume");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(r.err.find("low-resolution stage:"), std::string::npos) << r.err;
+  meta = nlohmann::json::parse(std::ifstream(dir + "/train_meta.json"));
+  EXPECT_EQ(meta["iterations"], 12);
+  EXPECT_EQ(meta["low_res_iterations"], 7);
+  // A recorded stage that does not fit the resumed run's flags is refused, with the way out.
+  r = RunCli(common + " --iterations 13 --resume --resolution-scale 0.05");
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_NE(r.err.find("--low-res-iterations 0"), std::string::npos) << r.err;
+  r = RunCli(common + " --iterations 13 --resume --resolution-scale 0.05 --low-res-iterations 0");
+  ASSERT_EQ(r.code, 0) << r.err;
+  meta = nlohmann::json::parse(std::ifstream(dir + "/train_meta.json"));
+  EXPECT_FALSE(meta.contains("low_res_scale")) << meta.dump();
+  EXPECT_DOUBLE_EQ(meta["resolution_scale"].get<double>(), 0.05);
 }
 
 }  // namespace
