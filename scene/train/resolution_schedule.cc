@@ -37,6 +37,7 @@ absl::StatusOr<TrainResult> TrainInResolutionStages(const TrainOptions& opt, con
     if (!it.ok()) return it.status();
     resumed_at = *it;
   }
+  double low_seconds = 0;
   if (resumed_at < low.iterations) {
     LOG(INFO) << "low-resolution stage: iterations " << resumed_at + 1 << "-" << low.iterations
               << " at resolution scale " << low.resolution_scale << ", then " << low.iterations + 1 << "-"
@@ -55,12 +56,20 @@ absl::StatusOr<TrainResult> TrainInResolutionStages(const TrainOptions& opt, con
     absl::StatusOr<TrainResult> r = train_at(stage, stage_progress);
     if (!r.ok()) return r.status();
     if (r->iterations < low.iterations || (opt.stop_after > 0 && r->iterations >= opt.stop_after)) return r;
+    low_seconds = r->seconds;
     LOG(INFO) << "iteration " << r->iterations << ": low-resolution stage done (" << r->gaussians << " Gaussians, "
               << r->seconds << " s); resolution scale " << opt.resolution_scale << " from here";
   }
   TrainOptions rest = opt;
   rest.resume = true;
-  return train_at(rest, progress);
+  absl::StatusOr<TrainResult> r = train_at(rest, progress);
+  // The run's time is both stages' (a resume counts from its own start, as a one-stage one does).
+  if (r.ok() && low_seconds > 0) {
+    r->seconds += low_seconds;
+    // Time to 24 dB counts views at the run's resolution only (the low stage's are easier to fit).
+    if (r->seconds_to_psnr24 >= 0) r->seconds_to_psnr24 += low_seconds;
+  }
+  return r;
 }
 
 }  // namespace streetsim::train

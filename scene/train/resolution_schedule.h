@@ -34,7 +34,8 @@ using TrainAtScale = std::function<absl::StatusOr<TrainResult>(const TrainOption
 // Without options.low_res: train_at(options). With it: the low-resolution stage (iterations up to
 // low_res->iterations at low_res->resolution_scale, no outputs but its checkpoint) unless out_dir's
 // checkpoint is already at or past its end, then the rest of the run resumed from that checkpoint
-// at options.resolution_scale. Progress reports count against the whole run. A stage that stops
+// at options.resolution_scale. Progress reports count against the whole run, and so does the
+// result's seconds (seconds_to_psnr24: views at the run's resolution only). A stage that stops
 // early (cancelled, failed, TrainOptions::stop_after) ends the run there.
 absl::StatusOr<TrainResult> TrainInResolutionStages(const TrainOptions& options, const std::string& out_dir,
                                                     const std::function<void(const Progress&)>& progress,

@@ -55,6 +55,8 @@ class ResolutionStages : public ::testing::Test {
           }
           TrainResult r;
           r.iterations = end;
+          r.seconds = stage.resolution_scale < 1 ? 1.5 : 2.0;
+          r.seconds_to_psnr24 = stage.resolution_scale < 1 ? 0.5 : 1.0;
           return r;
         });
   }
@@ -68,6 +70,8 @@ TEST_F(ResolutionStages, AFreshRunTrainsLowThenResumesAtItsOwnScale) {
   absl::StatusOr<TrainResult> r = Run();
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_EQ(r->iterations, 100);
+  EXPECT_DOUBLE_EQ(r->seconds, 3.5);  // both stages' time
+  EXPECT_DOUBLE_EQ(r->seconds_to_psnr24, 2.5);  // reached at the run's resolution, 1.0 s into it
   ASSERT_EQ(calls_.size(), 2u);
   EXPECT_DOUBLE_EQ(calls_[0].scale, 0.25);
   EXPECT_EQ(calls_[0].iterations, 40);
