@@ -16,8 +16,8 @@
 #include "scene/log/scene_manifest.h"
 #include "scene/train/clip_training.h"
 #include "scene/train/dynamic_stage.h"
-#include "scene/train/train_state.h"
 #include "scene/train/resolution_schedule.h"
+#include "scene/train/train_state.h"
 #include "scene/train/trainer.h"
 
 namespace streetsim {
