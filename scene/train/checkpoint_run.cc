@@ -2,6 +2,7 @@
 
 #include <filesystem>
 #include <fstream>
+#include <functional>
 
 #include <nlohmann/json.hpp>
 
@@ -27,86 +28,82 @@ absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run
   return checked_file::WriteAtomically((std::filesystem::path(dir) / kCheckpointRunFile).string(), j.dump(2) + "\n");
 }
 
-absl::StatusOr<std::string> ReadCheckpointField(const std::string& dir) {
-  const std::string path = (std::filesystem::path(dir) / kCheckpointRunFile).string();
+namespace {
+
+// `parse` applied to the JSON in `path`: NotFound without the file, DataLoss naming it where it is
+// not JSON or a value has the wrong type (nlohmann throws; nothing is thrown past here).
+template <typename T>
+absl::StatusOr<T> ParseJsonFile(const std::string& path,
+                                const std::function<absl::StatusOr<T>(const nlohmann::json&)>& parse) {
   std::ifstream f(path);
   if (!f) return absl::NotFoundError(absl::StrCat("no ", path));
   try {
-    const std::string field = nlohmann::json::parse(f).at("field").get<std::string>();
+    return parse(nlohmann::json::parse(f));
+  } catch (const std::exception& e) {
+    return absl::DataLossError(absl::StrCat(path, ": ", e.what()));
+  }
+}
+
+std::string RunFile(const std::string& dir) { return (std::filesystem::path(dir) / kCheckpointRunFile).string(); }
+
+// The schedule `j` records (nullopt: neither key); throws where a key is missing or mistyped.
+absl::StatusOr<std::optional<FieldLrSchedule>> LrScheduleIn(const nlohmann::json& j, const std::string& path) {
+  if (!j.contains("field_lr_scale") && !j.contains("field_lr_decay_iterations")) return std::nullopt;
+  FieldLrSchedule lr;
+  lr.scale = j.at("field_lr_scale").get<double>();
+  lr.decay_iterations = j.at("field_lr_decay_iterations").get<int>();
+  if (!(lr.scale > 0 && lr.scale <= 1000) || lr.decay_iterations < 1) {
+    return absl::DataLossError(absl::StrCat(path, ": field learning-rate schedule out of range"));
+  }
+  return std::optional<FieldLrSchedule>(lr);
+}
+
+}  // namespace
+
+absl::StatusOr<std::string> ReadCheckpointField(const std::string& dir) {
+  const std::string path = RunFile(dir);
+  return ParseJsonFile<std::string>(path, [&](const nlohmann::json& j) -> absl::StatusOr<std::string> {
+    const std::string field = j.at("field").get<std::string>();
     if (field != "static" && field != "s3gaussian" && field != "extended") {
       return absl::DataLossError(absl::StrCat(path, ": unknown field '", field, "'"));
     }
     return field;
-  } catch (const std::exception& e) {
-    return absl::DataLossError(absl::StrCat(path, ": ", e.what()));
-  }
+  });
 }
 
 absl::StatusOr<std::optional<FieldLrSchedule>> ReadCheckpointFieldLr(const std::string& dir) {
-  const std::string path = (std::filesystem::path(dir) / kCheckpointRunFile).string();
-  std::ifstream f(path);
-  if (!f) return absl::NotFoundError(absl::StrCat("no ", path));
-  try {
-    const nlohmann::json j = nlohmann::json::parse(f);
-    if (!j.contains("field_lr_scale") && !j.contains("field_lr_decay_iterations")) {
-      return std::optional<FieldLrSchedule>();
-    }
-    FieldLrSchedule lr;
-    lr.scale = j.at("field_lr_scale").get<double>();
-    lr.decay_iterations = j.at("field_lr_decay_iterations").get<int>();
-    if (!(lr.scale > 0 && lr.scale <= 1000) || lr.decay_iterations < 1) {
-      return absl::DataLossError(absl::StrCat(path, ": field learning-rate schedule out of range"));
-    }
-    return std::optional<FieldLrSchedule>(lr);
-  } catch (const std::exception& e) {
-    return absl::DataLossError(absl::StrCat(path, ": ", e.what()));
-  }
+  const std::string path = RunFile(dir);
+  return ParseJsonFile<std::optional<FieldLrSchedule>>(path, [&](const nlohmann::json& j) { return LrScheduleIn(j, path); });
 }
 
 absl::StatusOr<std::optional<LowResStage>> ReadCheckpointLowResStage(const std::string& dir) {
-  const std::string path = (std::filesystem::path(dir) / kCheckpointRunFile).string();
-  std::ifstream f(path);
-  if (!f) return absl::NotFoundError(absl::StrCat("no ", path));
-  try {
-    const nlohmann::json j = nlohmann::json::parse(f);
-    if (!j.contains("low_res_scale") && !j.contains("low_res_iterations")) {
-      return std::optional<LowResStage>();
-    }
-    LowResStage c;
-    c.resolution_scale = j.at("low_res_scale").get<double>();
-    c.iterations = j.at("low_res_iterations").get<int64_t>();
-    if (!(c.resolution_scale > 0 && c.resolution_scale <= 1) || c.iterations < 1) {
-      return absl::DataLossError(absl::StrCat(path, ": low-resolution stage out of range"));
-    }
-    return std::optional<LowResStage>(c);
-  } catch (const std::exception& e) {
-    return absl::DataLossError(absl::StrCat(path, ": ", e.what()));
-  }
+  const std::string path = RunFile(dir);
+  return ParseJsonFile<std::optional<LowResStage>>(
+      path, [&](const nlohmann::json& j) -> absl::StatusOr<std::optional<LowResStage>> {
+        if (!j.contains("low_res_scale") && !j.contains("low_res_iterations")) return std::nullopt;
+        LowResStage low;
+        low.resolution_scale = j.at("low_res_scale").get<double>();
+        low.iterations = j.at("low_res_iterations").get<int64_t>();
+        if (!(low.resolution_scale > 0 && low.resolution_scale <= 1) || low.iterations < 1) {
+          return absl::DataLossError(absl::StrCat(path, ": low-resolution stage out of range"));
+        }
+        return std::optional<LowResStage>(low);
+      });
 }
 
 absl::StatusOr<std::optional<FieldLrSchedule>> ReadTrainMetaFieldLr(const std::string& dir) {
   const std::filesystem::path d(dir);
-  const std::string path = (d / "train_meta.json").string();
-  std::ifstream f(path);
-  if (!f) return std::optional<FieldLrSchedule>();
   absl::StatusOr<int64_t> at = PeekCheckpointIteration((d / "checkpoint.bin").string());
-  if (!at.ok()) return std::optional<FieldLrSchedule>();
-  try {
-    const nlohmann::json j = nlohmann::json::parse(f);
-    if (!j.contains("iterations") || j.at("iterations").get<int64_t>() != *at || !j.contains("field_lr_scale") ||
-        !j.contains("field_lr_decay_iterations")) {
-      return std::optional<FieldLrSchedule>();
-    }
-    FieldLrSchedule lr;
-    lr.scale = j.at("field_lr_scale").get<double>();
-    lr.decay_iterations = j.at("field_lr_decay_iterations").get<int>();
-    if (!(lr.scale > 0 && lr.scale <= 1000) || lr.decay_iterations < 1) {
-      return absl::DataLossError(absl::StrCat(path, ": field learning-rate schedule out of range"));
-    }
-    return std::optional<FieldLrSchedule>(lr);
-  } catch (const std::exception& e) {
-    return absl::DataLossError(absl::StrCat(path, ": ", e.what()));
-  }
+  if (!at.ok()) return std::nullopt;
+  const std::string path = (d / "train_meta.json").string();
+  absl::StatusOr<std::optional<FieldLrSchedule>> lr = ParseJsonFile<std::optional<FieldLrSchedule>>(
+      path, [&](const nlohmann::json& j) -> absl::StatusOr<std::optional<FieldLrSchedule>> {
+        // Another iteration's file describes another segment, whose schedule may differ.
+        if (!j.contains("iterations") || j.at("iterations").get<int64_t>() != *at) return std::nullopt;
+        return LrScheduleIn(j, path);
+      });
+  if (absl::IsNotFound(lr.status())) return std::nullopt;
+  return lr;
 }
 
 }  // namespace streetsim::train
