@@ -282,11 +282,13 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     return Fail(2, absl::InvalidArgumentError(
                        absl::StrCat("--field-lr-decay-iterations must be an integer in 1..10000000, not '", *v, "'")));
   }
-  // A resumed run keeps its own schedule unless told otherwise: the one its checkpoint.json
-  // records, else the spec's where a fine stage began before the file recorded it (its field
-  // trained at those rates); a run still in its static warm-up takes the default.
-  if (args->Has("resume") && opt.field.mode != train::FieldMode::kStatic && !args->Has("field-lr-scale") &&
-      !args->Has("field-lr-decay-iterations") && std::filesystem::exists(std::filesystem::path(*out) / "checkpoint.bin")) {
+  // A resumed run keeps its own schedule unless told otherwise, value by value (annealing a run is
+  // `--resume --field-lr-decay-iterations N` alone, which must not also reset its scale): the one
+  // its checkpoint.json records, else the spec's where a fine stage began before the file recorded
+  // it (its field trained at those rates); a run still in its static warm-up takes the default.
+  if (args->Has("resume") && opt.field.mode != train::FieldMode::kStatic &&
+      !(args->Has("field-lr-scale") && args->Has("field-lr-decay-iterations")) &&
+      std::filesystem::exists(std::filesystem::path(*out) / "checkpoint.bin")) {
     absl::StatusOr<std::optional<train::FieldLrSchedule>> recorded = train::ReadCheckpointFieldLr(*out);
     if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
     const train::FieldCheckpointsFound found = train::FindFieldCheckpoints(*out);
@@ -299,8 +301,8 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
       own = meta->value_or(train::FieldLrSchedule{});  // else the spec's, the only one then
     }
     if (own) {
-      opt.field.hyper.lr_scale = own->scale;
-      opt.field.hyper.lr_decay_steps = own->decay_iterations;
+      if (!args->Has("field-lr-scale")) opt.field.hyper.lr_scale = own->scale;
+      if (!args->Has("field-lr-decay-iterations")) opt.field.hyper.lr_decay_steps = own->decay_iterations;
     }
   }
   // A resumed run keeps its low-resolution stage too, unless told (checkpoint.json records it).

@@ -276,16 +276,22 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
   r = resume_to(14);
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(meta_lr(), std::make_pair(1.0, 30000));
-  r = resume_to(15, " --field-lr-scale 4");  // an explicit value wins
+  r = resume_to(15, " --field-lr-scale 4");  // an explicit value wins, the other stays the run's
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(meta_lr(), std::make_pair(4.0, 30000));
+  r = resume_to(16, " --field-lr-decay-iterations 700");  // annealing keeps the run's scale
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(meta_lr(), std::make_pair(4.0, 700));
+  r = resume_to(17);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(meta_lr(), std::make_pair(4.0, 700));
   edit_json("checkpoint.json", [](nlohmann::json& j) { j["field_lr_scale"] = -1; });
-  r = resume_to(16);
+  r = resume_to(18);
   EXPECT_EQ(r.code, 2) << r.err;
   EXPECT_NE(r.err.find("checkpoint.json"), std::string::npos) << r.err;
   edit_json("checkpoint.json", drop_lr);
   edit_json("train_meta.json", [](nlohmann::json& j) { j["field_lr_scale"] = "ten"; });
-  r = resume_to(16);
+  r = resume_to(18);
   EXPECT_EQ(r.code, 2) << r.err;
   EXPECT_NE(r.err.find("train_meta.json"), std::string::npos) << r.err;
 
