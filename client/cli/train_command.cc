@@ -126,25 +126,24 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   }
   // Low resolution first (docs/training.md "Low resolution first"): the first N iterations at scale S.
   // `--low-res-iterations 0` alone: none (a resume otherwise keeps the one checkpoint.json records).
-  const bool no_low_res = !args->Has("low-res-scale") && args->Get("low-res-iterations") == std::optional<std::string>("0");
+  const bool no_low_res =
+      !args->Has("low-res-scale") && args->Get("low-res-iterations") == std::optional<std::string>("0");
   if (!no_low_res && args->Has("low-res-scale") != args->Has("low-res-iterations")) {
     return Fail(2, absl::InvalidArgumentError(
                        "--low-res-scale and --low-res-iterations go together (--low-res-iterations 0 alone: none)"));
   }
   if (auto v = args->Get("low-res-scale")) {
     train::LowResStage low;
-    if (!absl::SimpleAtod(*v, &low.resolution_scale) ||
-        !(low.resolution_scale > 0 && low.resolution_scale < opt.resolution_scale)) {
-      return Fail(2, absl::InvalidArgumentError(absl::StrCat("--low-res-scale must be above 0 and below "
-                                                             "--resolution-scale (", opt.resolution_scale,
-                                                             "), not '", *v, "'")));
-    }
     const std::string n = args->Get("low-res-iterations").value_or("");
-    if (!absl::SimpleAtoi(n, &low.iterations) || low.iterations < 1 || low.iterations >= opt.iterations) {
-      return Fail(2, absl::InvalidArgumentError(absl::StrCat("--low-res-iterations must be in 1..", opt.iterations - 1,
-                                                             " (fewer than --iterations), not '", n, "'")));
+    if (!absl::SimpleAtod(*v, &low.resolution_scale) || !absl::SimpleAtoi(n, &low.iterations)) {
+      return Fail(2, absl::InvalidArgumentError(absl::StrCat("--low-res-scale and --low-res-iterations take a number "
+                                                             "and an integer, not '", *v, "' and '", n, "'")));
     }
     opt.low_res = low;
+    // The stage's range rules are the trainer's (a scale below the run's, fewer iterations).
+    if (absl::Status s = train::CheckLowResStage(opt); !s.ok()) {
+      return Fail(2, absl::InvalidArgumentError(absl::StrCat("--low-res-scale / --low-res-iterations: ", s.message())));
+    }
   }
   if (auto v = args->Get("holdout-every"); v && (!absl::SimpleAtoi(*v, &opt.holdout_every) || opt.holdout_every < 0 ||
                                                  opt.holdout_every == 1)) {

@@ -25,8 +25,7 @@ struct TrainOptions {
   int iterations = 30000;
   double resolution_scale = 1.0;
   // Low resolution first (LowResStage, checkpoint_run.h). Unset: the whole run at resolution_scale.
-  // Train and TrainClip only (TrainOnViews takes views
-  // of one resolution).
+  // Train and TrainClip only (TrainOnViews takes views of one resolution).
   std::optional<LowResStage> low_res;
   int holdout_every = 4;
   uint64_t seed = 0;
