@@ -178,6 +178,14 @@ TEST(CliTrain, LowResolutionFirstThenTheRunsOwn) {
   meta = nlohmann::json::parse(std::ifstream(dir + "/train_meta.json"));
   EXPECT_FALSE(meta.contains("low_res_scale")) << meta.dump();
   EXPECT_DOUBLE_EQ(meta["resolution_scale"].get<double>(), 0.05);
+  // A damaged record is refused, naming the file.
+  nlohmann::json damaged = nlohmann::json::parse(std::ifstream(dir + "/checkpoint.json"));
+  damaged["low_res_scale"] = -1;
+  damaged["low_res_iterations"] = 7;
+  std::ofstream(dir + "/checkpoint.json", std::ios::trunc) << damaged.dump();
+  r = RunCli(common + " --resolution-scale 0.05 --iterations 14 --resume");
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_NE(r.err.find("checkpoint.json: low-resolution stage out of range"), std::string::npos) << r.err;
 }
 
 }  // namespace
