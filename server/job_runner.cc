@@ -23,6 +23,7 @@
 #include "render/common/log.h"
 #include "server/path_confinement.h"
 #include "server/scene_manifest.h"
+#include "server/training_config.h"
 
 extern char** environ;
 
@@ -51,6 +52,22 @@ uint64_t PlyVertexCount(const std::string& path) {
     if (line.rfind("end_header", 0) == 0) break;
   }
   return 0;
+}
+
+// A clip set (docs/training.md "Clips") is its clips' scenes; WORK/scene.ply is then init's.
+uint64_t TrainedGaussianCount(const std::string& work) {
+  if (!fs::exists(work + "/clips.json")) return PlyVertexCount(work + "/scene.ply");
+  uint64_t n = 0;
+  std::error_code ec;
+  for (fs::directory_iterator it(work, ec), end; !ec && it != end; it.increment(ec)) {
+    if (it->path().filename().string().rfind("clip_", 0) == 0) n += PlyVertexCount((it->path() / "scene.ply").string());
+  }
+  return n;
+}
+
+// The trainer checkpoints in WORK, or in WORK/clip_KKK for a clip set; either one resumes.
+bool HasTrainerCheckpoint(const std::string& work) {
+  return fs::exists(work + "/checkpoint.bin") || fs::exists(work + "/clips.json");
 }
 
 std::string StreetsimNextToThisBinary() {
@@ -223,7 +240,7 @@ absl::StatusOr<v1::Job> JobRunner::Create(const v1::CreateTrainingJobRequest& re
   }
   absl::StatusOr<std::string> log = ResolveUnderRoot(options_.data_root, req.log_path());
   if (!log.ok()) return absl::Status(log.status().code(), absl::StrCat("log_path: ", log.status().message()));
-  if (req.config().max_iterations() < 0) return absl::InvalidArgumentError("config.max_iterations must be >= 0");
+  if (absl::Status s = ValidateTrainingConfig(req.config()); !s.ok()) return s;
   if (store_->size() >= deps_->limits.max_jobs) {
     return absl::ResourceExhaustedError(absl::StrCat("job limit reached (", deps_->limits.max_jobs, ")"));
   }
@@ -478,9 +495,12 @@ void JobRunner::RunJob(const std::string& id) {
     if (!log.ok()) return fail(log.status());
     std::vector<std::string> argv = options_.train_command;
     argv.insert(argv.end(), {"--log", *log, "--out", work, "--iterations", std::to_string(job.config().max_iterations())});
-    if (job.config().seed() != 0) argv.insert(argv.end(), {"--seed", std::to_string(job.config().seed())});
-    if (fs::exists(work + "/checkpoint.bin")) argv.push_back("--resume");
+    const std::vector<std::string> flags = TrainFlags(job.config());
+    argv.insert(argv.end(), flags.begin(), flags.end());
+    if (HasTrainerCheckpoint(work)) argv.push_back("--resume");
+    std::string trainer_message;  // its last "streetsim train: ..." line: why it failed, if it does
     auto on_line = [&](const std::string& line) {
+      if (line.rfind("streetsim train: ", 0) == 0) trainer_message = line.substr(17, 512);
       TrainProgressLine t;
       if (!ParseTrainProgressLine(line, &t)) return false;
       p->set_iteration(t.iteration);
@@ -497,13 +517,14 @@ void JobRunner::RunJob(const std::string& id) {
     absl::StatusOr<int> code = RunChild(id, argv, store_->JobDir(id) + "/train.log", &job, on_line);
     if (!code.ok()) return fail(code.status());
     if (*code != 0) {
-      return fail(absl::InternalError(absl::StrCat("train stage exited with code ", *code, " (see ",
+      return fail(absl::InternalError(absl::StrCat("train stage exited with code ", *code,
+                                                   trainer_message.empty() ? "" : ": ", trainer_message, " (see ",
                                                    store_->JobDir(id), "/train.log)")));
     }
     if (!fs::exists(work + "/scene.ply")) return fail(absl::InternalError("train stage left no scene.ply"));
     p->set_stage_index(2);
     p->set_fraction(kTrainDoneFraction);
-    p->set_num_gaussians(PlyVertexCount(work + "/scene.ply"));
+    p->set_num_gaussians(TrainedGaussianCount(work));
     p->set_preview_png(FirstPreviewPng(work));
     (void)store_->Put(job);
   }

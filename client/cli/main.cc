@@ -37,6 +37,8 @@ constexpr char kUsage[] =
                "              [--field-device auto|cpu|vulkan] [--static-motion-m M] [--static-sh S] ...\n"
                "  scenes    list a server's scenes: streetsim scenes --server HOST:PORT\n"
                "  jobs      training jobs on a server: streetsim jobs list|train|watch|get|cancel ...\n"
+               "              (jobs train LOG --max-iterations N takes train's flags for the run: --field,\n"
+               "               --static-iterations, --resolution-scale, --low-res-*, --clip-*, --field-lr-* ...)\n"
                "  replay    scripted replay through a server: streetsim replay SCENARIO.json\n"
                "  train     scene training (docs/training.md): streetsim train --log PATH --out DIR\n"
                "              [--iterations N] [--resolution-scale S] [--holdout-every K] [--seed K] [--resume]\n"

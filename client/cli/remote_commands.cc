@@ -183,9 +183,59 @@ int RunScenesCommand(const std::vector<std::string>& argv) {
   return 0;
 }
 
+// `jobs train`'s training flags, spelled as `streetsim train`'s, into the job's config. Only the
+// syntax is checked here; the server checks the values (ValidateTrainingConfig) and says what is
+// wrong with them.
+static absl::Status TrainingConfigFromFlags(const ParsedArgs& args, v1::TrainingConfig* c) {
+  auto integer = [&](const char* flag, auto set) -> absl::Status {
+    if (auto v = args.Get(flag)) {
+      int64_t n = 0;
+      if (!absl::SimpleAtoi(*v, &n) || n < INT32_MIN || n > INT32_MAX) {
+        return absl::InvalidArgumentError(absl::StrCat("--", flag, " takes an integer, not '", *v, "'"));
+      }
+      set(static_cast<int32_t>(n));
+    }
+    return absl::OkStatus();
+  };
+  auto number = [&](const char* flag, auto set) -> absl::Status {
+    if (auto v = args.Get(flag)) {
+      double x = 0;
+      if (!absl::SimpleAtod(*v, &x)) return absl::InvalidArgumentError(absl::StrCat("--", flag, " takes a number, not '", *v, "'"));
+      set(x);
+    }
+    return absl::OkStatus();
+  };
+  if (auto v = args.Get("seed")) {
+    uint64_t seed = 0;
+    if (!absl::SimpleAtoi(*v, &seed)) return absl::InvalidArgumentError(absl::StrCat("--seed takes an integer >= 0, not '", *v, "'"));
+    c->set_seed(seed);
+  }
+  if (auto v = args.Get("field")) c->set_field(*v);
+  if (auto v = args.Get("field-modules")) c->set_field_modules(*v);
+  if (auto v = args.Get("backend")) c->set_backend(*v);
+  for (absl::Status s : {
+           integer("static-iterations", [&](int32_t n) { c->set_static_iterations(n); }),
+           integer("low-res-iterations", [&](int32_t n) { c->set_low_res_iterations(n); }),
+           integer("holdout-every", [&](int32_t n) { c->set_holdout_every(n); }),
+           integer("clip-frames", [&](int32_t n) { c->set_clip_frames(n); }),
+           integer("clip-overlap", [&](int32_t n) { c->set_clip_overlap(n); }),
+           integer("field-lr-decay-iterations", [&](int32_t n) { c->set_field_lr_decay_iterations(n); }),
+           number("resolution-scale", [&](double x) { c->set_resolution_scale(x); }),
+           number("low-res-scale", [&](double x) { c->set_low_res_scale(x); }),
+           number("field-lr-scale", [&](double x) { c->set_field_lr_scale(x); }),
+       }) {
+    if (!s.ok()) return s;
+  }
+  return absl::OkStatus();
+}
+
 int RunJobsCommand(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args =
-      ParsedArgs::Parse(argv, WithConnection({{"scene-name"}, {"request-id"}, {"watch", false}, {"max-iterations"}}));
+      ParsedArgs::Parse(argv, WithConnection({{"scene-name"}, {"request-id"}, {"watch", false}, {"max-iterations"},
+                                              {"seed"}, {"field"}, {"field-modules"}, {"static-iterations"},
+                                              {"resolution-scale"}, {"low-res-scale"}, {"low-res-iterations"},
+                                              {"holdout-every"}, {"clip-frames"}, {"clip-overlap"}, {"field-lr-scale"},
+                                              {"field-lr-decay-iterations"}, {"backend"}}));
   if (!args.ok()) return Fail("jobs", 2, args.status());
   const std::vector<std::string>& pos = args->positional();
   const std::string verb = pos.empty() ? "list" : pos[0];
@@ -214,6 +264,7 @@ int RunJobsCommand(const std::vector<std::string>& argv) {
       if (!absl::SimpleAtoi(*it, &n) || n < 0) return Fail("jobs", 2, absl::InvalidArgumentError("--max-iterations takes an integer >= 0"));
       req.mutable_config()->set_max_iterations(n);
     }
+    if (absl::Status s = TrainingConfigFromFlags(*args, req.mutable_config()); !s.ok()) return Fail("jobs", 2, s);
     absl::StatusOr<v1::Job> job = (*c)->CreateTrainingJob(req);
     if (!job.ok()) return Fail("jobs", CodeFor(job.status()), job.status());
     PrintJob(*job);
@@ -227,7 +278,10 @@ int RunJobsCommand(const std::vector<std::string>& argv) {
     return 0;
   }
   return Fail("jobs", 2, absl::InvalidArgumentError(
-      "usage: streetsim jobs [list | train LOG_PATH [--scene-name N] [--request-id R] [--watch] | watch ID | "
+      "usage: streetsim jobs [list | train LOG_PATH [--scene-name N] [--request-id R] [--max-iterations N] "
+      "[streetsim train's --seed --field --field-modules --static-iterations --resolution-scale --low-res-scale "
+      "--low-res-iterations --holdout-every --clip-frames --clip-overlap --field-lr-scale --field-lr-decay-iterations "
+      "--backend] [--watch] | watch ID | "
       "get ID | cancel ID] [--server HOST:PORT]"));
 }
 

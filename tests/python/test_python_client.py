@@ -205,6 +205,22 @@ class PythonClientTest(unittest.TestCase):
             self.client.train("../outside", scene_name="x")
         self.assertEqual(e.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
 
+    def test_training_options(self):
+        # Options are TrainingConfig's fields; the server checks their values before a job exists.
+        job = self.client.train("logs/fake", scene_name="py_options", max_iterations=0)
+        self.assertEqual(job.config.max_iterations, 0)
+        with self.assertRaises(ValueError):
+            self.client.train("logs/fake", scene_name="py_bad", max_iterations=100, low_res_scael=0.25)
+        with self.assertRaises(streetsim.StreetsimError) as e:
+            self.client.train("logs/fake", scene_name="py_bad", max_iterations=100, low_res_scale=0.25)
+        self.assertEqual(e.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
+        self.assertIn("low_res_iterations", e.exception.details)
+        with self.assertRaises(streetsim.StreetsimError) as e:
+            self.client.train("logs/fake", scene_name="py_bad", max_iterations=100, field="dynamic")
+        self.assertIn("config.field", e.exception.details)
+        job = self.client.train("logs/fake", scene_name="py_static", max_iterations=0, request_id="py-opt")
+        self.assertEqual(job.config.scene_name, "py_static")
+
 
 if __name__ == "__main__":
     unittest.main()

@@ -299,9 +299,38 @@ TEST_F(CliServerTest, JobsTrainWatchListGet) {
     EXPECT_TRUE(Contains(r.out, "failed")) << r.out;
     EXPECT_TRUE(Contains(r.out, "train stage exited with code 2")) << r.out;
     EXPECT_TRUE(fs::exists(state_dir_ + "/jobs/" + r.out.substr(0, r.out.find(' ')) + "/train.log")) << r.out;
+    // The trainer's own reason is in the job's error.
+    EXPECT_TRUE(Contains(r.out, "not a recognised log")) << r.out;
   } else {
     EXPECT_EQ(r.exit_code, 0) << r.out << r.err;
   }
+  EXPECT_EQ(serve_->Terminate(), 0) << serve_->stderr_text();
+}
+
+// Every training option of a job reaches the real `streetsim train` as a flag it accepts: with all
+// of them set, the trainer gets past its flags and stops only at the fake log.
+TEST_F(CliServerTest, JobsTrainPassesTheConfigToTheTrainer) {
+  if (!Contains(Exec("--help").err + Exec("--help").out, "\n  train ")) GTEST_SKIP() << "no `streetsim train`";
+  StartServe();
+  const std::string options =
+      " --max-iterations 12000 --seed 3 --field extended --field-modules temporal,decoder --static-iterations 4000"
+      " --resolution-scale 0.5 --low-res-scale 0.25 --low-res-iterations 3000 --holdout-every 0 --clip-frames 50"
+      " --clip-overlap 0 --field-lr-scale 2.5 --field-lr-decay-iterations 6000 --backend cpu";
+  Result r = Exec("jobs train logs/fake --scene-name all_options --watch" + options + Server());
+  EXPECT_EQ(r.exit_code, 1) << r.out << r.err;
+  EXPECT_TRUE(Contains(r.out, "train stage exited with code 2: ")) << r.out;
+  EXPECT_TRUE(Contains(r.out, "not a recognised log")) << r.out;
+  const std::string id = r.out.substr(0, r.out.find(' '));
+  const std::string log = ReadAll(state_dir_ + "/jobs/" + id + "/train.log");
+  EXPECT_EQ(Lines(log), 1) << log;  // the log's complaint only: no flag was refused
+  // Values the trainer would refuse are refused by the server before a job exists.
+  ExpectRefused("jobs train logs/fake --max-iterations 100 --field dynamic" + Server(), 2, "config.field must be");
+  ExpectRefused("jobs train logs/fake --max-iterations 100 --low-res-scale 0.5 --low-res-iterations 200" + Server(), 2,
+                "config.low_res_scale / low_res_iterations");
+  ExpectRefused("jobs train logs/fake --max-iterations 100 --static-iterations many" + Server(), 2,
+                "--static-iterations takes an integer");
+  r = Exec("jobs list" + Server());
+  EXPECT_EQ(Lines(r.out), 1) << r.out;
   EXPECT_EQ(serve_->Terminate(), 0) << serve_->stderr_text();
 }
 

@@ -1,12 +1,13 @@
 #!/bin/sh
-# Test double of `streetsim train --log LOG --out DIR --iterations N [--resume]` for the
-# training-job tests. Prints the trainer's progress lines on stderr, one per iteration, keeps a
+# Test double of `streetsim train --log LOG --out DIR --iterations N [--resume] [config flags]` for
+# the training-job tests. The config's flags (server/training_config.cc) are appended, one line per
+# run, to DIR/flags. Prints the trainer's progress lines on stderr, one per iteration, keeps a
 # "checkpoint" (DIR/checkpoint.bin = last iteration, replaced by rename) and on --resume continues from it (noted in
 # DIR/resumed). LOG/train_sleep_s: pause per iteration; LOG/train_fail: exit 5; LOG/preview.png:
 # copied to DIR/preview/ (as the trainer's held-out previews). Leaves
 # DIR/scene.ply (from init) as it is and writes DIR/trained.
 set -e
-log=""; out=""; n=0; resume=0; seed=""
+log=""; out=""; n=0; resume=0; seed=""; flags=""
 while [ $# -gt 0 ]; do
   case "$1" in
     --log) log="$2"; shift 2 ;;
@@ -14,10 +15,15 @@ while [ $# -gt 0 ]; do
     --iterations) n="$2"; shift 2 ;;
     --seed) seed="$2"; shift 2 ;;
     --resume) resume=1; shift ;;
+    --field|--field-modules|--static-iterations|--resolution-scale|--low-res-scale|--low-res-iterations|\
+    --holdout-every|--clip-frames|--clip-overlap|--field-lr-scale|--field-lr-decay-iterations|--backend)
+      flags="$flags $1 $2"; shift 2 ;;
     *) echo "fake train: unknown flag $1" >&2; exit 2 ;;
   esac
 done
-if [ -f "$log/train_fail" ]; then echo "fake train: failing as asked" >&2; exit 5; fi
+echo "${flags# }" >> "$out/flags"
+# The real trainer's last line on a failure is "streetsim train: <why>".
+if [ -f "$log/train_fail" ]; then echo "streetsim train: failing as asked" >&2; exit 5; fi
 i=0
 if [ "$resume" = 1 ] && [ -f "$out/checkpoint.bin" ]; then
   i=$(cat "$out/checkpoint.bin")

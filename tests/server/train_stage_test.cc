@@ -163,7 +163,9 @@ TEST_F(TrainStageTest, FailingTrainerFailsTheJob) {
   ASSERT_TRUE(done.ok());
   EXPECT_EQ(done->state(), v1::JOB_STATE_FAILED);
   EXPECT_EQ(done->progress().stage(), "train");
-  EXPECT_NE(done->error().find("train stage exited with code 5"), std::string::npos) << done->error();
+  // The trainer's own last line says why, so a remote user need not read the server's files.
+  EXPECT_NE(done->error().find("train stage exited with code 5: failing as asked"), std::string::npos)
+      << done->error();
   EXPECT_NE(done->error().find("train.log"), std::string::npos) << done->error();
   EXPECT_EQ(client_->LoadScene("bad", false).status().code(), absl::StatusCode::kNotFound);
 }
@@ -187,8 +189,14 @@ TEST_F(TrainStageTest, RestartResumesTheTrainerFromItsCheckpoint) {
   StartServer(Options());
   // 40 iterations of 0.1 s: room for the stop to land before the trainer finishes on a loaded
   // machine (the test's threads may wait a second or more for a core).
-  absl::StatusOr<v1::Job> job = client_->CreateTrainingJob(JobFor("resumed", 40));
-  ASSERT_TRUE(job.ok());
+  // With the config's training options, which the resumed run must get again.
+  v1::CreateTrainingJobRequest req = JobFor("resumed", 40);
+  req.mutable_config()->set_static_iterations(20);
+  req.mutable_config()->set_low_res_scale(0.25);
+  req.mutable_config()->set_low_res_iterations(10);
+  req.mutable_config()->set_holdout_every(0);
+  absl::StatusOr<v1::Job> job = client_->CreateTrainingJob(req);
+  ASSERT_TRUE(job.ok()) << job.status();
   // Wait until the trainer has checkpointed a few iterations.
   for (int i = 0; i < 1500; ++i) {
     absl::StatusOr<v1::Job> j = client_->GetJob(job->job_id());
@@ -219,6 +227,28 @@ TEST_F(TrainStageTest, RestartResumesTheTrainerFromItsCheckpoint) {
   absl::StatusOr<v1::Scene> scene = client_->LoadScene("resumed", true);
   ASSERT_TRUE(scene.ok()) << scene.status();
   EXPECT_EQ(scene->rig().cameras(0).sensor_id(), "cam_logged");
+  std::ifstream flags(state_dir_ + "/scenes/resumed/flags");
+  std::vector<std::string> runs;
+  for (std::string line; std::getline(flags, line);) runs.push_back(line);
+  const std::string want = "--static-iterations 20 --low-res-scale 0.25 --low-res-iterations 10 --holdout-every 0";
+  EXPECT_EQ(runs, (std::vector<std::string>{want, want}));
+}
+
+TEST_F(TrainStageTest, BadTrainingOptionsAreRefusedAtCreation) {
+  StartServer(Options());
+  v1::CreateTrainingJobRequest req = JobFor("bad_options", 100);
+  req.mutable_config()->set_low_res_scale(0.25);  // without low_res_iterations
+  absl::StatusOr<v1::Job> job = client_->CreateTrainingJob(req);
+  EXPECT_EQ(job.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(job.status().message().find("config.low_res_scale and low_res_iterations go together"), std::string::npos)
+      << job.status();
+  req = JobFor("bad_options", 0);
+  req.mutable_config()->set_field("s3gaussian");
+  EXPECT_EQ(client_->CreateTrainingJob(req).status().code(), absl::StatusCode::kInvalidArgument);
+  // Nothing was queued.
+  absl::StatusOr<std::vector<v1::Job>> jobs = client_->ListJobs();
+  ASSERT_TRUE(jobs.ok());
+  EXPECT_TRUE(jobs->empty());
 }
 
 }  // namespace

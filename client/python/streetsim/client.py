@@ -350,10 +350,21 @@ class Client:
 
     # -- training -------------------------------------------------------------------------------
     def train(self, log_path: str, scene_name: str = "", request_id: str = "",
-              max_iterations: int = 0) -> training_pb2.Job:
-        req = training_pb2.CreateTrainingJobRequest(
-            log_path=log_path, request_id=request_id,
-            config=training_pb2.TrainingConfig(scene_name=scene_name, max_iterations=max_iterations))
+              max_iterations: int = 0, **options) -> training_pb2.Job:
+        """A training job for a log under the server's data root.
+
+        ``options`` are TrainingConfig's training fields (proto/streetsim/v1/training.proto), i.e.
+        ``streetsim train``'s flags: ``seed``, ``field``, ``field_modules``, ``static_iterations``,
+        ``resolution_scale``, ``low_res_scale``, ``low_res_iterations``, ``holdout_every``,
+        ``clip_frames``, ``clip_overlap``, ``field_lr_scale``, ``field_lr_decay_iterations``,
+        ``backend``. An unknown name raises ValueError here; a value the trainer would refuse is
+        INVALID_ARGUMENT from the server.
+        """
+        try:
+            config = training_pb2.TrainingConfig(scene_name=scene_name, max_iterations=max_iterations, **options)
+        except (ValueError, TypeError) as e:
+            raise ValueError(f"train(): {e}") from None
+        req = training_pb2.CreateTrainingJobRequest(log_path=log_path, request_id=request_id, config=config)
         return self._call(self.training_stub.CreateTrainingJob, req)
 
     def get_job(self, job_id: str) -> training_pb2.Job:

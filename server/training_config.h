@@ -1,0 +1,24 @@
+// A training job's TrainingConfig (proto/streetsim/v1/training.proto): its checks and the
+// `streetsim train` flags it stands for. The job runner spawns the trainer; this module is where
+// the config meets the trainer's flags, so that both stay in one place on the server side.
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "streetsim/v1/training.pb.h"
+
+namespace streetsim::server {
+
+// INVALID_ARGUMENT (naming the config field) for any value `streetsim train` would refuse with
+// exit 2: checked when the job is created, not when its train stage starts. The range rules that
+// the trainer exposes (the low-resolution stage, clip plans, field modules, backends) are its own
+// functions, called here.
+absl::Status ValidateTrainingConfig(const v1::TrainingConfig& config);
+
+// The flags after `--log LOG --out DIR --iterations N` for a config that passed
+// ValidateTrainingConfig (the same on every attempt, so a resumed train stage keeps them).
+std::vector<std::string> TrainFlags(const v1::TrainingConfig& config);
+
+}  // namespace streetsim::server

@@ -1,0 +1,135 @@
+// A training job's config (server/training_config.h): every value `streetsim train` would refuse is
+// refused when the job is created, naming the field; a valid config becomes exactly the trainer's
+// flags. That those flags are the real trainer's is tested through the built binary in
+// tests/server/cli_server_test.cc (JobsTrainPassesTheConfigToTheTrainer).
+#include "server/training_config.h"
+
+#include <cmath>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+namespace streetsim::server {
+namespace {
+
+v1::TrainingConfig Config(int max_iterations, const std::function<void(v1::TrainingConfig*)>& edit = nullptr) {
+  v1::TrainingConfig c;
+  c.set_max_iterations(max_iterations);
+  if (edit) edit(&c);
+  return c;
+}
+
+void ExpectRefused(const v1::TrainingConfig& c, const std::string& needle) {
+  const absl::Status s = ValidateTrainingConfig(c);
+  EXPECT_EQ(s.code(), absl::StatusCode::kInvalidArgument) << c.DebugString();
+  EXPECT_NE(s.message().find(needle), std::string::npos) << "wanted '" << needle << "' in: " << s.message();
+}
+
+TEST(TrainingConfig, DefaultsAreValidAndAddNoFlags) {
+  EXPECT_TRUE(ValidateTrainingConfig(Config(0)).ok());
+  EXPECT_TRUE(ValidateTrainingConfig(Config(300)).ok());
+  EXPECT_TRUE(ValidateTrainingConfig(Config(30000)).ok());
+  EXPECT_TRUE(TrainFlags(Config(300)).empty());
+  EXPECT_EQ(TrainFlags(Config(300, [](v1::TrainingConfig* c) { c->set_seed(7); })),
+            (std::vector<std::string>{"--seed", "7"}));
+}
+
+TEST(TrainingConfig, EveryOptionBecomesTheTrainersFlag) {
+  const v1::TrainingConfig c = Config(12000, [](v1::TrainingConfig* c) {
+    c->set_seed(3);
+    c->set_field("extended");
+    c->set_field_modules("temporal,decoder");
+    c->set_static_iterations(4000);
+    c->set_resolution_scale(0.5);
+    c->set_low_res_scale(0.25);
+    c->set_low_res_iterations(3000);
+    c->set_holdout_every(0);
+    c->set_clip_frames(50);
+    c->set_clip_overlap(0);
+    c->set_field_lr_scale(2.5);
+    c->set_field_lr_decay_iterations(6000);
+    c->set_backend("vulkan");
+  });
+  ASSERT_TRUE(ValidateTrainingConfig(c).ok()) << ValidateTrainingConfig(c);
+  EXPECT_EQ(TrainFlags(c), (std::vector<std::string>{
+                               "--seed", "3", "--field", "extended", "--field-modules", "temporal,decoder",
+                               "--static-iterations", "4000", "--resolution-scale", "0.5", "--low-res-scale", "0.25",
+                               "--low-res-iterations", "3000", "--holdout-every", "0", "--clip-frames", "50",
+                               "--clip-overlap", "0", "--field-lr-scale", "2.5", "--field-lr-decay-iterations", "6000",
+                               "--backend", "vulkan"}));
+  // Unset optional fields are the trainer's defaults, not 0.
+  const v1::TrainingConfig d = Config(300, [](v1::TrainingConfig* c) { c->set_clip_frames(20); });
+  EXPECT_EQ(TrainFlags(d), (std::vector<std::string>{"--clip-frames", "20"}));
+}
+
+TEST(TrainingConfig, BadValuesAreRefusedNamingTheField) {
+  ExpectRefused(Config(-1), "config.max_iterations");
+  ExpectRefused(Config(10'000'001), "config.max_iterations");
+  ExpectRefused(Config(0, [](v1::TrainingConfig* c) { c->set_field("static"); }), "max_iterations > 0");
+  ExpectRefused(Config(0, [](v1::TrainingConfig* c) { c->set_holdout_every(4); }), "max_iterations > 0");
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_field("dynamic"); }), "config.field must be");
+  ExpectRefused(Config(9000, [](v1::TrainingConfig* c) { c->set_field_modules("all"); }),
+                "field_modules needs field \"extended\"");
+  ExpectRefused(Config(9000, [](v1::TrainingConfig* c) {
+                  c->set_field("extended");
+                  c->set_field_modules("encoder,warp");
+                }),
+                "config.field_modules");
+  // The static warm-up must end before the run does, and a static run has no field to train.
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_static_iterations(100); }), "0..99");
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_static_iterations(-1); }), "0..99");
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) {
+                  c->set_field("static");
+                  c->set_static_iterations(50);
+                }),
+                "static_iterations needs a field");
+  ExpectRefused(Config(3000, [](v1::TrainingConfig* c) { c->set_field("s3gaussian"); }), "set static_iterations");
+  ExpectRefused(Config(3000, [](v1::TrainingConfig* c) { c->set_field_lr_scale(10); }), "need a field");
+  EXPECT_TRUE(ValidateTrainingConfig(Config(3000, [](v1::TrainingConfig* c) {
+                c->set_static_iterations(2000);
+                c->set_field_lr_scale(10);
+              })).ok());
+  ExpectRefused(Config(9000, [](v1::TrainingConfig* c) { c->set_field_lr_scale(-1); }), "field_lr_scale");
+  ExpectRefused(Config(9000, [](v1::TrainingConfig* c) { c->set_field_lr_scale(1001); }), "field_lr_scale");
+  ExpectRefused(Config(9000, [](v1::TrainingConfig* c) { c->set_field_lr_scale(NAN); }), "field_lr_scale");
+  ExpectRefused(Config(9000, [](v1::TrainingConfig* c) { c->set_field_lr_decay_iterations(-5); }),
+                "field_lr_decay_iterations");
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_resolution_scale(1.5); }), "resolution_scale");
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_resolution_scale(-0.5); }), "resolution_scale");
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_resolution_scale(INFINITY); }), "resolution_scale");
+  // The low-resolution stage: both values, a scale below the run's, ending before the run.
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_low_res_scale(0.25); }), "go together");
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_low_res_iterations(50); }), "go together");
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) {
+                  c->set_resolution_scale(0.25);
+                  c->set_low_res_scale(0.5);
+                  c->set_low_res_iterations(50);
+                }),
+                "config.low_res_scale / low_res_iterations");
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) {
+                  c->set_low_res_scale(0.25);
+                  c->set_low_res_iterations(100);
+                }),
+                "config.low_res_scale / low_res_iterations");
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) {
+                  c->set_low_res_scale(NAN);
+                  c->set_low_res_iterations(50);
+                }),
+                "low_res_scale");
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_holdout_every(1); }), "holdout_every");
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_holdout_every(-2); }), "holdout_every");
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_clip_frames(2); }), "config.clip_frames");
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_clip_frames(-1); }), "config.clip_frames");
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_clip_overlap(2); }), "clip_overlap needs clip_frames");
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) {
+                  c->set_clip_frames(20);
+                  c->set_clip_overlap(11);
+                }),
+                "config.clip_overlap");
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_backend("cuda"); }), "config.backend");
+}
+
+}  // namespace
+}  // namespace streetsim::server
