@@ -21,6 +21,8 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
+#include "scene/train/clips.h"
+#include "scene/train/metrics_json.h"
 #include "server/path_confinement.h"
 #include "server/scene_manifest.h"
 #include "server/training_config.h"
@@ -63,6 +65,40 @@ uint64_t TrainedGaussianCount(const std::string& work) {
     if (it->path().filename().string().rfind("clip_", 0) == 0) n += PlyVertexCount((it->path() / "scene.ply").string());
   }
   return n;
+}
+
+// The trained scene's held-out metrics (WORK/heldout.json; a clip set: its clips' merged);
+// views = 0 when the run held nothing out. A damaged file is logged and reported as none: the
+// scene itself is fine.
+v1::HeldOutMetrics TrainedHeldoutMetrics(const std::string& work) {
+  std::vector<std::string> dirs;
+  std::error_code ec;
+  if (fs::exists(work + "/clips.json")) {
+    for (fs::directory_iterator it(work, ec), end; !ec && it != end; it.increment(ec)) {
+      if (it->path().filename().string().rfind("clip_", 0) == 0) dirs.push_back(it->path().string());
+    }
+    std::sort(dirs.begin(), dirs.end());
+  } else {
+    dirs.push_back(work);
+  }
+  std::vector<train::EvalResult> parts;
+  for (const std::string& d : dirs) {
+    absl::StatusOr<train::EvalResult> r = train::ReadHeldoutMetrics(d);
+    if (absl::IsNotFound(r.status())) continue;
+    if (!r.ok()) {
+      LOG(WARNING) << "held-out metrics: " << r.status().message();
+      return {};
+    }
+    parts.push_back(std::move(*r));
+  }
+  v1::HeldOutMetrics out;
+  if (parts.empty()) return out;
+  const train::EvalResult all = parts.size() == 1 ? parts[0] : train::MergeEvalResults(parts);
+  out.set_views(static_cast<int32_t>(all.frames.size()));
+  out.set_psnr_db(all.mean.psnr);
+  out.set_ssim(all.mean.ssim);
+  out.set_psnr_dynamic_db(all.mean.psnr_dynamic);
+  return out;
 }
 
 // The trainer checkpoints in WORK, or in WORK/clip_KKK for a clip set; either one resumes.
@@ -525,6 +561,7 @@ void JobRunner::RunJob(const std::string& id) {
     p->set_stage_index(2);
     p->set_fraction(kTrainDoneFraction);
     p->set_num_gaussians(TrainedGaussianCount(work));
+    *job.mutable_heldout() = TrainedHeldoutMetrics(work);
     p->set_preview_png(FirstPreviewPng(work));
     (void)store_->Put(job);
   }

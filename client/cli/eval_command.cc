@@ -25,6 +25,7 @@
 #include "scene/train/dynamic_stage.h"
 #include "scene/train/eval_outputs.h"
 #include "scene/train/lidar_eval.h"
+#include "scene/train/metrics_json.h"
 #include "scene/train/served_scene.h"
 #include "scene/train/trainer.h"
 
@@ -32,18 +33,6 @@ namespace streetsim {
 namespace {
 
 int Fail(int code, const absl::Status& status) { return ReportFailure("eval", code, status); }
-
-nlohmann::json Metrics(const train::FrameMetrics& m) {
-  nlohmann::json j;
-  j["psnr"] = m.psnr;
-  j["ssim"] = m.ssim;
-  j["depth_median_abs_m"] = m.depth_median_abs_m >= 0 ? nlohmann::json(m.depth_median_abs_m) : nlohmann::json(nullptr);
-  j["depth_within_5pct"] = m.depth_within_5pct >= 0 ? nlohmann::json(m.depth_within_5pct) : nlohmann::json(nullptr);
-  // PSNR* (scene/train/dynamic_pixels.h); null: no dynamic (static) pixel in the view(s).
-  j["psnr_dynamic"] = m.psnr_dynamic >= 0 ? nlohmann::json(m.psnr_dynamic) : nlohmann::json(nullptr);
-  j["psnr_static"] = m.psnr_static >= 0 ? nlohmann::json(m.psnr_static) : nlohmann::json(nullptr);
-  return j;
-}
 
 nlohmann::json Defined(double v) { return v >= 0 ? nlohmann::json(v) : nlohmann::json(nullptr); }
 
@@ -290,7 +279,7 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
   }
 
   nlohmann::json j;
-  j["mean"] = Metrics(r->mean);
+  j["mean"] = train::FrameMetricsJson(r->mean);
   if (have_lidar) {
     AddLidar(lidar_result.mean, &j["mean"]);
     j["lidar_reflectance"] = reflectance_source;
@@ -329,7 +318,7 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
                  l.intensity_rmse, l.rays);
   };
   for (const train::FrameMetrics& m : r->frames) {
-    nlohmann::json f = Metrics(m);
+    nlohmann::json f = train::FrameMetricsJson(m);
     f["name"] = m.name;
     f["frame"] = m.frame;
     if (*clip_set) f["clip"] = train::PickClip(**clip_set, log->frames[m.frame].time_us);

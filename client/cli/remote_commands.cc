@@ -16,6 +16,7 @@
 #include "absl/strings/ascii.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "absl/strings/str_split.h"
 #include "client/cli/args.h"
 #include "client/cli/camera_json.h"
@@ -104,9 +105,15 @@ const char* SceneStateName(v1::SceneState s) {
 }
 
 void PrintJob(const v1::Job& j) {
-  std::printf("%s  %-9s  %-10s  scene %s  log %s  attempts %d%s%s\n", j.job_id().c_str(), StateName(j.state()),
+  std::string heldout;
+  if (j.heldout().views() > 0) {
+    heldout = absl::StrFormat("  held-out %d views: PSNR %.2f dB, SSIM %.4f", j.heldout().views(),
+                              j.heldout().psnr_db(), j.heldout().ssim());
+    if (j.heldout().psnr_dynamic_db() >= 0) heldout += absl::StrFormat(", PSNR* %.2f dB", j.heldout().psnr_dynamic_db());
+  }
+  std::printf("%s  %-9s  %-10s  scene %s  log %s  attempts %d%s%s%s\n", j.job_id().c_str(), StateName(j.state()),
               j.progress().stage().c_str(), j.scene_name().c_str(), j.log_path().c_str(), j.attempts(),
-              j.error().empty() ? "" : "  error: ", j.error().c_str());
+              heldout.c_str(), j.error().empty() ? "" : "  error: ", j.error().c_str());
 }
 
 void ProgressBar(const v1::Job& j) {

@@ -23,6 +23,7 @@
 #include "scene/train/dynamic_pixels.h"
 #include "scene/train/gradient_guard.h"
 #include "scene/train/losses.h"
+#include "scene/train/metrics_json.h"
 #include "scene/train/resolution_schedule.h"
 #include "scene/train/train_outputs.h"
 
@@ -546,6 +547,8 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       absl::StatusOr<EvalResult> ev = EvaluateViews(**engine, *scene_for_view, *test, bg);
       if (!ev.ok()) return ev.status();
       result.heldout = *ev;
+      // Machine-readable beside the scene (the server's job record reads it; metrics_json.h).
+      if (absl::Status s = WriteHeldoutMetrics(out_dir, result.heldout); !s.ok()) return s;
       const std::filesystem::path pdir = std::filesystem::path(out_dir) / "preview";
       std::filesystem::create_directories(pdir, ec);
       RenderOptions ro;
@@ -562,6 +565,8 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
         std::snprintf(name, sizeof(name), "heldout_frame%04d_cam%d.png", v.frame, v.camera_obs);
         if (absl::Status s = WriteRgbPng((pdir / name).string(), both); !s.ok()) return s;
       }
+    } else {
+      std::filesystem::remove(std::filesystem::path(out_dir) / kHeldoutMetricsFileName, ec);  // not this run's
     }
   }
   result.seconds = SecondsSince(t_start);

@@ -68,6 +68,10 @@ TEST(TrainProgressLine, ParsesTheTrainerFormat) {
 TEST_F(TrainStageTest, TrainStageReportsProgressAndKeepsTheInitManifest) {
   std::ofstream(data_root_ + "/logs/fake/train_sleep_s") << "0.15";
   ASSERT_TRUE(cv::imwrite(data_root_ + "/logs/fake/preview.png", cv::Mat(100, 800, CV_8UC3, cv::Scalar(10, 200, 30))));
+  std::ofstream(data_root_ + "/logs/fake/heldout.json") << R"({"views": 2, "frames": [
+      {"frame": 3, "psnr": 21.0, "ssim": 0.7, "psnr_dynamic": 18.5},
+      {"frame": 7, "psnr": 23.0, "ssim": 0.8, "psnr_dynamic": null}],
+    "mean": {"psnr": 22.0, "ssim": 0.75, "psnr_dynamic": 18.5}})";
   StartServer(Options());
   v1::CreateTrainingJobRequest req = JobFor("trained", 8);
   req.mutable_config()->set_seed(7);
@@ -90,6 +94,11 @@ TEST_F(TrainStageTest, TrainStageReportsProgressAndKeepsTheInitManifest) {
   EXPECT_DOUBLE_EQ(p.loss(), 0.0992);
   EXPECT_DOUBLE_EQ(p.psnr_db(), 28.5);
   EXPECT_EQ(p.num_gaussians(), 4000u);
+  // The trainer's held-out metrics (its DIR/heldout.json).
+  EXPECT_EQ(done->heldout().views(), 2);
+  EXPECT_DOUBLE_EQ(done->heldout().psnr_db(), 22.0);
+  EXPECT_DOUBLE_EQ(done->heldout().ssim(), 0.75);
+  EXPECT_DOUBLE_EQ(done->heldout().psnr_dynamic_db(), 18.5);
   // The trainer's held-out preview, scaled down for the record.
   const std::string& png = p.preview_png();
   const cv::Mat preview = cv::imdecode(std::vector<uchar>(png.begin(), png.end()), cv::IMREAD_COLOR);
@@ -126,6 +135,35 @@ TEST_F(TrainStageTest, TrainStageReportsProgressAndKeepsTheInitManifest) {
   EXPECT_EQ(scene->num_gaussians(), 4000u);
 }
 
+TEST_F(TrainStageTest, AClipSetReportsItsClipsTogether) {
+  // What `streetsim train --clip-frames` leaves: DIR/clips.json and a scene per clip, each with
+  // its held-out metrics; the job reports their union and the Gaussians of every clip.
+  const std::string clips = data_root_ + "/logs/fake/clips";
+  for (const char* clip : {"clip_000", "clip_001"}) fs::create_directories(clips + "/" + clip);
+  std::ofstream(clips + "/clip_000/heldout.json") << R"({"frames": [
+      {"frame": 3, "psnr": 20.0, "ssim": 0.70, "psnr_dynamic": 18.0}],
+    "mean": {"psnr": 20.0, "ssim": 0.70, "psnr_dynamic": 18.0}})";
+  std::ofstream(clips + "/clip_001/heldout.json") << R"({"frames": [
+      {"frame": 7, "psnr": 24.0, "ssim": 0.80, "psnr_dynamic": null},
+      {"frame": 11, "psnr": 26.0, "ssim": 0.90, "psnr_dynamic": 22.0}],
+    "mean": {"psnr": 25.0, "ssim": 0.85, "psnr_dynamic": 22.0}})";
+  std::ofstream(clips + "/clip_000/scene.ply") << "ply\nformat binary_little_endian 1.0\nelement vertex 1200\nend_header\n";
+  std::ofstream(clips + "/clip_001/scene.ply") << "ply\nformat binary_little_endian 1.0\nelement vertex 800\nend_header\n";
+  StartServer(Options());
+  v1::CreateTrainingJobRequest req = JobFor("clip_set", 4);
+  req.mutable_config()->set_clip_frames(4);
+  absl::StatusOr<v1::Job> job = client_->CreateTrainingJob(req);
+  ASSERT_TRUE(job.ok()) << job.status();
+  absl::StatusOr<v1::Job> done = client_->WatchJob(job->job_id(), [](const v1::Job&) {}, 60);
+  ASSERT_TRUE(done.ok()) << done.status();
+  ASSERT_EQ(done->state(), v1::JOB_STATE_SUCCEEDED) << done->error();
+  EXPECT_EQ(done->progress().num_gaussians(), 2000u);  // not init's scene.ply beside clips.json
+  EXPECT_EQ(done->heldout().views(), 3);
+  EXPECT_NEAR(done->heldout().psnr_db(), (20.0 + 24.0 + 26.0) / 3, 1e-9);
+  EXPECT_NEAR(done->heldout().ssim(), (0.70 + 0.80 + 0.90) / 3, 1e-9);
+  EXPECT_NEAR(done->heldout().psnr_dynamic_db(), (18.0 + 22.0) / 2, 1e-9);  // over the views that have any
+}
+
 TEST_F(TrainStageTest, NoIterationsMeansNoTrainStage) {
   StartServer(Options());
   absl::StatusOr<v1::Job> job = client_->CreateTrainingJob(JobFor("init_only", 0));
@@ -135,6 +173,7 @@ TEST_F(TrainStageTest, NoIterationsMeansNoTrainStage) {
   ASSERT_EQ(done->state(), v1::JOB_STATE_SUCCEEDED) << done->error();
   EXPECT_EQ(done->progress().num_stages(), 2);
   EXPECT_FALSE(done->progress().has_metrics());
+  EXPECT_EQ(done->heldout().views(), 0);
   EXPECT_FALSE(fs::exists(state_dir_ + "/scenes/init_only/trained"));
 }
 

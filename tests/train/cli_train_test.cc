@@ -68,6 +68,14 @@ TEST(CliTrain, TrainThenEvalGivesTheJsonContract) {
   EXPECT_EQ(j["frames"].size(), 19u);  // frames 3, 7, ..., 75 of 78
   EXPECT_EQ(j["frames"][0]["frame"], 3);
   EXPECT_NE(r.err.find("mean"), std::string::npos);  // the table
+  // The run left the same held-out metrics beside its scene (DIR/heldout.json, one schema with
+  // eval's; the server's job record reads it).
+  const nlohmann::json heldout = nlohmann::json::parse(std::ifstream(dir + "/heldout.json"));
+  EXPECT_EQ(heldout["views"], 19);
+  ASSERT_EQ(heldout["frames"].size(), 19u);
+  EXPECT_EQ(heldout["frames"][0]["frame"], 3);
+  EXPECT_NEAR(heldout["mean"]["psnr"].get<double>(), j["mean"]["psnr"].get<double>(), 0.01);
+  EXPECT_NEAR(heldout["mean"]["ssim"].get<double>(), j["mean"]["ssim"].get<double>(), 1e-4);
 
   // `render --scene DIR` composites over the sky colour the run learned (as eval and the server
   // do): default render minus a render on black = (1 - alpha) x sky, pixel by pixel.
