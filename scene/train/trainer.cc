@@ -411,7 +411,8 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
         LOG(INFO) << "iteration " << it << ": densified +" << added << " -" << removed << " -> " << st.size();
         replaced = true;
       }
-      if (stage_it % h.opacity_reset_interval == 0) {
+      const bool outputs_soon = opt.write_outputs && opt.iterations - it < h.min_iterations_after_reset;
+      if (stage_it % h.opacity_reset_interval == 0 && !outputs_soon) {
         ResetOpacity(&st);
         replaced = true;
       }

@@ -242,6 +242,45 @@ TEST(Trainer, FieldOptionsAreChecked) {
   EXPECT_FALSE(Train(log, TempDir("bad"), opt).ok());
 }
 
+// A run's written scene is never one just after an opacity reset (Hyper::min_iterations_after_reset):
+// the reset that would fall within that many iterations of the end is skipped, while a stage that
+// writes no outputs keeps its schedule.
+TEST(Trainer, NoOpacityResetJustBeforeTheOutputs) {
+  const DriveLog log = ShortLog(8);
+  auto max_opacity = [](const TrainState& st) {
+    float m = -1e9f;
+    for (size_t i = 0; i < st.params.size(); ++i) m = std::max(m, st.params.opacity_logits[i]);
+    return 1.0f / (1.0f + std::exp(-m));
+  };
+  TrainOptions opt = ShortOptions();
+  opt.iterations = 25;
+  opt.hyper.min_iterations_after_reset = 10;
+  opt.write_outputs = false;
+  const std::string kept = TempDir("reset_kept");
+  ASSERT_TRUE(Train(log, kept, opt).ok());
+  absl::StatusOr<TrainState> a = LoadCheckpoint(kept + "/checkpoint.bin");
+  ASSERT_TRUE(a.ok()) << a.status();
+  EXPECT_LT(max_opacity(*a), 0.05f);  // reset at 20, five iterations to recover: still near 0.01
+  opt.write_outputs = true;
+  const std::string skipped = TempDir("reset_skipped");
+  ASSERT_TRUE(Train(log, skipped, opt).ok());
+  absl::StatusOr<TrainState> b = LoadCheckpoint(skipped + "/checkpoint.bin");
+  ASSERT_TRUE(b.ok()) << b.status();
+  EXPECT_GT(max_opacity(*b), 0.2f);  // from the init's 0.1, never reset
+  // With room after it, the reset happens in a run that writes outputs too.
+  opt.iterations = 35;
+  const std::string room = TempDir("reset_room");
+  ASSERT_TRUE(Train(log, room, opt).ok());
+  absl::StatusOr<TrainState> c = LoadCheckpoint(room + "/checkpoint.bin");
+  ASSERT_TRUE(c.ok()) << c.status();
+  opt.write_outputs = false;
+  const std::string room_no_outputs = TempDir("reset_room_no_outputs");
+  ASSERT_TRUE(Train(log, room_no_outputs, opt).ok());
+  absl::StatusOr<TrainState> d = LoadCheckpoint(room_no_outputs + "/checkpoint.bin");
+  ASSERT_TRUE(d.ok()) << d.status();
+  EXPECT_EQ(c->params.opacity_logits, d->params.opacity_logits);  // the same schedule, bit for bit (deterministic)
+}
+
 TEST(Trainer, LearnsAndWritesOutputs) {
   const DriveLog log = ShortLog(8);
   const std::string dir = TempDir("out");
