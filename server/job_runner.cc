@@ -14,17 +14,12 @@
 #include <fstream>
 #include <regex>
 
-#include <opencv2/core.hpp>
-#include <opencv2/imgcodecs.hpp>
-#include <opencv2/imgproc.hpp>
-
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
-#include "scene/train/clips.h"
-#include "scene/train/metrics_json.h"
 #include "server/path_confinement.h"
 #include "server/scene_manifest.h"
+#include "server/trained_outputs.h"
 #include "server/training_config.h"
 
 extern char** environ;
@@ -39,72 +34,6 @@ int NumStages(bool with_train) { return with_train ? 3 : 2; }
 // Job fraction when init / train end.
 double InitDoneFraction(bool with_train) { return with_train ? 0.05 : 0.9; }
 constexpr double kTrainDoneFraction = 0.95;
-constexpr int64_t kMaxPreviewFileBytes = 64 << 20;
-constexpr int kPreviewMaxWidth = 384;  // job records (and ListJobs) carry it: keep it small
-
-// "element vertex N" from a PLY header; 0 if unreadable.
-uint64_t PlyVertexCount(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  std::string line;
-  for (int i = 0; i < 64 && std::getline(in, line); ++i) {
-    if (line.rfind("element vertex ", 0) == 0) {
-      uint64_t n = 0;
-      if (absl::SimpleAtoi(line.substr(15), &n)) return n;
-    }
-    if (line.rfind("end_header", 0) == 0) break;
-  }
-  return 0;
-}
-
-// A clip set (docs/training.md "Clips") is its clips' scenes; WORK/scene.ply is then init's.
-uint64_t TrainedGaussianCount(const std::string& work) {
-  if (!fs::exists(work + "/clips.json")) return PlyVertexCount(work + "/scene.ply");
-  uint64_t n = 0;
-  std::error_code ec;
-  for (fs::directory_iterator it(work, ec), end; !ec && it != end; it.increment(ec)) {
-    if (it->path().filename().string().rfind("clip_", 0) == 0) n += PlyVertexCount((it->path() / "scene.ply").string());
-  }
-  return n;
-}
-
-// The trained scene's held-out metrics (WORK/heldout.json; a clip set: its clips' merged);
-// views = 0 when the run held nothing out. A damaged file is logged and reported as none: the
-// scene itself is fine.
-v1::HeldOutMetrics TrainedHeldoutMetrics(const std::string& work) {
-  std::vector<std::string> dirs;
-  std::error_code ec;
-  if (fs::exists(work + "/clips.json")) {
-    for (fs::directory_iterator it(work, ec), end; !ec && it != end; it.increment(ec)) {
-      if (it->path().filename().string().rfind("clip_", 0) == 0) dirs.push_back(it->path().string());
-    }
-    std::sort(dirs.begin(), dirs.end());
-  } else {
-    dirs.push_back(work);
-  }
-  std::vector<train::EvalResult> parts;
-  for (const std::string& d : dirs) {
-    absl::StatusOr<train::EvalResult> r = train::ReadHeldoutMetrics(d);
-    if (absl::IsNotFound(r.status())) continue;
-    if (!r.ok()) {
-      LOG(WARNING) << "held-out metrics: " << r.status().message();
-      return {};
-    }
-    parts.push_back(std::move(*r));
-  }
-  v1::HeldOutMetrics out;
-  if (parts.empty()) return out;
-  const train::EvalResult all = parts.size() == 1 ? parts[0] : train::MergeEvalResults(parts);
-  out.set_views(static_cast<int32_t>(all.frames.size()));
-  out.set_psnr_db(all.mean.psnr);
-  out.set_ssim(all.mean.ssim);
-  out.set_psnr_dynamic_db(all.mean.psnr_dynamic);
-  return out;
-}
-
-// The trainer checkpoints in WORK, or in WORK/clip_KKK for a clip set; either one resumes.
-bool HasTrainerCheckpoint(const std::string& work) {
-  return fs::exists(work + "/checkpoint.bin") || fs::exists(work + "/clips.json");
-}
 
 std::string StreetsimNextToThisBinary() {
   std::error_code ec;
@@ -159,30 +88,6 @@ bool HelpListsTrain(const std::string& program) {
     waitpid(pid, &wstatus, 0);
   }
   return out.find("\n  train ") != std::string::npos || out.rfind("  train ", 0) == 0;
-}
-
-// The first held-out preview the trainer wrote (WORK/preview/*.png, render | ground truth),
-// scaled down to kPreviewMaxWidth and re-encoded as PNG; "" if none.
-std::string FirstPreviewPng(const std::string& work) {
-  std::error_code ec;
-  std::vector<std::string> pngs;
-  for (fs::directory_iterator it(work + "/preview", ec), end; !ec && it != end; it.increment(ec)) {
-    if (it->path().extension() == ".png") pngs.push_back(it->path().string());
-  }
-  if (pngs.empty()) return "";
-  std::sort(pngs.begin(), pngs.end());
-  if (fs::file_size(pngs.front(), ec) > static_cast<uintmax_t>(kMaxPreviewFileBytes) || ec) return "";
-  cv::Mat image = cv::imread(pngs.front(), cv::IMREAD_COLOR);
-  if (image.empty()) return "";
-  if (image.cols > kPreviewMaxWidth) {
-    const int height = std::max(1, image.rows * kPreviewMaxWidth / image.cols);
-    cv::Mat small;
-    cv::resize(image, small, cv::Size(kPreviewMaxWidth, height), 0, 0, cv::INTER_AREA);
-    image = small;
-  }
-  std::vector<uchar> png;
-  if (!cv::imencode(".png", image, png)) return "";
-  return std::string(png.begin(), png.end());
 }
 
 }  // namespace
