@@ -188,8 +188,7 @@ absl::StatusOr<v1::Job> JobRunner::Create(const v1::CreateTrainingJobRequest& re
   v1::Job job;
   job.set_job_id(store_->NewId());
   std::string name = req.config().scene_name().empty() ? "job-" + job.job_id() : req.config().scene_name();
-  static const std::regex kName("[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}");
-  if (!std::regex_match(name, kName)) {
+  if (!IsSceneName(name)) {
     return absl::InvalidArgumentError("config.scene_name: 1-64 of [A-Za-z0-9_.-], not starting with '.'");
   }
   if (deps_->scenes && deps_->scenes->Exists(name)) {
@@ -200,6 +199,9 @@ absl::StatusOr<v1::Job> JobRunner::Create(const v1::CreateTrainingJobRequest& re
         other.state() != v1::JOB_STATE_CANCELLED) {
       return absl::AlreadyExistsError(absl::StrCat("job ", other.job_id(), " already produces scene '", name, "'"));
     }
+  }
+  if (const std::string& from = req.config().continue_from_scene(); !from.empty()) {
+    if (absl::Status s = CheckContinuation(req, from); !s.ok()) return s;
   }
   job.set_log_path(req.log_path());
   *job.mutable_config() = req.config();
@@ -219,6 +221,43 @@ absl::StatusOr<v1::Job> JobRunner::Create(const v1::CreateTrainingJobRequest& re
   }
   cv_.notify_one();
   return job;
+}
+
+// A job's scene that another job may continue: trained by this server from the same log, with a
+// checkpoint to resume, and fewer iterations than the new job asks for.
+absl::Status JobRunner::CheckContinuation(const v1::CreateTrainingJobRequest& req, const std::string& from) {
+  const v1::Job* source = nullptr;
+  const std::vector<v1::Job> jobs = store_->List();
+  for (const v1::Job& j : jobs) {
+    if (j.scene_name() == from && j.state() == v1::JOB_STATE_SUCCEEDED) source = &j;
+  }
+  if (!source) {
+    return absl::NotFoundError(absl::StrCat("config.continue_from_scene: no finished job of this server trained a scene '",
+                                            from, "'"));
+  }
+  const absl::StatusOr<std::string> source_log = ResolveUnderRoot(options_.data_root, source->log_path());
+  const absl::StatusOr<std::string> log = ResolveUnderRoot(options_.data_root, req.log_path());
+  if (!source_log.ok() || !log.ok() || *source_log != *log) {
+    return absl::InvalidArgumentError(absl::StrCat("config.continue_from_scene: '", from, "' was trained from log_path '",
+                                                   source->log_path(), "', not '", req.log_path(), "'"));
+  }
+  const std::string dir = store_->scenes_dir() + "/" + from;
+  if (!HasTrainerCheckpoint(dir)) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("config.continue_from_scene: scene '", from, "' has no checkpoint to continue from"));
+  }
+  const v1::TrainingConfig& c = req.config();
+  if (c.field().empty() && TrainedField(dir) == "static" &&
+      (c.has_static_iterations() || c.field_lr_scale() != 0 || c.field_lr_decay_iterations() != 0)) {
+    return absl::InvalidArgumentError(absl::StrCat("config: scene '", from, "' is a static scene: static_iterations and "
+                                                   "field_lr_* need a field (config.field)"));
+  }
+  if (const int64_t done = TrainedIterations(dir); done >= req.config().max_iterations()) {
+    return absl::InvalidArgumentError(absl::StrCat("config.max_iterations (", req.config().max_iterations(),
+                                                   ") must be above the ", done, " iterations scene '", from,
+                                                   "' was trained for"));
+  }
+  return absl::OkStatus();
 }
 
 absl::StatusOr<v1::Job> JobRunner::Cancel(const std::string& id) {
@@ -408,7 +447,24 @@ void JobRunner::RunJob(const std::string& id) {
   }
   absl::StatusOr<std::string> log = ResolveUnderRoot(options_.data_root, job.log_path());
 
-  // Stage 0: init (skipped when a previous attempt finished it).
+  // Stage 0: init (skipped when a previous attempt finished it). A continuation's init is a copy of
+  // the scene it continues (its checkpoint, outputs and manifest); the source stays as it is.
+  if (p->stage_index() < 1 && !fs::exists(out_dir) && !job.config().continue_from_scene().empty()) {
+    p->set_stage("init");
+    (void)store_->Put(job);
+    const std::string from = store_->scenes_dir() + "/" + job.config().continue_from_scene();
+    if (!HasTrainerCheckpoint(from)) {
+      return fail(absl::FailedPreconditionError(absl::StrCat("scene '", job.config().continue_from_scene(),
+                                                             "' is gone or has no checkpoint")));
+    }
+    fs::copy(from, work, fs::copy_options::recursive | fs::copy_options::overwrite_existing, ec);
+    if (ec) return fail(absl::InternalError(absl::StrCat("cannot copy scene '", job.config().continue_from_scene(),
+                                                         "': ", ec.message())));
+    p->set_stage_index(1);
+    p->set_fraction(InitDoneFraction(with_train));
+    p->set_num_gaussians(TrainedGaussianCount(work));
+    (void)store_->Put(job);
+  }
   if (p->stage_index() < 1 && !fs::exists(out_dir)) {
     p->set_stage("init");
     (void)store_->Put(job);

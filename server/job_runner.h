@@ -82,6 +82,7 @@ class JobRunner {
   bool WithTrain(const v1::Job& job);
   bool TrainAvailable();
   bool CancelRequested(const std::string& id);
+  absl::Status CheckContinuation(const v1::CreateTrainingJobRequest& req, const std::string& from);
 
   JobStore* store_;
   ServiceDeps* deps_;

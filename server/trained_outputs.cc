@@ -6,6 +6,7 @@
 #include <optional>
 #include <vector>
 
+#include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -34,6 +35,16 @@ std::optional<std::vector<std::string>> ClipDirs(const std::string& work) {
   std::sort(dirs.begin(), dirs.end());
   return dirs;
 }
+// WORK/train_meta.json (a clip set: its first clip's) as an object; empty when unreadable.
+nlohmann::json TrainMeta(const std::string& work) {
+  const std::optional<std::vector<std::string>> clips = ClipDirs(work);
+  const std::string dir = !clips ? work : clips->empty() ? "" : clips->front();
+  std::ifstream in(dir + "/train_meta.json");
+  if (dir.empty() || !in) return nlohmann::json::object();
+  nlohmann::json meta = nlohmann::json::parse(in, nullptr, /*allow_exceptions=*/false);
+  return meta.is_object() ? meta : nlohmann::json::object();
+}
+
 }  // namespace
 
 uint64_t PlyVertexCount(const std::string& path) {
@@ -77,6 +88,16 @@ v1::HeldOutMetrics TrainedHeldoutMetrics(const std::string& work) {
   out.set_ssim(all.mean.ssim);
   out.set_psnr_dynamic_db(all.mean.psnr_dynamic);
   return out;
+}
+
+int64_t TrainedIterations(const std::string& work) {
+  const nlohmann::json meta = TrainMeta(work);
+  return meta.contains("iterations") && meta["iterations"].is_number_integer() ? meta["iterations"].get<int64_t>() : 0;
+}
+
+std::string TrainedField(const std::string& work) {
+  const nlohmann::json meta = TrainMeta(work);
+  return meta.contains("field") && meta["field"].is_string() ? meta["field"].get<std::string>() : "";
 }
 
 bool HasTrainerCheckpoint(const std::string& work) {

@@ -1,6 +1,7 @@
 #include "server/training_config.h"
 
 #include <cmath>
+#include <regex>
 
 #include "absl/strings/str_cat.h"
 #include "render/engine.h"
@@ -19,9 +20,12 @@ absl::Status Bad(const std::string& message) {
 }
 
 // The field the trainer will pick: the config's, else its default rule (docs/training.md
-// "Default field": S3Gaussian's when the run is longer than the static warm-up or one is given).
+// "Default field": S3Gaussian's when the run is longer than the static warm-up or one is given);
+// "" for a continuation that does not say (the trainer keeps the scene's own: the job runner
+// checks that one, CheckContinuation).
 std::string EffectiveField(const v1::TrainingConfig& c) {
   if (!c.field().empty()) return c.field();
+  if (!c.continue_from_scene().empty()) return "";
   if (c.has_static_iterations()) return "s3gaussian";
   return c.max_iterations() > train::FieldOptions{}.static_iterations ? "s3gaussian" : "static";
 }
@@ -30,6 +34,11 @@ std::string Number(double v) { return absl::StrCat(v); }  // shortest round-trip
 
 }  // namespace
 
+bool IsSceneName(const std::string& name) {
+  static const std::regex kName("[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}");
+  return std::regex_match(name, kName);
+}
+
 absl::Status ValidateTrainingConfig(const v1::TrainingConfig& c) {
   if (c.max_iterations() < 0 || c.max_iterations() > kMaxIterations) {
     return Bad(absl::StrCat("max_iterations must be in 0..", kMaxIterations));
@@ -37,7 +46,8 @@ absl::Status ValidateTrainingConfig(const v1::TrainingConfig& c) {
   const bool asks_training_options =
       !c.field().empty() || !c.field_modules().empty() || c.has_static_iterations() || c.resolution_scale() != 0 ||
       c.low_res_scale() != 0 || c.low_res_iterations() != 0 || c.has_holdout_every() || c.clip_frames() != 0 ||
-      c.has_clip_overlap() || c.field_lr_scale() != 0 || c.field_lr_decay_iterations() != 0 || !c.backend().empty();
+      c.has_clip_overlap() || c.field_lr_scale() != 0 || c.field_lr_decay_iterations() != 0 || !c.backend().empty() ||
+      !c.continue_from_scene().empty();
   if (c.max_iterations() == 0) {
     if (asks_training_options) return Bad("training options need max_iterations > 0 (0 is init only)");
     return absl::OkStatus();
@@ -57,7 +67,7 @@ absl::Status ValidateTrainingConfig(const v1::TrainingConfig& c) {
     if (c.static_iterations() < 0 || c.static_iterations() >= c.max_iterations()) {
       return Bad(absl::StrCat("static_iterations must be in 0..", c.max_iterations() - 1, " (below max_iterations)"));
     }
-  } else if (field != "static" && train::FieldOptions{}.static_iterations >= c.max_iterations()) {
+  } else if (!field.empty() && field != "static" && train::FieldOptions{}.static_iterations >= c.max_iterations()) {
     return Bad(absl::StrCat("field \"", field, "\": the static warm-up (", train::FieldOptions{}.static_iterations,
                             " iterations by default) must be shorter than max_iterations; set static_iterations"));
   }
@@ -99,6 +109,9 @@ absl::Status ValidateTrainingConfig(const v1::TrainingConfig& c) {
     if (absl::Status s = train::CheckClipOverlap(c.clip_frames(), c.clip_overlap()); !s.ok()) {
       return Bad(absl::StrCat("clip_overlap: ", s.message()));
     }
+  }
+  if (!c.continue_from_scene().empty() && !IsSceneName(c.continue_from_scene())) {
+    return Bad("continue_from_scene: 1-64 of [A-Za-z0-9_.-], not starting with '.'");
   }
   if (!c.backend().empty()) {
     if (absl::Status s = ParseBackend(c.backend()).status(); !s.ok()) {

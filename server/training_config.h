@@ -17,6 +17,10 @@ namespace streetsim::server {
 // functions, called here.
 absl::Status ValidateTrainingConfig(const v1::TrainingConfig& config);
 
+// A scene name a job may produce or continue from: 1-64 of [A-Za-z0-9_.-], not starting with '.'
+// (so never a path).
+bool IsSceneName(const std::string& name);
+
 // The flags after `--log LOG --out DIR --iterations N` for a config that passed
 // ValidateTrainingConfig (the same on every attempt, so a resumed train stage keeps them).
 std::vector<std::string> TrainFlags(const v1::TrainingConfig& config);

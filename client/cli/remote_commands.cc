@@ -220,6 +220,7 @@ static absl::Status TrainingConfigFromFlags(const ParsedArgs& args, v1::Training
   if (auto v = args.Get("field")) c->set_field(*v);
   if (auto v = args.Get("field-modules")) c->set_field_modules(*v);
   if (auto v = args.Get("backend")) c->set_backend(*v);
+  if (auto v = args.Get("continue-from")) c->set_continue_from_scene(*v);
   for (absl::Status s : {
            integer("static-iterations", [&](int32_t n) { c->set_static_iterations(n); }),
            integer("low-res-iterations", [&](int32_t n) { c->set_low_res_iterations(n); }),
@@ -242,7 +243,7 @@ int RunJobsCommand(const std::vector<std::string>& argv) {
                                               {"seed"}, {"field"}, {"field-modules"}, {"static-iterations"},
                                               {"resolution-scale"}, {"low-res-scale"}, {"low-res-iterations"},
                                               {"holdout-every"}, {"clip-frames"}, {"clip-overlap"}, {"field-lr-scale"},
-                                              {"field-lr-decay-iterations"}, {"backend"}}));
+                                              {"field-lr-decay-iterations"}, {"backend"}, {"continue-from"}}));
   if (!args.ok()) return Fail("jobs", 2, args.status());
   const std::vector<std::string>& pos = args->positional();
   const std::string verb = pos.empty() ? "list" : pos[0];
@@ -288,7 +289,7 @@ int RunJobsCommand(const std::vector<std::string>& argv) {
       "usage: streetsim jobs [list | train LOG_PATH [--scene-name N] [--request-id R] [--max-iterations N] "
       "[streetsim train's --seed --field --field-modules --static-iterations --resolution-scale --low-res-scale "
       "--low-res-iterations --holdout-every --clip-frames --clip-overlap --field-lr-scale --field-lr-decay-iterations "
-      "--backend] [--watch] | watch ID | "
+      "--backend] [--continue-from SCENE] [--watch] | watch ID | "
       "get ID | cancel ID] [--server HOST:PORT]"));
 }
 

@@ -7,7 +7,7 @@
 # copied to DIR/preview/ (as the trainer's held-out previews). Leaves
 # DIR/scene.ply (from init) as it is and writes DIR/trained.
 set -e
-log=""; out=""; n=0; resume=0; seed=""; flags=""
+log=""; out=""; n=0; resume=0; seed=""; flags=""; field=static
 while [ $# -gt 0 ]; do
   case "$1" in
     --log) log="$2"; shift 2 ;;
@@ -15,7 +15,8 @@ while [ $# -gt 0 ]; do
     --iterations) n="$2"; shift 2 ;;
     --seed) seed="$2"; shift 2 ;;
     --resume) resume=1; shift ;;
-    --field|--field-modules|--static-iterations|--resolution-scale|--low-res-scale|--low-res-iterations|\
+    --field) field="$2"; flags="$flags $1 $2"; shift 2 ;;
+    --field-modules|--static-iterations|--resolution-scale|--low-res-scale|--low-res-iterations|\
     --holdout-every|--clip-frames|--clip-overlap|--field-lr-scale|--field-lr-decay-iterations|--backend)
       flags="$flags $1 $2"; shift 2 ;;
     *) echo "fake train: unknown flag $1" >&2; exit 2 ;;
@@ -49,4 +50,5 @@ fi
 if [ -f "$log/heldout.json" ]; then cp "$log/heldout.json" "$out/heldout.json"; fi
 if [ -d "$log/clips" ]; then cp -r "$log/clips/." "$out/"; echo '{}' > "$out/clips.json"; fi
 echo "iterations $n${seed:+ seed $seed}" > "$out/trained"
+echo "{\"iterations\": $n, \"background\": [0, 0, 0], \"resolution_scale\": 1.0, \"holdout_every\": 4, \"field\": \"$field\"}" > "$out/train_meta.json"
 echo "streetsim train: $n iterations, 4000 Gaussians -> $out/scene.ply" >&2

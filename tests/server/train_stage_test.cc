@@ -164,6 +164,76 @@ TEST_F(TrainStageTest, AClipSetReportsItsClipsTogether) {
   EXPECT_NEAR(done->heldout().psnr_dynamic_db(), (18.0 + 22.0) / 2, 1e-9);  // over the views that have any
 }
 
+TEST_F(TrainStageTest, AJobContinuesAnotherJobsScene) {
+  StartServer(Options());
+  v1::CreateTrainingJobRequest first_req = JobFor("first", 8);
+  first_req.mutable_config()->set_field("s3gaussian");
+  first_req.mutable_config()->set_static_iterations(4);
+  absl::StatusOr<v1::Job> first = client_->CreateTrainingJob(first_req);
+  ASSERT_TRUE(first.ok()) << first.status();
+  absl::StatusOr<v1::Job> done = client_->WatchJob(first->job_id(), [](const v1::Job&) {}, 60);
+  ASSERT_TRUE(done.ok() && done->state() == v1::JOB_STATE_SUCCEEDED) << done.status() << done->error();
+
+  // Refused before a job exists: fewer iterations than the scene has, an unknown scene, another
+  // log, a name that is a path.
+  v1::CreateTrainingJobRequest req = JobFor("longer", 8);
+  req.mutable_config()->set_continue_from_scene("first");
+  EXPECT_EQ(client_->CreateTrainingJob(req).status().code(), absl::StatusCode::kInvalidArgument);
+  req.mutable_config()->set_max_iterations(12);
+  req.mutable_config()->set_continue_from_scene("nope");
+  EXPECT_EQ(client_->CreateTrainingJob(req).status().code(), absl::StatusCode::kNotFound);
+  req.mutable_config()->set_continue_from_scene("../scenes/first");
+  EXPECT_EQ(client_->CreateTrainingJob(req).status().code(), absl::StatusCode::kInvalidArgument);
+  fs::create_directories(data_root_ + "/logs/other");
+  v1::CreateTrainingJobRequest other_log = req;
+  other_log.set_log_path("logs/other");
+  other_log.mutable_config()->set_continue_from_scene("first");
+  absl::StatusOr<v1::Job> refused = client_->CreateTrainingJob(other_log);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(refused.status().message().find("was trained from log_path 'logs/fake'"), std::string::npos)
+      << refused.status();
+
+  // Continued: the trainer resumes the copy at the scene's checkpoint (8) with the new options and
+  // trains to 12; the source scene is untouched.
+  req.mutable_config()->set_continue_from_scene("first");
+  req.mutable_config()->set_field_lr_decay_iterations(600);
+  absl::StatusOr<v1::Job> longer = client_->CreateTrainingJob(req);
+  ASSERT_TRUE(longer.ok()) << longer.status();
+  done = client_->WatchJob(longer->job_id(), [](const v1::Job&) {}, 60);
+  ASSERT_TRUE(done.ok()) << done.status();
+  ASSERT_EQ(done->state(), v1::JOB_STATE_SUCCEEDED) << done->error();
+  EXPECT_EQ(done->progress().iteration(), 12);
+  std::ifstream resumed(state_dir_ + "/scenes/longer/resumed");
+  int from = -1;
+  resumed >> from;
+  EXPECT_EQ(from, 8);
+  std::ifstream flags(state_dir_ + "/scenes/longer/flags");
+  std::vector<std::string> runs;
+  for (std::string line; std::getline(flags, line);) runs.push_back(line);
+  EXPECT_EQ(runs, (std::vector<std::string>{"--field s3gaussian --static-iterations 4",  // the source's run
+                                            "--field-lr-decay-iterations 600"}));
+  std::ifstream source_trained(state_dir_ + "/scenes/first/trained");
+  std::string line;
+  std::getline(source_trained, line);
+  EXPECT_EQ(line, "iterations 8");
+  EXPECT_FALSE(fs::exists(state_dir_ + "/scenes/first/resumed"));
+  // A static scene has no field rates to set.
+  v1::CreateTrainingJobRequest static_req = JobFor("static_src", 4);
+  static_req.mutable_config()->set_field("static");
+  absl::StatusOr<v1::Job> static_job = client_->CreateTrainingJob(static_req);
+  ASSERT_TRUE(static_job.ok()) << static_job.status();
+  ASSERT_TRUE(client_->WatchJob(static_job->job_id(), [](const v1::Job&) {}, 60).ok());
+  v1::CreateTrainingJobRequest anneal_static = JobFor("static_more", 8);
+  anneal_static.mutable_config()->set_continue_from_scene("static_src");
+  anneal_static.mutable_config()->set_field_lr_decay_iterations(600);
+  absl::StatusOr<v1::Job> anneal = client_->CreateTrainingJob(anneal_static);
+  EXPECT_EQ(anneal.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(anneal.status().message().find("static scene"), std::string::npos) << anneal.status();
+  absl::StatusOr<v1::Scene> scene = client_->LoadScene("longer", true);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  EXPECT_EQ(scene->rig().cameras(0).sensor_id(), "cam_logged");  // the source's manifest came along
+}
+
 TEST_F(TrainStageTest, NoIterationsMeansNoTrainStage) {
   StartServer(Options());
   absl::StatusOr<v1::Job> job = client_->CreateTrainingJob(JobFor("init_only", 0));

@@ -129,6 +129,17 @@ TEST(TrainingConfig, BadValuesAreRefusedNamingTheField) {
                 }),
                 "config.clip_overlap");
   ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_backend("cuda"); }), "config.backend");
+  // A continuation names a scene, never a path; its field is the scene's (the job runner checks
+  // that one), so field-dependent options pass here.
+  ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_continue_from_scene("../scenes/x"); }),
+                "config.continue_from_scene");
+  ExpectRefused(Config(0, [](v1::TrainingConfig* c) { c->set_continue_from_scene("x"); }), "max_iterations > 0");
+  const v1::TrainingConfig anneal = Config(100, [](v1::TrainingConfig* c) {
+    c->set_continue_from_scene("kitti_full");
+    c->set_field_lr_decay_iterations(600);
+  });
+  EXPECT_TRUE(ValidateTrainingConfig(anneal).ok()) << ValidateTrainingConfig(anneal);
+  EXPECT_EQ(TrainFlags(anneal), (std::vector<std::string>{"--field-lr-decay-iterations", "600"}));
 }
 
 }  // namespace
