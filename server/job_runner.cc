@@ -226,6 +226,9 @@ absl::StatusOr<v1::Job> JobRunner::Create(const v1::CreateTrainingJobRequest& re
 // A job's scene that another job may continue: trained by this server from the same log, with a
 // checkpoint to resume, and fewer iterations than the new job asks for.
 absl::Status JobRunner::CheckContinuation(const v1::CreateTrainingJobRequest& req, const std::string& from) {
+  if (!TrainAvailable()) {
+    return absl::FailedPreconditionError("config.continue_from_scene: this server's build has no `streetsim train`");
+  }
   const v1::Job* source = nullptr;
   const std::vector<v1::Job> jobs = store_->List();
   for (const v1::Job& j : jobs) {

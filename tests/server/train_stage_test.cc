@@ -247,6 +247,18 @@ TEST_F(TrainStageTest, NoIterationsMeansNoTrainStage) {
   EXPECT_FALSE(fs::exists(state_dir_ + "/scenes/init_only/trained"));
 }
 
+TEST_F(TrainStageTest, WithoutATrainerNothingIsContinued) {
+  server::ServerOptions o = Options();
+  o.train_command.clear();
+  StartServer(o);
+  absl::StatusOr<v1::Job> job = client_->CreateTrainingJob(JobFor("init_only", 0));
+  ASSERT_TRUE(job.ok()) << job.status();
+  ASSERT_TRUE(client_->WatchJob(job->job_id(), [](const v1::Job&) {}, 60).ok());
+  v1::CreateTrainingJobRequest req = JobFor("more", 50);
+  req.mutable_config()->set_continue_from_scene("init_only");
+  EXPECT_EQ(client_->CreateTrainingJob(req).status().code(), absl::StatusCode::kFailedPrecondition);
+}
+
 TEST_F(TrainStageTest, WithoutATrainerOnlyInitRuns) {
   // Default train command: `streetsim` next to this test binary, which has none.
   server::ServerOptions o = Options();
