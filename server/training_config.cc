@@ -1,5 +1,6 @@
 #include "server/training_config.h"
 
+#include <charconv>
 #include <cmath>
 #include <regex>
 
@@ -30,7 +31,13 @@ std::string EffectiveField(const v1::TrainingConfig& c) {
   return c.max_iterations() > train::FieldOptions{}.static_iterations ? "s3gaussian" : "static";
 }
 
-std::string Number(double v) { return absl::StrCat(v); }  // shortest round-trip form
+// The shortest text that parses back to exactly v (absl::StrCat keeps 6 digits: the trainer would
+// get another scale than the job asked for).
+std::string Number(double v) {
+  char buf[32];
+  const std::to_chars_result r = std::to_chars(buf, buf + sizeof(buf), v);
+  return std::string(buf, r.ptr);
+}
 
 }  // namespace
 

@@ -59,6 +59,9 @@ TEST(TrainingConfig, EveryOptionBecomesTheTrainersFlag) {
                                "--low-res-iterations", "3000", "--holdout-every", "0", "--clip-frames", "50",
                                "--clip-overlap", "0", "--field-lr-scale", "2.5", "--field-lr-decay-iterations", "6000",
                                "--backend", "vulkan"}));
+  // Numbers go to the trainer exactly (not rounded to 6 digits).
+  const v1::TrainingConfig exact = Config(300, [](v1::TrainingConfig* c) { c->set_resolution_scale(0.1234567891); });
+  EXPECT_EQ(TrainFlags(exact), (std::vector<std::string>{"--resolution-scale", "0.1234567891"}));
   // Unset optional fields are the trainer's defaults, not 0.
   const v1::TrainingConfig d = Config(300, [](v1::TrainingConfig* c) { c->set_clip_frames(20); });
   EXPECT_EQ(TrainFlags(d), (std::vector<std::string>{"--clip-frames", "20"}));
