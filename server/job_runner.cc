@@ -249,16 +249,20 @@ absl::Status JobRunner::CheckContinuation(const v1::CreateTrainingJobRequest& re
     return absl::FailedPreconditionError(
         absl::StrCat("config.continue_from_scene: scene '", from, "' has no checkpoint to continue from"));
   }
+  absl::StatusOr<train::SceneMeta> meta = TrainedSceneMeta(dir);
+  if (!meta.ok()) {
+    return absl::FailedPreconditionError(absl::StrCat("config.continue_from_scene: ", meta.status().message()));
+  }
   const v1::TrainingConfig& c = req.config();
-  if (c.field().empty() && TrainedField(dir) == "static" &&
+  if (c.field().empty() && meta->field == "static" &&
       (c.has_static_iterations() || c.field_lr_scale() != 0 || c.field_lr_decay_iterations() != 0)) {
     return absl::InvalidArgumentError(absl::StrCat("config: scene '", from, "' is a static scene: static_iterations and "
                                                    "field_lr_* need a field (config.field)"));
   }
-  if (const int64_t done = TrainedIterations(dir); done >= req.config().max_iterations()) {
-    return absl::InvalidArgumentError(absl::StrCat("config.max_iterations (", req.config().max_iterations(),
-                                                   ") must be above the ", done, " iterations scene '", from,
-                                                   "' was trained for"));
+  if (meta->iterations >= c.max_iterations()) {
+    return absl::InvalidArgumentError(absl::StrCat("config.max_iterations (", c.max_iterations(),
+                                                   ") must be above the ", meta->iterations, " iterations scene '",
+                                                   from, "' was trained for"));
   }
   return absl::OkStatus();
 }

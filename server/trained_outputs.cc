@@ -6,12 +6,12 @@
 #include <optional>
 #include <vector>
 
-#include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
 #include "render/common/log.h"
 #include "scene/train/clips.h"
 #include "scene/train/metrics_json.h"
@@ -23,26 +23,15 @@ namespace {
 constexpr int64_t kMaxPreviewFileBytes = 64 << 20;
 constexpr int kPreviewMaxWidth = 384;
 
-// A clip set's clip directories (WORK/clips.json beside WORK/clip_KKK/), sorted; nullopt for a
-// plain scene.
-std::optional<std::vector<std::string>> ClipDirs(const std::string& work) {
-  if (!fs::exists(work + "/clips.json")) return std::nullopt;
+// A clip set's clip directories, from its manifest (clips.h), in clip order; nullopt for a plain
+// scene. A manifest the trainer's own reader refuses is an error.
+absl::StatusOr<std::optional<std::vector<std::string>>> ClipDirs(const std::string& work) {
+  absl::StatusOr<std::optional<train::ClipSet>> set = train::ReadClipSet(work);
+  if (!set.ok()) return set.status();
+  if (!*set) return std::nullopt;
   std::vector<std::string> dirs;
-  std::error_code ec;
-  for (fs::directory_iterator it(work, ec), end; !ec && it != end; it.increment(ec)) {
-    if (it->path().filename().string().rfind("clip_", 0) == 0) dirs.push_back(it->path().string());
-  }
-  std::sort(dirs.begin(), dirs.end());
+  for (const train::ClipEntry& c : (*set)->clips) dirs.push_back((fs::path(work) / c.dir).string());
   return dirs;
-}
-// WORK/train_meta.json (a clip set: its first clip's) as an object; empty when unreadable.
-nlohmann::json TrainMeta(const std::string& work) {
-  const std::optional<std::vector<std::string>> clips = ClipDirs(work);
-  const std::string dir = !clips ? work : clips->empty() ? "" : clips->front();
-  std::ifstream in(dir + "/train_meta.json");
-  if (dir.empty() || !in) return nlohmann::json::object();
-  nlohmann::json meta = nlohmann::json::parse(in, nullptr, /*allow_exceptions=*/false);
-  return meta.is_object() ? meta : nlohmann::json::object();
 }
 
 }  // namespace
@@ -61,17 +50,25 @@ uint64_t PlyVertexCount(const std::string& path) {
 }
 
 uint64_t TrainedGaussianCount(const std::string& work) {
-  const std::optional<std::vector<std::string>> clips = ClipDirs(work);
-  if (!clips) return PlyVertexCount(work + "/scene.ply");
+  absl::StatusOr<std::optional<std::vector<std::string>>> clips = ClipDirs(work);
+  if (!clips.ok()) {
+    LOG(WARNING) << "trained Gaussians: " << clips.status().message();
+    return 0;
+  }
+  if (!*clips) return PlyVertexCount(work + "/scene.ply");
   uint64_t n = 0;
-  for (const std::string& d : *clips) n += PlyVertexCount(d + "/scene.ply");
+  for (const std::string& d : **clips) n += PlyVertexCount(d + "/scene.ply");
   return n;
 }
 
 v1::HeldOutMetrics TrainedHeldoutMetrics(const std::string& work) {
-  const std::vector<std::string> dirs = ClipDirs(work).value_or(std::vector<std::string>{work});
+  absl::StatusOr<std::optional<std::vector<std::string>>> clips = ClipDirs(work);
+  if (!clips.ok()) {
+    LOG(WARNING) << "held-out metrics: " << clips.status().message();
+    return {};
+  }
   std::vector<train::EvalResult> parts;
-  for (const std::string& d : dirs) {
+  for (const std::string& d : clips->value_or(std::vector<std::string>{work})) {
     absl::StatusOr<train::EvalResult> r = train::ReadHeldoutMetrics(d);
     if (absl::IsNotFound(r.status())) continue;
     if (!r.ok()) {
@@ -90,18 +87,15 @@ v1::HeldOutMetrics TrainedHeldoutMetrics(const std::string& work) {
   return out;
 }
 
-int64_t TrainedIterations(const std::string& work) {
-  const nlohmann::json meta = TrainMeta(work);
-  return meta.contains("iterations") && meta["iterations"].is_number_integer() ? meta["iterations"].get<int64_t>() : 0;
-}
-
-std::string TrainedField(const std::string& work) {
-  const nlohmann::json meta = TrainMeta(work);
-  return meta.contains("field") && meta["field"].is_string() ? meta["field"].get<std::string>() : "";
+absl::StatusOr<train::SceneMeta> TrainedSceneMeta(const std::string& work) {
+  absl::StatusOr<std::optional<std::vector<std::string>>> clips = ClipDirs(work);
+  if (!clips.ok()) return clips.status();
+  if (*clips && (*clips)->empty()) return absl::DataLossError(absl::StrCat(work, ": a clip set without clips"));
+  return train::ReadSceneMeta(*clips ? (*clips)->front() : work);
 }
 
 bool HasTrainerCheckpoint(const std::string& work) {
-  return fs::exists(work + "/checkpoint.bin") || fs::exists(work + "/clips.json");
+  return fs::exists(work + "/checkpoint.bin") || fs::exists(fs::path(work) / train::kClipManifestName);
 }
 
 std::string FirstPreviewPng(const std::string& work) {

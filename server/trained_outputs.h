@@ -6,6 +6,8 @@
 #include <cstdint>
 #include <string>
 
+#include "absl/status/statusor.h"
+#include "scene/train/trainer.h"
 #include "streetsim/v1/training.pb.h"
 
 namespace streetsim::server {
@@ -21,13 +23,9 @@ uint64_t TrainedGaussianCount(const std::string& work);
 // merged); views = 0 when none. A damaged file is logged and reported as none: the scene is fine.
 v1::HeldOutMetrics TrainedHeldoutMetrics(const std::string& work);
 
-// The iterations the scene's outputs were written at (train_meta.json; a clip set: its first
-// clip's, every clip trains as many); 0 when unknown.
-int64_t TrainedIterations(const std::string& work);
-
-// The field the scene was trained with (train_meta.json's "field": static, s3gaussian, extended;
-// a clip set: its first clip's); "" when unknown.
-std::string TrainedField(const std::string& work);
+// The scene's train_meta.json (train::ReadSceneMeta: field, iterations ...; a clip set: its first
+// clip's, every clip trains with the same options).
+absl::StatusOr<train::SceneMeta> TrainedSceneMeta(const std::string& work);
 
 // The trainer checkpoints in WORK, or in WORK/clip_KKK for a clip set; either one resumes.
 bool HasTrainerCheckpoint(const std::string& work);

@@ -34,8 +34,6 @@ namespace {
 
 int Fail(int code, const absl::Status& status) { return ReportFailure("eval", code, status); }
 
-nlohmann::json Defined(double v) { return v >= 0 ? nlohmann::json(v) : nlohmann::json(nullptr); }
-
 // --decomposition DIR / --video PATH [--video-fps F] (scene/train/eval_outputs.h); the options stay
 // empty when neither is given.
 absl::StatusOr<train::EvalOutputOptions> ParseOutputOptions(const ParsedArgs& args) {
@@ -77,10 +75,10 @@ nlohmann::json OutputsJson(const train::EvalOutputOptions& o, const train::EvalO
 }
 
 void AddLidar(const train::LidarFrameMetrics& m, nlohmann::json* j) {
-  (*j)["lidar_range_median_abs_m"] = Defined(m.range_median_abs_m);
-  (*j)["lidar_chamfer_m"] = Defined(m.chamfer_m);
-  (*j)["lidar_drop_accuracy"] = Defined(m.drop_accuracy);
-  (*j)["lidar_intensity_rmse"] = Defined(m.intensity_rmse);
+  (*j)["lidar_range_median_abs_m"] = train::MetricOrNull(m.range_median_abs_m);
+  (*j)["lidar_chamfer_m"] = train::MetricOrNull(m.chamfer_m);
+  (*j)["lidar_drop_accuracy"] = train::MetricOrNull(m.drop_accuracy);
+  (*j)["lidar_intensity_rmse"] = train::MetricOrNull(m.intensity_rmse);
   (*j)["lidar_rays"] = m.rays;
 }
 

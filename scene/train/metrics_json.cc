@@ -8,21 +8,17 @@
 #include "scene/common/checked_file.h"
 
 namespace streetsim::train {
-namespace {
-
-nlohmann::json Defined(double v) { return v >= 0 ? nlohmann::json(v) : nlohmann::json(nullptr); }
-
-}  // namespace
+nlohmann::json MetricOrNull(double v) { return v >= 0 ? nlohmann::json(v) : nlohmann::json(nullptr); }
 
 nlohmann::json FrameMetricsJson(const FrameMetrics& m) {
   nlohmann::json j;
   j["psnr"] = m.psnr;
   j["ssim"] = m.ssim;
-  j["depth_median_abs_m"] = Defined(m.depth_median_abs_m);
-  j["depth_within_5pct"] = Defined(m.depth_within_5pct);
+  j["depth_median_abs_m"] = MetricOrNull(m.depth_median_abs_m);
+  j["depth_within_5pct"] = MetricOrNull(m.depth_within_5pct);
   // PSNR* (dynamic_pixels.h); null: no dynamic (static) pixel in the view(s).
-  j["psnr_dynamic"] = Defined(m.psnr_dynamic);
-  j["psnr_static"] = Defined(m.psnr_static);
+  j["psnr_dynamic"] = MetricOrNull(m.psnr_dynamic);
+  j["psnr_static"] = MetricOrNull(m.psnr_static);
   return j;
 }
 

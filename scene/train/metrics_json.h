@@ -15,6 +15,9 @@ namespace streetsim::train {
 
 inline constexpr char kHeldoutMetricsFileName[] = "heldout.json";
 
+// A metric that may not apply (negative: not measured) as JSON: the value, or null.
+nlohmann::json MetricOrNull(double v);
+
 // {"psnr", "ssim", "depth_median_abs_m", "depth_within_5pct", "psnr_dynamic", "psnr_static"}.
 nlohmann::json FrameMetricsJson(const FrameMetrics& m);
 

@@ -88,6 +88,7 @@ absl::StatusOr<SceneMeta> ReadSceneMeta(const std::string& dir) {
     meta.resolution_scale = j.at("resolution_scale").get<double>();
     meta.holdout_every = j.at("holdout_every").get<int>();
     meta.field = j.value("field", std::string("static"));
+    meta.iterations = j.value("iterations", int64_t{0});
   } catch (const std::exception& e) {
     return absl::DataLossError(absl::StrCat(path, ": ", e.what()));
   }

@@ -132,6 +132,7 @@ struct SceneMeta {
   double resolution_scale = 1.0;
   int holdout_every = 4;
   std::string field = "static";  // FieldModeName
+  int64_t iterations = 0;         // the iterations the outputs were written at; 0 when not recorded
 };
 absl::StatusOr<SceneMeta> ReadSceneMeta(const std::string& dir);
 

@@ -46,9 +46,9 @@ if [ -f "$log/preview.png" ]; then
   mkdir -p "$out/preview"; cp "$log/preview.png" "$out/preview/heldout_frame0001_cam0.png"
 fi
 # Held-out metrics as the trainer leaves them: LOG/heldout.json -> DIR/heldout.json; LOG/clips/
-# (clip_000/heldout.json ...) -> a clip set (DIR/clips.json and its clip directories).
+# (clips.json, clip_000/heldout.json ...) -> a clip set (DIR/clips.json and its clip directories).
 if [ -f "$log/heldout.json" ]; then cp "$log/heldout.json" "$out/heldout.json"; fi
-if [ -d "$log/clips" ]; then cp -r "$log/clips/." "$out/"; echo '{}' > "$out/clips.json"; fi
+if [ -d "$log/clips" ]; then cp -r "$log/clips/." "$out/"; fi
 echo "iterations $n${seed:+ seed $seed}" > "$out/trained"
 echo "{\"iterations\": $n, \"background\": [0, 0, 0], \"resolution_scale\": 1.0, \"holdout_every\": 4, \"field\": \"$field\"}" > "$out/train_meta.json"
 echo "streetsim train: $n iterations, 4000 Gaussians -> $out/scene.ply" >&2

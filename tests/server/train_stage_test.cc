@@ -7,6 +7,7 @@
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 
+#include "scene/train/clips.h"
 #include "server/job_runner.h"
 #include "tests/server/server_fixture.h"
 
@@ -140,6 +141,11 @@ TEST_F(TrainStageTest, AClipSetReportsItsClipsTogether) {
   // its held-out metrics; the job reports their union and the Gaussians of every clip.
   const std::string clips = data_root_ + "/logs/fake/clips";
   for (const char* clip : {"clip_000", "clip_001"}) fs::create_directories(clips + "/" + clip);
+  train::ClipSet set;
+  set.clip_frames = 4;
+  set.num_frames = 12;
+  set.clips = {{{0, 4}, 0, 300000, "clip_000", true}, {{4, 12}, 400000, 1100000, "clip_001", true}};
+  ASSERT_TRUE(train::WriteClipSet(set, clips).ok());
   std::ofstream(clips + "/clip_000/heldout.json") << R"({"frames": [
       {"frame": 3, "psnr": 20.0, "ssim": 0.70, "psnr_dynamic": 18.0}],
     "mean": {"psnr": 20.0, "ssim": 0.70, "psnr_dynamic": 18.0}})";
