@@ -54,7 +54,7 @@ absl::Status ValidateTrainingConfig(const v1::TrainingConfig& c) {
       !c.field().empty() || !c.field_modules().empty() || c.has_static_iterations() || c.resolution_scale() != 0 ||
       c.low_res_scale() != 0 || c.low_res_iterations() != 0 || c.has_holdout_every() || c.clip_frames() != 0 ||
       c.has_clip_overlap() || c.field_lr_scale() != 0 || c.field_lr_decay_iterations() != 0 || !c.backend().empty() ||
-      !c.continue_from_scene().empty();
+      !c.continue_from_scene().empty() || c.pose_refinement() || c.pose_lr_scale() != 0;
   if (c.max_iterations() == 0) {
     if (asks_training_options) return Bad("training options need max_iterations > 0 (0 is init only)");
     return absl::OkStatus();
@@ -117,6 +117,10 @@ absl::Status ValidateTrainingConfig(const v1::TrainingConfig& c) {
       return Bad(absl::StrCat("clip_overlap: ", s.message()));
     }
   }
+  if (!(std::isfinite(c.pose_lr_scale()) && c.pose_lr_scale() >= 0 && c.pose_lr_scale() <= 1000)) {
+    return Bad("pose_lr_scale must be in (0, 1000] (0: the default)");
+  }
+  if (c.pose_lr_scale() != 0 && !c.pose_refinement()) return Bad("pose_lr_scale needs pose_refinement");
   if (!c.continue_from_scene().empty() && !IsSceneName(c.continue_from_scene())) {
     return Bad("continue_from_scene: 1-64 of [A-Za-z0-9_.-], not starting with '.'");
   }
@@ -146,6 +150,8 @@ std::vector<std::string> TrainFlags(const v1::TrainingConfig& c) {
   if (c.field_lr_scale() != 0) add("--field-lr-scale", Number(c.field_lr_scale()));
   if (c.field_lr_decay_iterations() != 0) add("--field-lr-decay-iterations", std::to_string(c.field_lr_decay_iterations()));
   if (!c.backend().empty()) add("--backend", c.backend());
+  if (c.pose_refinement()) f.push_back("--pose-refinement");
+  if (c.pose_lr_scale() != 0) add("--pose-lr-scale", Number(c.pose_lr_scale()));
   return f;
 }
 

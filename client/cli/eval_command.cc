@@ -26,6 +26,7 @@
 #include "scene/train/eval_outputs.h"
 #include "scene/train/lidar_eval.h"
 #include "scene/train/metrics_json.h"
+#include "scene/train/pose_refinement.h"
 #include "scene/train/served_scene.h"
 #include "scene/train/trainer.h"
 
@@ -87,7 +88,8 @@ void AddLidar(const train::LidarFrameMetrics& m, nlohmann::json* j) {
 int RunEvalCommand(const std::vector<std::string>& argv) {
   std::vector<FlagSpec> flags = {{"scene"}, {"log"}, {"split"}, {"holdout-every"}, {"resolution-scale"}, {"backend"},
                                  {"no-lidar", false}, {"lidar-columns"}, {"lidar-static-sweep", false},
-                                 {"decomposition"}, {"video"}, {"video-fps"}, {"served", false}};
+                                 {"decomposition"}, {"video"}, {"video-fps"}, {"served", false},
+                                 {"log-poses", false}};
   flags.insert(flags.end(), StaticSkipFlags().begin(), StaticSkipFlags().end());
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(argv, flags);
   if (!args.ok()) return Fail(2, args.status());
@@ -183,7 +185,7 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
   size_t served_static = 0, served_dynamic = 0;
   double served_analysis_s = 0;
   std::vector<train::LidarEvalResult> lidar_parts;
-  int scenes_with_reflectance = 0, scenes_evaluated = 0;
+  int scenes_with_reflectance = 0, scenes_evaluated = 0, scenes_with_pose_corrections = 0;
   // A clip set: how far the image jumps where a consumer crosses from one clip to the next,
   // measured with the scenes this loop loads (each clip once).
   std::optional<train::ClipSeamMeter> seam_meter;
@@ -202,6 +204,16 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
     if (!store.ok()) return Fail(2, store.status());
     std::vector<train::View> views;
     for (size_t i : view_groups[k]) views.push_back(std::move((*all_views)[i]));
+    // A run that refined its poses is measured at them (held-out views: interpolated).
+    if (!args->Has("log-poses")) {
+      absl::StatusOr<std::vector<train::PoseCorrection>> corrections = train::ReadPoseCorrections(dir);
+      if (corrections.ok()) {
+        train::ApplyPoseCorrections(*corrections, &views);
+        ++scenes_with_pose_corrections;
+      } else if (!absl::IsNotFound(corrections.status())) {
+        return Fail(2, corrections.status());
+      }
+    }
     // A field scene (DIR/field.bin) is deformed at each view's time.
     absl::StatusOr<std::shared_ptr<const field::DeformationField>> f = train::LoadSceneField(dir);
     if (!f.ok()) return Fail(2, f.status());
@@ -283,6 +295,10 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
     j["lidar_reflectance"] = reflectance_source;
   }
   j["split"] = split;
+  // Which camera poses the views were rendered at (pose_refinement.h).
+  j["poses"] = scenes_with_pose_corrections == 0 ? "log"
+               : scenes_with_pose_corrections == scenes_evaluated ? "corrected"
+                                                                  : "corrected where the clip has corrections";
   const nlohmann::json outputs_json = OutputsJson(*output_options, output_summary);
   for (const auto& [key, value] : outputs_json.items()) j[key] = value;
   if (served) {

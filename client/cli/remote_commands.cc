@@ -221,6 +221,7 @@ static absl::Status TrainingConfigFromFlags(const ParsedArgs& args, v1::Training
   if (auto v = args.Get("field-modules")) c->set_field_modules(*v);
   if (auto v = args.Get("backend")) c->set_backend(*v);
   if (auto v = args.Get("continue-from")) c->set_continue_from_scene(*v);
+  if (args.Has("pose-refinement")) c->set_pose_refinement(true);
   for (absl::Status s : {
            integer("static-iterations", [&](int32_t n) { c->set_static_iterations(n); }),
            integer("low-res-iterations", [&](int32_t n) { c->set_low_res_iterations(n); }),
@@ -231,6 +232,7 @@ static absl::Status TrainingConfigFromFlags(const ParsedArgs& args, v1::Training
            number("resolution-scale", [&](double x) { c->set_resolution_scale(x); }),
            number("low-res-scale", [&](double x) { c->set_low_res_scale(x); }),
            number("field-lr-scale", [&](double x) { c->set_field_lr_scale(x); }),
+           number("pose-lr-scale", [&](double x) { c->set_pose_lr_scale(x); }),
        }) {
     if (!s.ok()) return s;
   }
@@ -243,7 +245,8 @@ int RunJobsCommand(const std::vector<std::string>& argv) {
                                               {"seed"}, {"field"}, {"field-modules"}, {"static-iterations"},
                                               {"resolution-scale"}, {"low-res-scale"}, {"low-res-iterations"},
                                               {"holdout-every"}, {"clip-frames"}, {"clip-overlap"}, {"field-lr-scale"},
-                                              {"field-lr-decay-iterations"}, {"backend"}, {"continue-from"}}));
+                                              {"field-lr-decay-iterations"}, {"backend"}, {"continue-from"},
+                                              {"pose-refinement", false}, {"pose-lr-scale"}}));
   if (!args.ok()) return Fail("jobs", 2, args.status());
   const std::vector<std::string>& pos = args->positional();
   const std::string verb = pos.empty() ? "list" : pos[0];
@@ -289,7 +292,7 @@ int RunJobsCommand(const std::vector<std::string>& argv) {
       "usage: streetsim jobs [list | train LOG_PATH [--scene-name N] [--request-id R] [--max-iterations N] "
       "[streetsim train's --seed --field --field-modules --static-iterations --resolution-scale --low-res-scale "
       "--low-res-iterations --holdout-every --clip-frames --clip-overlap --field-lr-scale --field-lr-decay-iterations "
-      "--backend] [--continue-from SCENE] [--watch] | watch ID | "
+      "--backend --pose-refinement --pose-lr-scale] [--continue-from SCENE] [--watch] | watch ID | "
       "get ID | cancel ID] [--server HOST:PORT]"));
 }
 

@@ -100,7 +100,7 @@ void InstallStopHandlers() {
 int RunTrainCommand(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(
       argv, {{"log"}, {"out"}, {"iterations"}, {"resolution-scale"}, {"holdout-every"}, {"seed"}, {"resume", false},
-             {"checkpoint-every"}, {"no-sky", false}, {"exposure", false}, {"no-depth", false},
+             {"checkpoint-every"}, {"no-sky", false}, {"exposure", false}, {"pose-refinement", false}, {"pose-lr-scale"}, {"pose-refine-from"}, {"no-depth", false},
              {"deterministic", false}, {"backend"}, {"voxel"}, {"field"}, {"static-iterations"}, {"field-size"},
              {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"clip-overlap"},
              {"field-modules"}, {"field-decoder-max-dlog-scale"}, {"field-device"}, {"field-optimizer"},
@@ -339,6 +339,22 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   opt.resume = args->Has("resume");
   opt.sky = !args->Has("no-sky");
   opt.exposure = args->Has("exposure");
+  opt.pose_refinement = args->Has("pose-refinement");
+  if (auto v = args->Get("pose-lr-scale")) {
+    double scale = 0;
+    if (!opt.pose_refinement) return Fail(2, absl::InvalidArgumentError("--pose-lr-scale needs --pose-refinement"));
+    if (!absl::SimpleAtod(*v, &scale) || !(scale > 0 && scale <= 1000)) {
+      return Fail(2, absl::InvalidArgumentError("--pose-lr-scale must be a number in (0, 1000]"));
+    }
+    opt.hyper.pose_rotation_lr *= scale;
+    opt.hyper.pose_translation_lr *= scale;
+  }
+  if (auto v = args->Get("pose-refine-from")) {
+    if (!opt.pose_refinement) return Fail(2, absl::InvalidArgumentError("--pose-refine-from needs --pose-refinement"));
+    if (!absl::SimpleAtoi(*v, &opt.hyper.pose_refine_from) || opt.hyper.pose_refine_from < 0) {
+      return Fail(2, absl::InvalidArgumentError("--pose-refine-from must be an integer >= 0"));
+    }
+  }
   opt.depth_loss = !args->Has("no-depth");
   opt.deterministic = args->Has("deterministic");
   // LiDAR losses (docs/training.md "LiDAR losses").

@@ -320,8 +320,14 @@ void ResetOpacity(TrainState* s) {
 // ---- checkpoints ----
 namespace {
 constexpr char kMagic[8] = {'S', 'S', 'T', 'R', 'N', '0', '0', '1'};
-// Optional trailing section (older checkpoints end before it): the LiDAR reflectance logits.
+// Optional trailing sections (older checkpoints end before them): the LiDAR reflectance logits,
+// then the camera pose corrections.
 constexpr char kReflectanceTag[8] = {'R', 'E', 'F', 'L', 'O', 'G', '0', '1'};
+constexpr char kPoseTag[8] = {'P', 'O', 'S', 'E', 'R', 'F', '0', '1'};
+
+bool AllFinite(const std::vector<float>& v) {
+  return std::all_of(v.begin(), v.end(), [](float x) { return std::isfinite(x); });
+}
 
 class Writer {
  public:
@@ -420,6 +426,13 @@ absl::Status SaveCheckpoint(const TrainState& s, const std::string& path) {
     w.Vec(s.reflectance_v);
     w.Pod<int64_t>(s.reflectance_step);
   }
+  if (!s.pose_delta.empty()) {
+    w.Raw(kPoseTag, 8);
+    w.Vec(s.pose_delta);
+    w.Vec(s.pose_m);
+    w.Vec(s.pose_v);
+    w.Vec(s.pose_steps);
+  }
   return checked_file::WriteAtomically(path, w.buf_);
 }
 
@@ -453,13 +466,25 @@ absl::StatusOr<TrainState> LoadCheckpoint(const std::string& path) {
                   r.Raw(s.sky_v, sizeof(s.sky_v)) && r.Pod(&s.aux_step) && r.Vec(&s.exposure) &&
                   r.Vec(&s.exposure_m) && r.Vec(&s.exposure_v) && r.Vec(&s.view_queue) && r.Str(&rng) &&
                   r.Vec(&s.curve);
-  bool refl_ok = true;
-  if (ok && !r.at_end()) {
+  // Optional trailing sections, each at most once, in the order written.
+  bool sections_ok = true;
+  int last_section = -1;
+  while (ok && sections_ok && !r.at_end()) {
     char tag[8];
-    refl_ok = r.Raw(tag, 8) && std::memcmp(tag, kReflectanceTag, 8) == 0 && r.Vec(&s.reflectance_logit) &&
-              r.Vec(&s.reflectance_m) && r.Vec(&s.reflectance_v) && r.Pod(&s.reflectance_step) && r.at_end();
+    if (!r.Raw(tag, 8)) {
+      sections_ok = false;
+    } else if (std::memcmp(tag, kReflectanceTag, 8) == 0 && last_section < 0) {
+      last_section = 0;
+      sections_ok = r.Vec(&s.reflectance_logit) && r.Vec(&s.reflectance_m) && r.Vec(&s.reflectance_v) &&
+                    r.Pod(&s.reflectance_step);
+    } else if (std::memcmp(tag, kPoseTag, 8) == 0 && last_section < 1) {
+      last_section = 1;
+      sections_ok = r.Vec(&s.pose_delta) && r.Vec(&s.pose_m) && r.Vec(&s.pose_v) && r.Vec(&s.pose_steps);
+    } else {
+      sections_ok = false;
+    }
   }
-  if (!ok || !refl_ok) return absl::DataLossError(absl::StrCat(path, ": truncated or corrupt checkpoint"));
+  if (!ok || !sections_ok) return absl::DataLossError(absl::StrCat(path, ": truncated or corrupt checkpoint"));
   std::istringstream in(rng);
   in >> s.rng;
   if (!in) return absl::DataLossError(absl::StrCat(path, ": corrupt RNG state"));
@@ -468,7 +493,10 @@ absl::StatusOr<TrainState> LoadCheckpoint(const std::string& path) {
       s.adam_v.sh.size() != s.params.sh.size() || s.grad_accum.size() != n || s.denom.size() != n ||
       s.max_radii.size() != n || s.exposure.size() != s.exposure_m.size() ||
       !(s.reflectance_logit.empty() || s.reflectance_logit.size() == n) ||
-      s.reflectance_m.size() != s.reflectance_logit.size() || s.reflectance_v.size() != s.reflectance_logit.size()) {
+      s.reflectance_m.size() != s.reflectance_logit.size() || s.reflectance_v.size() != s.reflectance_logit.size() ||
+      s.pose_delta.size() % 6 != 0 || s.pose_m.size() != s.pose_delta.size() ||
+      s.pose_v.size() != s.pose_delta.size() || s.pose_steps.size() * 6 != s.pose_delta.size() ||
+      !AllFinite(s.pose_delta)) {
     return absl::DataLossError(absl::StrCat(path, ": inconsistent checkpoint"));
   }
   return s;

@@ -23,6 +23,11 @@ struct Hyper {
   int lr_decay_steps = 30000;
   double f_dc_lr = 2.5e-3, f_rest_lr = 2.5e-3 / 20, opacity_lr = 0.05, scaling_lr = 5e-3, rotation_lr = 1e-3;
   double sky_lr = 1e-2, exposure_lr = 1e-3;  // streetsim's additions (not in S3Gaussian)
+  // Camera pose refinement (streetsim's, pose_refinement.h): Adam rates of the per-view rotation
+  // (rad) and translation (m); the first pose_refine_from iterations leave the poses alone, so
+  // that a coarse scene does not pull them.
+  double pose_rotation_lr = 3e-4, pose_translation_lr = 3e-3;
+  int pose_refine_from = 300;
   // Losses (section 5).
   double lambda_dssim = 0.2, lambda_depth = 0.5;
   // Densification (section 7).
@@ -56,6 +61,12 @@ struct TrainState {
   // checkpoints (a trailing optional section) carry them.
   std::vector<float> reflectance_logit, reflectance_m, reflectance_v;
   int64_t reflectance_step = 0;
+  // Camera pose refinement (pose_refinement.h): per training view a correction (rotation vector,
+  // translation; PoseDelta) and its Adam moments, [views * 6]; empty when the run does not refine
+  // poses (checkpoints: another trailing optional section). pose_steps: each view's Adam step
+  // (a view is updated only when it is drawn, about once per views iterations).
+  std::vector<float> pose_delta, pose_m, pose_v;
+  std::vector<int64_t> pose_steps;
 
   // Identity-initialised state for the given Gaussians (raised to SH degree 3).
   static TrainState Init(const GaussianStore& init, double extent, int num_views, uint64_t seed);

@@ -24,6 +24,7 @@
 #include "scene/train/gradient_guard.h"
 #include "scene/train/losses.h"
 #include "scene/train/metrics_json.h"
+#include "scene/train/pose_refinement.h"
 #include "scene/train/resolution_schedule.h"
 #include "scene/train/train_outputs.h"
 
@@ -207,6 +208,9 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     LOG(INFO) << "initial scene: " << st.size() << " Gaussians, extent " << st.extent << " m, " << num_views
               << " training views";
   }
+  if (opt.pose_refinement) {
+    if (absl::Status s = PreparePoseCorrections(num_views, &st); !s.ok()) return s;
+  }
 
   absl::StatusOr<std::unique_ptr<Engine>> engine = CreateEngine(opt.backend);
   if (!engine.ok()) return engine.status();
@@ -320,7 +324,9 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     RenderOptions ro;
     ro.background = opt.sky ? Eigen::Vector3f(st.sky[0], st.sky[1], st.sky[2]) : Eigen::Vector3f::Zero();
     ro.keep_for_backward = true;
-    if (absl::Status s = (*engine)->Render(*scene, view.camera, ro, &out); !s.ok()) return s;
+    const PinholeCamera camera =
+        opt.pose_refinement ? CorrectedCamera(view.camera, ViewCorrection(st, vi)) : view.camera;
+    if (absl::Status s = (*engine)->Render(*scene, camera, ro, &out); !s.ok()) return s;
     const int W = view.camera.width, H = view.camera.height;
     const size_t pixels = static_cast<size_t>(W) * H;
 
@@ -379,6 +385,8 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     og.rgb = d_render->data();
     og.depth = opt.depth_loss ? d_depth.data() : nullptr;
     if (absl::Status s = (*engine)->RenderBackward(*scene, og, bo, &grads); !s.ok()) return s;
+    // The pose from the camera's gradient alone (before the LiDAR step adds to the means').
+    if (opt.pose_refinement && it > h.pose_refine_from) StepPoseCorrection(params, grads, camera, vi, h, pool, &st);
     // The LiDAR step before the field's backward: in the fine stage it renders the camera's
     // deformed means (the frame's time) and its means gradient joins the camera's, so that
     // DeformBackward chains the sum through the field.
@@ -538,8 +546,21 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     cv::Mat plot = PlotCurve(st.curve);
     if (absl::Status s = WriteRgbPng((std::filesystem::path(out_dir) / "curve.png").string(), plot); !s.ok()) return s;
     // Held-out previews (render | ground truth) and metrics.
+    // The learned corrections of the training views; held-out views take them interpolated.
+    std::vector<View> corrected_heldout;
+    if (opt.pose_refinement) {
+      const std::vector<PoseCorrection> corrections = TrainedCorrections(*views, st.pose_delta);
+      if (absl::Status s = WritePoseCorrections(out_dir, corrections); !s.ok()) return s;
+      LOG(INFO) << "pose corrections: " << CorrectionsSummary(corrections);
+      if (!heldout.empty()) {
+        corrected_heldout = heldout;
+        ApplyPoseCorrections(corrections, &corrected_heldout);
+      }
+    } else {
+      std::filesystem::remove(std::filesystem::path(out_dir) / kPoseCorrectionsFileName, ec);  // not this run's
+    }
     if (!heldout.empty()) {
-      const std::vector<View>* test = &heldout;
+      const std::vector<View>* test = opt.pose_refinement ? &corrected_heldout : &heldout;
       const Eigen::Vector3f bg = opt.sky ? Eigen::Vector3f(st.sky[0], st.sky[1], st.sky[2]) : Eigen::Vector3f::Zero();
       // Each held-out view at its own time when there is a field.
       std::shared_ptr<const field::DeformationField> f;

@@ -34,6 +34,9 @@ struct TrainOptions {
   bool sky = true;            // learned background (environment) colour
   bool exposure = false;      // per-image affine colour
   bool depth_loss = true;
+  // Learn a pose correction per training view (pose_refinement.h; Hyper's pose_* rates). The run
+  // writes DIR/pose_corrections.json and evaluates its held-out views at interpolated corrections.
+  bool pose_refinement = false;
   bool deterministic = false;  // fixed-order gradient reduction (identical bits run to run)
   bool write_outputs = true;   // scene.ply, plot, previews at the end
   int stop_after = 0;          // > 0: stop (as if killed) after this iteration, without final outputs

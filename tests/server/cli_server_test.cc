@@ -315,7 +315,8 @@ TEST_F(CliServerTest, JobsTrainPassesTheConfigToTheTrainer) {
   const std::string options =
       " --max-iterations 12000 --seed 3 --field extended --field-modules temporal,decoder --static-iterations 4000"
       " --resolution-scale 0.5 --low-res-scale 0.25 --low-res-iterations 3000 --holdout-every 0 --clip-frames 50"
-      " --clip-overlap 0 --field-lr-scale 2.5 --field-lr-decay-iterations 6000 --backend cpu";
+      " --clip-overlap 0 --field-lr-scale 2.5 --field-lr-decay-iterations 6000 --backend cpu --pose-refinement"
+      " --pose-lr-scale 3";
   Result r = Exec("jobs train logs/fake --scene-name all_options --watch" + options + Server());
   EXPECT_EQ(r.exit_code, 1) << r.out << r.err;
   EXPECT_TRUE(Contains(r.out, "train stage exited with code 2: ")) << r.out;

@@ -51,6 +51,8 @@ TEST(TrainingConfig, EveryOptionBecomesTheTrainersFlag) {
     c->set_field_lr_scale(2.5);
     c->set_field_lr_decay_iterations(6000);
     c->set_backend("vulkan");
+    c->set_pose_refinement(true);
+    c->set_pose_lr_scale(3);
   });
   ASSERT_TRUE(ValidateTrainingConfig(c).ok()) << ValidateTrainingConfig(c);
   EXPECT_EQ(TrainFlags(c), (std::vector<std::string>{
@@ -58,7 +60,7 @@ TEST(TrainingConfig, EveryOptionBecomesTheTrainersFlag) {
                                "--static-iterations", "4000", "--resolution-scale", "0.5", "--low-res-scale", "0.25",
                                "--low-res-iterations", "3000", "--holdout-every", "0", "--clip-frames", "50",
                                "--clip-overlap", "0", "--field-lr-scale", "2.5", "--field-lr-decay-iterations", "6000",
-                               "--backend", "vulkan"}));
+                               "--backend", "vulkan", "--pose-refinement", "--pose-lr-scale", "3"}));
   // Numbers go to the trainer exactly (not rounded to 6 digits).
   const v1::TrainingConfig exact = Config(300, [](v1::TrainingConfig* c) { c->set_resolution_scale(0.1234567891); });
   EXPECT_EQ(TrainFlags(exact), (std::vector<std::string>{"--resolution-scale", "0.1234567891"}));
@@ -97,6 +99,15 @@ TEST(TrainingConfig, BadValuesAreRefusedNamingTheField) {
   ExpectRefused(Config(9000, [](v1::TrainingConfig* c) { c->set_field_lr_scale(-1); }), "field_lr_scale");
   ExpectRefused(Config(9000, [](v1::TrainingConfig* c) { c->set_field_lr_scale(1001); }), "field_lr_scale");
   ExpectRefused(Config(9000, [](v1::TrainingConfig* c) { c->set_field_lr_scale(NAN); }), "field_lr_scale");
+  ExpectRefused(Config(9000, [](v1::TrainingConfig* c) { c->set_pose_lr_scale(2); }), "needs pose_refinement");
+  for (double bad : {-1.0, 1001.0, double(NAN)}) {
+    ExpectRefused(Config(9000, [&](v1::TrainingConfig* c) {
+                    c->set_pose_refinement(true);
+                    c->set_pose_lr_scale(bad);
+                  }),
+                  "config.pose_lr_scale");
+  }
+  ExpectRefused(Config(0, [](v1::TrainingConfig* c) { c->set_pose_refinement(true); }), "max_iterations > 0");
   ExpectRefused(Config(9000, [](v1::TrainingConfig* c) { c->set_field_lr_decay_iterations(-5); }),
                 "field_lr_decay_iterations");
   ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_resolution_scale(1.5); }), "resolution_scale");

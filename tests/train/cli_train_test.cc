@@ -124,11 +124,59 @@ TEST(CliTrain, BadArgumentsExitTwoWithOneLine) {
         "train --log " + kKitti + " --out /tmp/x --low-res-scale nan --low-res-iterations 5",
         "train --log " + kKitti + " --out /tmp/x --low-res-scale 0.25 --low-res-iterations -3",
         "train --log " + kKitti + " --out /tmp/x --low-res-scale 0.25 --low-res-iterations 0",
-        "train --log " + kKitti + " --out /tmp/x --iterations 10 --low-res-scale 0.25 --low-res-iterations 10"}) {
+        "train --log " + kKitti + " --out /tmp/x --iterations 10 --low-res-scale 0.25 --low-res-iterations 10",
+        // Pose refinement's options need it; its rate scale is positive.
+        "train --log " + kKitti + " --out /tmp/x --pose-lr-scale 2",
+        "train --log " + kKitti + " --out /tmp/x --pose-refine-from 2",
+        "train --log " + kKitti + " --out /tmp/x --pose-refinement --pose-lr-scale 0",
+        "train --log " + kKitti + " --out /tmp/x --pose-refinement --pose-refine-from -1"}) {
     const Result r = RunCli(args);
     EXPECT_EQ(r.code, 2) << args << ": " << r.err;
     EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << args << ": " << r.err;
   }
+}
+
+// Camera pose refinement (docs/training.md): the run writes its corrections, its held-out metrics
+// are at the interpolated corrections as eval's are, --log-poses measures at the log's, and a run
+// without refinement in the same directory leaves no stale corrections behind.
+TEST(CliTrain, PoseRefinementWritesCorrectionsThatEvalUses) {
+  const std::string dir = streetsim::testing::ScratchDir("streetsim_cli_train_scene", "poses");
+  const std::string common = " --log " + kKitti + " --out " + dir + " --resolution-scale 0.12 --holdout-every 4";
+  Result r = RunCli("train" + common + " --iterations 30 --pose-refinement --pose-refine-from 5 --pose-lr-scale 2");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("pose corrections: 59 views"), std::string::npos) << r.err;
+  const nlohmann::json c = nlohmann::json::parse(std::ifstream(dir + "/pose_corrections.json"));
+  ASSERT_EQ(c["corrections"].size(), 59u);  // 78 frames, every 4th held out
+  // 25 refined iterations, one view each: some views moved, none far.
+  int moved = 0;
+  for (const auto& e : c["corrections"]) moved += e["rotation_rad"][0].get<double>() != 0;
+  EXPECT_GE(moved, 10);
+  EXPECT_LT(c["max_rotation_deg"].get<double>(), 1.0);
+  EXPECT_GT(c["max_rotation_deg"].get<double>(), 0.0);
+  EXPECT_LT(c["max_translation_m"].get<double>(), 0.1);
+
+  const std::string eval = "eval --scene " + dir + " --log " + kKitti + " --split test --holdout-every 4 --no-lidar";
+  r = RunCli(eval);
+  ASSERT_EQ(r.code, 0) << r.err;
+  const nlohmann::json corrected = nlohmann::json::parse(r.out);
+  EXPECT_EQ(corrected["poses"], "corrected");
+  const nlohmann::json heldout = nlohmann::json::parse(std::ifstream(dir + "/heldout.json"));
+  EXPECT_NEAR(heldout["mean"]["psnr"].get<double>(), corrected["mean"]["psnr"].get<double>(), 0.01);
+  r = RunCli(eval + " --log-poses");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const nlohmann::json logged = nlohmann::json::parse(r.out);
+  EXPECT_EQ(logged["poses"], "log");
+  EXPECT_NE(logged["mean"]["psnr"].get<double>(), corrected["mean"]["psnr"].get<double>());
+
+  // A damaged corrections file is an error, not a silent evaluation at other poses.
+  std::ofstream(dir + "/pose_corrections.json") << "{\"corrections\": [1]}";
+  r = RunCli(eval);
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_NE(r.err.find("pose_corrections.json"), std::string::npos) << r.err;
+
+  r = RunCli("train" + common + " --iterations 31 --resume");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_FALSE(std::filesystem::exists(dir + "/pose_corrections.json"));
 }
 
 // Low resolution first (docs/training.md "Low resolution first"): the first iterations at the low
