@@ -11,6 +11,7 @@
 
 #include "gtest/gtest.h"
 #include "render/cpu/cpu_engine.h"
+#include "render/vulkan/vulkan_engine.h"
 #include "scene/train/losses.h"
 #include "scene/train/train_state.h"
 #include "tests/common/grad_check_scene.h"
@@ -235,6 +236,38 @@ TEST(PoseRefinement, RecoversAPerturbedPose) {
   const auto [rot1, trans1] = residual(d);
   EXPECT_LT(rot1, rot0 / 5) << rot0 << " -> " << rot1 << " rad";
   EXPECT_LT(trans1, trans0 / 5) << trans0 << " -> " << trans1 << " m";
+}
+
+// Any backend's RenderBackward feeds the same pose gradient (the reduction runs on the host): the
+// Vulkan engine (lavapipe in CI) against the cpu one, at a non-zero correction and SH degree 3.
+TEST(PoseRefinement, VulkanAndCpuBackendsGiveOnePoseGradient) {
+  absl::StatusOr<std::unique_ptr<Engine>> vk = CreateVulkanEngine(VulkanDevicePreference::kLavapipe);
+  ASSERT_TRUE(vk.ok()) << vk.status();
+  auto cpu = CreateCpuEngine({.num_threads = 0, .precision = CpuPrecision::kFloatSimd});
+  ThreadPool pool(0);
+  const gradcheck::Scene s = RandomScene(7, 200, 3, 96, 72);
+  const PoseDelta delta = {0.004f, -0.006f, 0.003f, 0.03f, -0.02f, 0.05f};
+  const PinholeCamera cam = CorrectedCamera(s.cam, delta);
+  std::vector<float> g_rgb(s.w_rgb.begin(), s.w_rgb.end()), g_d(s.w_depth.begin(), s.w_depth.end()),
+      g_a(s.w_alpha.begin(), s.w_alpha.end());
+  Eigen::Matrix<double, 6, 1> g[2];
+  int k = 0;
+  for (Engine* e : {cpu.get(), vk->get()}) {
+    auto scene = e->Upload(s.store);
+    ASSERT_TRUE(scene.ok()) << scene.status();
+    RenderOptions ro;
+    ro.background = s.background;
+    ro.keep_for_backward = true;
+    RenderOutput out;
+    ASSERT_TRUE(e->Render(**scene, cam, ro, &out).ok());
+    GaussianGrads grads;
+    ASSERT_TRUE(e->RenderBackward(**scene, {g_rgb.data(), g_d.data(), g_a.data()}, {}, &grads).ok());
+    const PoseDelta p = PoseGradient(ViewOf(s.store), grads, cam, delta, pool);
+    for (int j = 0; j < 6; ++j) g[k][j] = p[j];
+    ++k;
+  }
+  EXPECT_GT(g[0].norm(), 1.0);
+  EXPECT_LT((g[0] - g[1]).norm(), 1e-3 * g[0].norm()) << g[0].transpose() << " / " << g[1].transpose();
 }
 
 View ViewAt(int frame, int camera_obs, int64_t time_us) {
