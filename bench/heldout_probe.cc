@@ -27,6 +27,7 @@
 #include "scene/gaussians/ply_io.h"
 #include "scene/log/open_log.h"
 #include "scene/train/dataset.h"
+#include "scene/train/pose_refinement.h"
 #include "scene/train/dynamic_stage.h"
 #include "scene/train/losses.h"
 #include "scene/train/trainer.h"
@@ -218,7 +219,14 @@ int main(int argc, char** argv) {
   dopt.holdout_every = meta.holdout_every;
   dopt.split = split == "test" ? train::Split::kTest : train::Split::kTrain;
   dopt.load_depth = false;
-  const std::vector<train::View> views = OrDie(train::LoadViews(log, dopt), 2);
+  std::vector<train::View> views = OrDie(train::LoadViews(log, dopt), 2);
+  // A scene trained with --pose-refinement is probed at its corrected poses, as eval measures it.
+  if (absl::StatusOr<std::vector<train::PoseCorrection>> c = train::ReadPoseCorrections(scene_dir); c.ok()) {
+    train::ApplyPoseCorrections(*c, &views);
+    std::printf("poses: the scene's corrections (%s)\n", train::kPoseCorrectionsFileName);
+  } else if (!absl::IsNotFound(c.status())) {
+    Die(2, std::string(c.status().message()));
+  }
   const GaussianStore canonical = OrDie(ReadGaussianPly(scene_dir + "/scene.ply"), 2);
   const std::shared_ptr<const field::DeformationField> f = OrDie(train::LoadSceneField(scene_dir), 2);
   if (!rect.empty() && !f) Die(2, "--region needs a scene with a field");
