@@ -14,7 +14,7 @@
 namespace streetsim::train {
 namespace {
 
-Eigen::Matrix3d RotationOf(const PoseDelta &d) {
+Eigen::Matrix3d RotationOf(const PoseDelta& d) {
   const Eigen::Vector3d w(d[0], d[1], d[2]);
   const double angle = w.norm();
   if (angle < 1e-12) return Eigen::Matrix3d::Identity();
@@ -22,7 +22,7 @@ Eigen::Matrix3d RotationOf(const PoseDelta &d) {
 }
 
 // SO(3)'s right Jacobian: R(w + dw) = R(w) Exp(J_r(w) dw) to first order.
-Eigen::Matrix3d RightJacobian(const PoseDelta &d) {
+Eigen::Matrix3d RightJacobian(const PoseDelta& d) {
   const Eigen::Vector3d w(d[0], d[1], d[2]);
   const double t = w.norm();
   Eigen::Matrix3d W;
@@ -36,7 +36,7 @@ constexpr int64_t kChunk = 1 << 15;
 
 }  // namespace
 
-PinholeCamera CorrectedCamera(const PinholeCamera &camera, const PoseDelta &delta) {
+PinholeCamera CorrectedCamera(const PinholeCamera& camera, const PoseDelta& delta) {
   Eigen::Isometry3d E = Eigen::Isometry3d::Identity();
   E.linear() = RotationOf(delta);
   E.translation() = Eigen::Vector3d(delta[3], delta[4], delta[5]);
@@ -45,8 +45,8 @@ PinholeCamera CorrectedCamera(const PinholeCamera &camera, const PoseDelta &delt
   return out;
 }
 
-PoseDelta PoseGradient(const GaussianParamsView &rendered, const GaussianGrads &grads,
-                       const PinholeCamera &corrected_camera, const PoseDelta &delta, ThreadPool &pool) {
+PoseDelta PoseGradient(const GaussianParamsView& rendered, const GaussianGrads& grads,
+                       const PinholeCamera& corrected_camera, const PoseDelta& delta, ThreadPool& pool) {
   // Moving the camera by a small motion (w, v) in its frame renders what the
   // fixed camera sees of the Gaussians moved by the inverse motion: mean m -> m
   // - w_w x (m - c) - v_w, rotation q -> (1, -w_w / 2) * q, with c the camera
@@ -76,8 +76,8 @@ PoseDelta PoseGradient(const GaussianParamsView &rendered, const GaussianGrads &
           s[4] += gy;
           s[5] += gz;
           if (!have_rotations) continue;
-          const float *q = rendered.rotations + i * 4;
-          const float *g = grads.rotations.data() + i * 4;
+          const float* q = rendered.rotations + i * 4;
+          const float* g = grads.rotations.data() + i * 4;
           const double qw = q[0], qx = q[1], qy = q[2], qz = q[3];
           const double gw = g[0], gqx = g[1], gqy = g[2], gqz = g[3];
           s[0] += 0.5 * (qw * gqx - gw * qx + (qy * gqz - qz * gqy));
@@ -89,7 +89,7 @@ PoseDelta PoseGradient(const GaussianParamsView &rendered, const GaussianGrads &
     });
   }
   Eigen::Vector3d dw_world = Eigen::Vector3d::Zero(), dv_world = Eigen::Vector3d::Zero();
-  for (const auto &p : partial) {
+  for (const auto& p : partial) {
     dw_world -= Eigen::Vector3d(p[0], p[1], p[2]);
     dv_world -= Eigen::Vector3d(p[3], p[4], p[5]);
   }
@@ -104,7 +104,7 @@ PoseDelta PoseGradient(const GaussianParamsView &rendered, const GaussianGrads &
           static_cast<float>(dv.x()), static_cast<float>(dv.y()), static_cast<float>(dv.z())};
 }
 
-absl::Status PreparePoseCorrections(int num_views, TrainState *st) {
+absl::Status PreparePoseCorrections(int num_views, TrainState* st) {
   const size_t want = static_cast<size_t>(num_views) * 6;
   if (st->pose_delta.empty()) {
     st->pose_delta.assign(want, 0.0f);
@@ -120,27 +120,27 @@ absl::Status PreparePoseCorrections(int num_views, TrainState *st) {
   return absl::OkStatus();
 }
 
-PoseDelta ViewCorrection(const TrainState &st, int view) {
+PoseDelta ViewCorrection(const TrainState& st, int view) {
   PoseDelta d;
   std::copy_n(&st.pose_delta[static_cast<size_t>(view) * 6], 6, d.begin());
   return d;
 }
 
-void StepPoseCorrection(const GaussianParamsView &rendered, const GaussianGrads &grads,
-                        const PinholeCamera &corrected_camera, int view, const Hyper &h, ThreadPool &pool,
-                        TrainState *st) {
+void StepPoseCorrection(const GaussianParamsView& rendered, const GaussianGrads& grads,
+                        const PinholeCamera& corrected_camera, int view, const Hyper& h, ThreadPool& pool,
+                        TrainState* st) {
   const size_t k = static_cast<size_t>(view) * 6;
   const PoseDelta g = PoseGradient(rendered, grads, corrected_camera, ViewCorrection(*st, view), pool);
   if (!std::all_of(g.begin(), g.end(), [](float x) { return std::isfinite(x); })) return;
   const int64_t step = ++st->pose_steps[static_cast<size_t>(view)];
-  float *d = &st->pose_delta[k];
-  float *m = &st->pose_m[k];
-  float *v = &st->pose_v[k];
+  float* d = &st->pose_delta[k];
+  float* m = &st->pose_m[k];
+  float* v = &st->pose_v[k];
   AdamStepSmall(d, g.data(), m, v, 3, h.pose_rotation_lr, step);
   AdamStepSmall(d + 3, g.data() + 3, m + 3, v + 3, 3, h.pose_translation_lr, step);
 }
 
-std::vector<PoseCorrection> TrainedCorrections(const std::vector<View> &views, const std::vector<float> &pose_delta) {
+std::vector<PoseCorrection> TrainedCorrections(const std::vector<View>& views, const std::vector<float>& pose_delta) {
   std::vector<PoseCorrection> out;
   for (size_t i = 0; i < views.size() && (i + 1) * 6 <= pose_delta.size(); ++i) {
     PoseCorrection c;
@@ -153,9 +153,9 @@ std::vector<PoseCorrection> TrainedCorrections(const std::vector<View> &views, c
   return out;
 }
 
-std::string CorrectionsSummary(const std::vector<PoseCorrection> &corrections) {
+std::string CorrectionsSummary(const std::vector<PoseCorrection>& corrections) {
   double rot_sum = 0, rot_max = 0, trans_sum = 0, trans_max = 0;
-  for (const PoseCorrection &c : corrections) {
+  for (const PoseCorrection& c : corrections) {
     const double r = Eigen::Vector3d(c.delta[0], c.delta[1], c.delta[2]).norm() * 180.0 / M_PI;
     const double t = Eigen::Vector3d(c.delta[3], c.delta[4], c.delta[5]).norm() * 100.0;
     rot_sum += r;
@@ -169,24 +169,24 @@ std::string CorrectionsSummary(const std::vector<PoseCorrection> &corrections) {
                       absl::SixDigits(trans_max), " cm");
 }
 
-std::vector<PoseDelta> CorrectionsForViews(const std::vector<PoseCorrection> &trained, const std::vector<View> &views) {
+std::vector<PoseDelta> CorrectionsForViews(const std::vector<PoseCorrection>& trained, const std::vector<View>& views) {
   // Per camera, the trained corrections by time.
-  std::map<int, std::map<int64_t, const PoseCorrection *>> by_camera;
-  std::map<std::pair<int, int>, const PoseCorrection *> by_view;
-  for (const PoseCorrection &c : trained) {
+  std::map<int, std::map<int64_t, const PoseCorrection*>> by_camera;
+  std::map<std::pair<int, int>, const PoseCorrection*> by_view;
+  for (const PoseCorrection& c : trained) {
     by_camera[c.camera_obs][c.time_us] = &c;
     by_view[{c.frame, c.camera_obs}] = &c;
   }
   std::vector<PoseDelta> out(views.size(), PoseDelta{});
   for (size_t i = 0; i < views.size(); ++i) {
-    const View &v = views[i];
+    const View& v = views[i];
     if (auto it = by_view.find({v.frame, v.camera_obs}); it != by_view.end()) {
       out[i] = it->second->delta;
       continue;
     }
     auto cam = by_camera.find(v.camera_obs);
     if (cam == by_camera.end() || cam->second.empty()) continue;
-    const auto &track = cam->second;
+    const auto& track = cam->second;
     auto after = track.lower_bound(v.time_us);
     if (after == track.begin()) {
       out[i] = after->second->delta;
@@ -208,15 +208,15 @@ std::vector<PoseDelta> CorrectionsForViews(const std::vector<PoseCorrection> &tr
   return out;
 }
 
-void ApplyPoseCorrections(const std::vector<PoseCorrection> &trained, std::vector<View> *views) {
+void ApplyPoseCorrections(const std::vector<PoseCorrection>& trained, std::vector<View>* views) {
   const std::vector<PoseDelta> d = CorrectionsForViews(trained, *views);
   for (size_t i = 0; i < views->size(); ++i) (*views)[i].camera = CorrectedCamera((*views)[i].camera, d[i]);
 }
 
-absl::Status WritePoseCorrections(const std::string &dir, const std::vector<PoseCorrection> &corrections) {
+absl::Status WritePoseCorrections(const std::string& dir, const std::vector<PoseCorrection>& corrections) {
   nlohmann::json list = nlohmann::json::array();
   double max_rot_deg = 0, max_trans_m = 0;
-  for (const PoseCorrection &c : corrections) {
+  for (const PoseCorrection& c : corrections) {
     nlohmann::json e;
     e["frame"] = c.frame;
     e["camera_obs"] = c.camera_obs;
@@ -235,17 +235,17 @@ absl::Status WritePoseCorrections(const std::string &dir, const std::vector<Pose
                                        j.dump(2) + "\n");
 }
 
-absl::StatusOr<std::vector<PoseCorrection>> ReadPoseCorrections(const std::string &dir) {
+absl::StatusOr<std::vector<PoseCorrection>> ReadPoseCorrections(const std::string& dir) {
   const std::string path = (std::filesystem::path(dir) / kPoseCorrectionsFileName).string();
   std::error_code ec;
   if (!std::filesystem::exists(path, ec)) return absl::NotFoundError(absl::StrCat(path, ": no such file"));
   std::ifstream in(path);
   const nlohmann::json j = nlohmann::json::parse(in, nullptr, /*allow_exceptions=*/false);
-  auto bad = [&](const std::string &why) { return absl::DataLossError(absl::StrCat(path, ": ", why)); };
+  auto bad = [&](const std::string& why) { return absl::DataLossError(absl::StrCat(path, ": ", why)); };
   if (j.is_discarded() || !j.is_object() || !j.contains("corrections") || !j["corrections"].is_array()) {
     return bad("not a pose corrections file");
   }
-  auto triple = [](const nlohmann::json &e, const char *key, float *out) {
+  auto triple = [](const nlohmann::json& e, const char* key, float* out) {
     if (!e.contains(key) || !e[key].is_array() || e[key].size() != 3) return false;
     for (int k = 0; k < 3; ++k) {
       if (!e[key][k].is_number()) return false;
@@ -255,7 +255,7 @@ absl::StatusOr<std::vector<PoseCorrection>> ReadPoseCorrections(const std::strin
     return true;
   };
   std::vector<PoseCorrection> out;
-  for (const nlohmann::json &e : j["corrections"]) {
+  for (const nlohmann::json& e : j["corrections"]) {
     PoseCorrection c;
     if (!e.is_object() || !e.contains("frame") || !e["frame"].is_number_integer() || !e.contains("camera_obs") ||
         !e["camera_obs"].is_number_integer() || !e.contains("time_us") || !e["time_us"].is_number_integer() ||

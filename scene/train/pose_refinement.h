@@ -48,7 +48,7 @@ struct PoseCorrection {
 };
 
 // The camera moved by the correction: T_world_from_cam * [R(w), v].
-PinholeCamera CorrectedCamera(const PinholeCamera &camera, const PoseDelta &delta);
+PinholeCamera CorrectedCamera(const PinholeCamera& camera, const PoseDelta& delta);
 
 // dL/d(delta) of the view just rendered with CorrectedCamera(camera, delta),
 // from the gradients of the Gaussians it rendered (`rendered`: the uploaded
@@ -60,45 +60,45 @@ PinholeCamera CorrectedCamera(const PinholeCamera &camera, const PoseDelta &delt
 // colour otherwise: the rotation part's magnitude 12% low on grad_check's
 // random scenes, whose SH are far more view-dependent than a trained street's;
 // the translation part is exact at every degree).
-PoseDelta PoseGradient(const GaussianParamsView &rendered, const GaussianGrads &grads,
-                       const PinholeCamera &corrected_camera, const PoseDelta &delta, ThreadPool &pool);
+PoseDelta PoseGradient(const GaussianParamsView& rendered, const GaussianGrads& grads,
+                       const PinholeCamera& corrected_camera, const PoseDelta& delta, ThreadPool& pool);
 
 // The trainer's side. Sizes the state's corrections for `num_views` (zero when
 // it has none: a new run, or one that starts refining here); FailedPrecondition
 // when it has them for another count.
-absl::Status PreparePoseCorrections(int num_views, TrainState *st);
+absl::Status PreparePoseCorrections(int num_views, TrainState* st);
 // The state's correction of training view `view`.
-PoseDelta ViewCorrection(const TrainState &st, int view);
+PoseDelta ViewCorrection(const TrainState& st, int view);
 // One Adam step of the view's correction (Hyper's pose rates, the view's own
 // step count) from the render's gradients, as PoseGradient takes them. A
 // non-finite gradient skips the step.
-void StepPoseCorrection(const GaussianParamsView &rendered, const GaussianGrads &grads,
-                        const PinholeCamera &corrected_camera, int view, const Hyper &h, ThreadPool &pool,
-                        TrainState *st);
+void StepPoseCorrection(const GaussianParamsView& rendered, const GaussianGrads& grads,
+                        const PinholeCamera& corrected_camera, int view, const Hyper& h, ThreadPool& pool,
+                        TrainState* st);
 
 // The training views' corrections from a run's state ([views * 6], the views'
 // order).
-std::vector<PoseCorrection> TrainedCorrections(const std::vector<View> &views, const std::vector<float> &pose_delta);
+std::vector<PoseCorrection> TrainedCorrections(const std::vector<View>& views, const std::vector<float>& pose_delta);
 
 // "N views, rotation mean A / max B deg, translation mean C / max D cm", for
 // the run's log.
-std::string CorrectionsSummary(const std::vector<PoseCorrection> &corrections);
+std::string CorrectionsSummary(const std::vector<PoseCorrection>& corrections);
 
 // The correction of every view in `views` (same order): a training view's own
 // from `trained`, a view without one (held out) interpolated in time between
 // the same camera's nearest trained views before and after it (the nearest one
 // at the ends; zero when the camera has none).
-std::vector<PoseDelta> CorrectionsForViews(const std::vector<PoseCorrection> &trained, const std::vector<View> &views);
+std::vector<PoseDelta> CorrectionsForViews(const std::vector<PoseCorrection>& trained, const std::vector<View>& views);
 
 // Moves each view's camera by CorrectionsForViews.
-void ApplyPoseCorrections(const std::vector<PoseCorrection> &trained, std::vector<View> *views);
+void ApplyPoseCorrections(const std::vector<PoseCorrection>& trained, std::vector<View>* views);
 
 // DIR/pose_corrections.json, atomically: {"corrections": [{"frame",
 // "camera_obs", "time_us", "rotation_rad": [3], "translation_m": [3]}],
 // "max_rotation_deg", "max_translation_m"}.
-absl::Status WritePoseCorrections(const std::string &dir, const std::vector<PoseCorrection> &corrections);
+absl::Status WritePoseCorrections(const std::string& dir, const std::vector<PoseCorrection>& corrections);
 // Back. NotFound without the file; DataLoss naming it when malformed or not
 // finite.
-absl::StatusOr<std::vector<PoseCorrection>> ReadPoseCorrections(const std::string &dir);
+absl::StatusOr<std::vector<PoseCorrection>> ReadPoseCorrections(const std::string& dir);
 
 }  // namespace streetsim::train

@@ -10,17 +10,24 @@
 
 namespace streetsim::testing {
 
+// A store as UpdateSceneParams takes it, at its own degree.
+inline GaussianParamsView StoreParamsView(const GaussianStore& s) {
+  GaussianParamsView v;
+  v.n = s.size();
+  v.sh_degree = s.sh_degree;
+  v.sh_stride = s.sh_coeffs();
+  v.means = s.means.data();
+  v.log_scales = s.log_scales.data();
+  v.rotations = s.rotations.data();
+  v.opacity_logits = s.opacity_logits.data();
+  v.sh = s.sh.data();
+  return v;
+}
+
 // `full` (sh_degree 3) as UpdateSceneParams takes it, uploading `degree`.
 inline GaussianParamsView FullDegreeParamsView(const GaussianStore& full, int degree) {
-  GaussianParamsView v;
-  v.n = full.size();
+  GaussianParamsView v = StoreParamsView(full);
   v.sh_degree = degree;
-  v.sh_stride = 16;
-  v.means = full.means.data();
-  v.log_scales = full.log_scales.data();
-  v.rotations = full.rotations.data();
-  v.opacity_logits = full.opacity_logits.data();
-  v.sh = full.sh.data();
   return v;
 }
 

@@ -15,6 +15,7 @@
 #include "scene/train/losses.h"
 #include "scene/train/train_state.h"
 #include "tests/common/grad_check_scene.h"
+#include "tests/common/params_view.h"
 #include "tests/common/scratch_dir.h"
 
 namespace streetsim::train {
@@ -23,36 +24,30 @@ namespace {
 using gradcheck::LossDouble;
 using gradcheck::RandomScene;
 
-GaussianParamsView ViewOf(const GaussianStore &s) {
-  GaussianParamsView v;
-  v.n = s.size();
-  v.sh_degree = s.sh_degree;
-  v.sh_stride = s.sh_coeffs();
-  v.means = s.means.data();
-  v.log_scales = s.log_scales.data();
-  v.rotations = s.rotations.data();
-  v.opacity_logits = s.opacity_logits.data();
-  v.sh = s.sh.data();
-  return v;
-}
+using streetsim::testing::StoreParamsView;
 
-// The analytic pose gradient of the grad-check loss (sum of w . outputs) at
-// `delta`.
-PoseDelta AnalyticPoseGradient(const gradcheck::Scene &s, const PoseDelta &delta, ThreadPool &pool) {
-  auto engine = CreateCpuEngine({.num_threads = 0, .precision = CpuPrecision::kDouble});
-  auto scene = engine->Upload(s.store);
-  EXPECT_TRUE(scene.ok());
-  const PinholeCamera cam = CorrectedCamera(s.cam, delta);
+// Render of `s` from `cam` and the backward of the grad-check loss (sum of w . outputs).
+GaussianGrads RenderAndBackward(Engine& engine, const gradcheck::Scene& s, const PinholeCamera& cam) {
+  GaussianGrads grads;
+  auto scene = engine.Upload(s.store);
+  EXPECT_TRUE(scene.ok()) << scene.status();
+  if (!scene.ok()) return grads;
   RenderOptions opt;
   opt.background = s.background;
   opt.keep_for_backward = true;
   RenderOutput out;
-  EXPECT_TRUE(engine->Render(**scene, cam, opt, &out).ok());
+  EXPECT_TRUE(engine.Render(**scene, cam, opt, &out).ok());
   std::vector<float> g_rgb(s.w_rgb.begin(), s.w_rgb.end()), g_d(s.w_depth.begin(), s.w_depth.end()),
       g_a(s.w_alpha.begin(), s.w_alpha.end());
-  GaussianGrads grads;
-  EXPECT_TRUE(engine->RenderBackward(**scene, {g_rgb.data(), g_d.data(), g_a.data()}, {}, &grads).ok());
-  return PoseGradient(ViewOf(s.store), grads, cam, delta, pool);
+  EXPECT_TRUE(engine.RenderBackward(**scene, {g_rgb.data(), g_d.data(), g_a.data()}, {}, &grads).ok());
+  return grads;
+}
+
+// The analytic pose gradient of the grad-check loss at `delta`.
+PoseDelta AnalyticPoseGradient(const gradcheck::Scene& s, const PoseDelta& delta, ThreadPool& pool) {
+  auto engine = CreateCpuEngine({.num_threads = 0, .precision = CpuPrecision::kDouble});
+  const PinholeCamera cam = CorrectedCamera(s.cam, delta);
+  return PoseGradient(StoreParamsView(s.store), RenderAndBackward(*engine, s, cam), cam, delta, pool);
 }
 
 struct PoseCase {
@@ -67,7 +62,7 @@ class PoseGradientCheck : public ::testing::TestWithParam<PoseCase> {
     return PoseDelta{0.004f, -0.006f, 0.003f, 0.03f, -0.02f, 0.05f};
   }
   // The camera at correction delta + x e_j.
-  static PinholeCamera Camera(const gradcheck::Scene &s, PoseDelta delta, int j, double x) {
+  static PinholeCamera Camera(const gradcheck::Scene& s, PoseDelta delta, int j, double x) {
     delta[j] = static_cast<float>(delta[j] + x);
     return CorrectedCamera(s.cam, delta);
   }
@@ -91,7 +86,7 @@ TEST(PoseRefinement, MovingTheCameraRendersTheSceneMovedInverselyInPlace) {
     for (size_t i = 0; i < moved.size(); ++i) {
       Eigen::Map<Eigen::Vector3f> m(&moved.means[i * 3]);
       m = (G * m.cast<double>()).cast<float>();
-      float *q = &moved.rotations[i * 4];
+      float* q = &moved.rotations[i * 4];
       const Eigen::Quaterniond qi(q[0], q[1], q[2], q[3]);
       const Eigen::Quaterniond r = qG * qi;
       q[0] = static_cast<float>(r.w()), q[1] = static_cast<float>(r.x()), q[2] = static_cast<float>(r.y()),
@@ -127,21 +122,11 @@ TEST_P(PoseGradientCheck, IsTheChainRuleThroughTheInverseSceneMotion) {
   const PoseDelta delta = StartDelta();
   const PinholeCamera c0 = Camera(s, delta, 0, 0);
   auto engine = CreateCpuEngine({.num_threads = 0, .precision = CpuPrecision::kDouble});
-  auto scene = engine->Upload(s.store);
-  ASSERT_TRUE(scene.ok());
-  RenderOptions opt;
-  opt.background = s.background;
-  opt.keep_for_backward = true;
-  RenderOutput out;
-  ASSERT_TRUE(engine->Render(**scene, c0, opt, &out).ok());
-  std::vector<float> g_rgb(s.w_rgb.begin(), s.w_rgb.end()), g_d(s.w_depth.begin(), s.w_depth.end()),
-      g_a(s.w_alpha.begin(), s.w_alpha.end());
-  GaussianGrads grads;
-  ASSERT_TRUE(engine->RenderBackward(**scene, {g_rgb.data(), g_d.data(), g_a.data()}, {}, &grads).ok());
+  const GaussianGrads grads = RenderAndBackward(*engine, s, c0);
   int visible = 0;
   for (float r : grads.radii) visible += r > 0;
   ASSERT_GE(visible, 18);
-  const PoseDelta an = PoseGradient(ViewOf(s.store), grads, c0, delta, pool);
+  const PoseDelta an = PoseGradient(StoreParamsView(s.store), grads, c0, delta, pool);
 
   for (int j = 0; j < 6; ++j) {
     const double h = 1e-4;
@@ -151,7 +136,7 @@ TEST_P(PoseGradientCheck, IsTheChainRuleThroughTheInverseSceneMotion) {
       const Eigen::Quaterniond qG(G.linear());
       for (size_t i = 0; i < s.store.size(); ++i) {
         const Eigen::Vector3d m = G * Eigen::Vector3f(&s.store.means[i * 3]).cast<double>();
-        const float *q = &s.store.rotations[i * 4];
+        const float* q = &s.store.rotations[i * 4];
         const Eigen::Quaterniond r = qG * Eigen::Quaterniond(q[0], q[1], q[2], q[3]);
         const double qn[4] = {r.w(), r.x(), r.y(), r.z()};
         for (int k = 0; k < 3; ++k) chain += sign * grads.means[i * 3 + k] * m[k] / (2 * h);
@@ -214,7 +199,7 @@ TEST(PoseRefinement, RecoversAPerturbedPose) {
   const PoseDelta error = {0.006f, -0.008f, 0.004f, 0.03f, -0.025f, 0.02f};
   PinholeCamera logged = CorrectedCamera(s.cam, error);
   PoseDelta d{}, m{}, v{};
-  auto residual = [&](const PoseDelta &corr) {
+  auto residual = [&](const PoseDelta& corr) {
     const Eigen::Isometry3d diff = s.cam.T_world_from_cam.inverse() * CorrectedCamera(logged, corr).T_world_from_cam;
     return std::pair<double, double>{Eigen::AngleAxisd(diff.linear()).angle(), diff.translation().norm()};
   };
@@ -229,7 +214,7 @@ TEST(PoseRefinement, RecoversAPerturbedPose) {
     d_rgb.assign(out.rgb.size(), 0.0f);
     L1Loss(pool, out.rgb.data(), target.rgb.data(), out.rgb.size(), 1.0f, d_rgb.data());
     ASSERT_TRUE(engine->RenderBackward(**scene, {d_rgb.data(), nullptr, nullptr}, {}, &grads).ok());
-    const PoseDelta g = PoseGradient(ViewOf(s.store), grads, cam, d, pool);
+    const PoseDelta g = PoseGradient(StoreParamsView(s.store), grads, cam, d, pool);
     AdamStepSmall(d.data(), g.data(), m.data(), v.data(), 3, 5e-4, it);
     AdamStepSmall(d.data() + 3, g.data() + 3, m.data() + 3, v.data() + 3, 3, 2e-3, it);
   }
@@ -248,21 +233,10 @@ TEST(PoseRefinement, VulkanAndCpuBackendsGiveOnePoseGradient) {
   const gradcheck::Scene s = RandomScene(7, 200, 3, 96, 72);
   const PoseDelta delta = {0.004f, -0.006f, 0.003f, 0.03f, -0.02f, 0.05f};
   const PinholeCamera cam = CorrectedCamera(s.cam, delta);
-  std::vector<float> g_rgb(s.w_rgb.begin(), s.w_rgb.end()), g_d(s.w_depth.begin(), s.w_depth.end()),
-      g_a(s.w_alpha.begin(), s.w_alpha.end());
   Eigen::Matrix<double, 6, 1> g[2];
   int k = 0;
   for (Engine* e : {cpu.get(), vk->get()}) {
-    auto scene = e->Upload(s.store);
-    ASSERT_TRUE(scene.ok()) << scene.status();
-    RenderOptions ro;
-    ro.background = s.background;
-    ro.keep_for_backward = true;
-    RenderOutput out;
-    ASSERT_TRUE(e->Render(**scene, cam, ro, &out).ok());
-    GaussianGrads grads;
-    ASSERT_TRUE(e->RenderBackward(**scene, {g_rgb.data(), g_d.data(), g_a.data()}, {}, &grads).ok());
-    const PoseDelta p = PoseGradient(ViewOf(s.store), grads, cam, delta, pool);
+    const PoseDelta p = PoseGradient(StoreParamsView(s.store), RenderAndBackward(*e, s, cam), cam, delta, pool);
     for (int j = 0; j < 6; ++j) g[k][j] = p[j];
     ++k;
   }
@@ -327,7 +301,7 @@ TEST(PoseRefinement, CorrectionsFileRoundTripsAndRejectsDamage) {
   EXPECT_EQ((*back)[1].delta, c[1].delta);
 
   const std::string path = (std::filesystem::path(dir) / kPoseCorrectionsFileName).string();
-  for (const char *text : {"not json", "{\"corrections\": 3}",
+  for (const char* text : {"not json", "{\"corrections\": 3}",
                            "{\"corrections\": [{\"frame\": 1, \"camera_obs\": "
                            "0, \"time_us\": 0, \"rotation_rad\": [0, 0],"
                            " \"translation_m\": [0, 0, 0]}]}",
@@ -349,7 +323,7 @@ TEST(PoseRefinement, CheckpointsCarryTheCorrectionsAndOlderOnesLoadWithout) {
   GaussianStore init;
   init.sh_degree = 0;
   init.Resize(3);
-  for (float &q : init.rotations) q = 0.5f;
+  for (float& q : init.rotations) q = 0.5f;
   TrainState st = TrainState::Init(init, 2.0, 4, 1);
   const std::string plain = dir + "/plain.bin", with_poses = dir + "/poses.bin";
   ASSERT_TRUE(SaveCheckpoint(st, plain).ok());
