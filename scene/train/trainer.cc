@@ -208,7 +208,11 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     LOG(INFO) << "initial scene: " << st.size() << " Gaussians, extent " << st.extent << " m, " << num_views
               << " training views";
   }
-  if (opt.pose_refinement) {
+  // A checkpoint that refines its poses goes on refining them: its scene sits in the corrected
+  // trajectory's frame, and the log's poses would misplace every view of it.
+  const bool refine_poses = opt.pose_refinement || !st.pose_delta.empty();
+  if (refine_poses) {
+    if (!opt.pose_refinement) LOG(INFO) << "the checkpoint refines its camera poses: so does this run";
     if (absl::Status s = PreparePoseCorrections(num_views, &st); !s.ok()) return s;
   }
 
@@ -325,7 +329,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     ro.background = opt.sky ? Eigen::Vector3f(st.sky[0], st.sky[1], st.sky[2]) : Eigen::Vector3f::Zero();
     ro.keep_for_backward = true;
     const PinholeCamera camera =
-        opt.pose_refinement ? CorrectedCamera(view.camera, ViewCorrection(st, vi)) : view.camera;
+        refine_poses ? CorrectedCamera(view.camera, ViewCorrection(st, vi)) : view.camera;
     if (absl::Status s = (*engine)->Render(*scene, camera, ro, &out); !s.ok()) return s;
     const int W = view.camera.width, H = view.camera.height;
     const size_t pixels = static_cast<size_t>(W) * H;
@@ -386,7 +390,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     og.depth = opt.depth_loss ? d_depth.data() : nullptr;
     if (absl::Status s = (*engine)->RenderBackward(*scene, og, bo, &grads); !s.ok()) return s;
     // The pose from the camera's gradient alone (before the LiDAR step adds to the means').
-    if (opt.pose_refinement && it > h.pose_refine_from) StepPoseCorrection(params, grads, camera, vi, h, pool, &st);
+    if (refine_poses && it > h.pose_refine_from) StepPoseCorrection(params, grads, camera, vi, h, pool, &st);
     // The LiDAR step before the field's backward: in the fine stage it renders the camera's
     // deformed means (the frame's time) and its means gradient joins the camera's, so that
     // DeformBackward chains the sum through the field.
@@ -548,7 +552,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     // Held-out previews (render | ground truth) and metrics.
     // The learned corrections of the training views; held-out views take them interpolated.
     std::vector<View> corrected_heldout;
-    if (opt.pose_refinement) {
+    if (refine_poses) {
       const std::vector<PoseCorrection> corrections = TrainedCorrections(*views, st.pose_delta);
       if (absl::Status s = WritePoseCorrections(out_dir, corrections); !s.ok()) return s;
       LOG(INFO) << "pose corrections: " << CorrectionsSummary(corrections);
@@ -560,7 +564,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       std::filesystem::remove(std::filesystem::path(out_dir) / kPoseCorrectionsFileName, ec);  // not this run's
     }
     if (!heldout.empty()) {
-      const std::vector<View>* test = opt.pose_refinement ? &corrected_heldout : &heldout;
+      const std::vector<View>* test = refine_poses ? &corrected_heldout : &heldout;
       const Eigen::Vector3f bg = opt.sky ? Eigen::Vector3f(st.sky[0], st.sky[1], st.sky[2]) : Eigen::Vector3f::Zero();
       // Each held-out view at its own time when there is a field.
       std::shared_ptr<const field::DeformationField> f;

@@ -137,8 +137,8 @@ TEST(CliTrain, BadArgumentsExitTwoWithOneLine) {
 }
 
 // Camera pose refinement (docs/training.md): the run writes its corrections, its held-out metrics
-// are at the interpolated corrections as eval's are, --log-poses measures at the log's, and a run
-// without refinement in the same directory leaves no stale corrections behind.
+// are at the interpolated corrections as eval's are, --log-poses measures at the log's, a resume
+// keeps refining, and a new run without refinement in the same directory removes the file.
 TEST(CliTrain, PoseRefinementWritesCorrectionsThatEvalUses) {
   const std::string dir = streetsim::testing::ScratchDir("streetsim_cli_train_scene", "poses");
   const std::string common = " --log " + kKitti + " --out " + dir + " --resolution-scale 0.12 --holdout-every 4";
@@ -174,7 +174,13 @@ TEST(CliTrain, PoseRefinementWritesCorrectionsThatEvalUses) {
   EXPECT_EQ(r.code, 2) << r.err;
   EXPECT_NE(r.err.find("pose_corrections.json"), std::string::npos) << r.err;
 
+  // A resume goes on refining (its scene sits in the corrected frame); a new run in the same
+  // directory without refinement leaves no stale corrections behind.
   r = RunCli("train" + common + " --iterations 31 --resume");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("the checkpoint refines its camera poses"), std::string::npos) << r.err;
+  EXPECT_EQ(nlohmann::json::parse(std::ifstream(dir + "/pose_corrections.json"))["corrections"].size(), 59u);
+  r = RunCli("train" + common + " --iterations 5");
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_FALSE(std::filesystem::exists(dir + "/pose_corrections.json"));
 }
