@@ -100,7 +100,7 @@ void InstallStopHandlers() {
 int RunTrainCommand(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(
       argv, {{"log"}, {"out"}, {"iterations"}, {"resolution-scale"}, {"holdout-every"}, {"seed"}, {"resume", false},
-             {"checkpoint-every"}, {"no-sky", false}, {"exposure", false}, {"pose-refinement", false}, {"pose-lr-scale"}, {"pose-refine-from"}, {"no-depth", false},
+             {"checkpoint-every"}, {"no-sky", false}, {"exposure", false}, {"pose-refinement", false}, {"pose-lr-scale"}, {"pose-refine-from"}, {"pose-refine-until"}, {"no-depth", false},
              {"deterministic", false}, {"backend"}, {"voxel"}, {"field"}, {"static-iterations"}, {"field-size"},
              {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"clip-overlap"},
              {"field-modules"}, {"field-decoder-max-dlog-scale"}, {"field-device"}, {"field-optimizer"},
@@ -353,6 +353,12 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     if (!opt.pose_refinement) return Fail(2, absl::InvalidArgumentError("--pose-refine-from needs --pose-refinement"));
     if (!absl::SimpleAtoi(*v, &opt.hyper.pose_refine_from) || opt.hyper.pose_refine_from < 0) {
       return Fail(2, absl::InvalidArgumentError("--pose-refine-from must be an integer >= 0"));
+    }
+  }
+  if (auto v = args->Get("pose-refine-until")) {
+    if (!opt.pose_refinement) return Fail(2, absl::InvalidArgumentError("--pose-refine-until needs --pose-refinement"));
+    if (!absl::SimpleAtoi(*v, &opt.hyper.pose_refine_until) || opt.hyper.pose_refine_until < 1) {
+      return Fail(2, absl::InvalidArgumentError("--pose-refine-until must be an integer >= 1"));
     }
   }
   opt.depth_loss = !args->Has("no-depth");

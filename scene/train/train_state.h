@@ -25,9 +25,11 @@ struct Hyper {
   double sky_lr = 1e-2, exposure_lr = 1e-3;  // streetsim's additions (not in S3Gaussian)
   // Camera pose refinement (streetsim's, pose_refinement.h): Adam rates of the per-view rotation
   // (rad) and translation (m); the first pose_refine_from iterations leave the poses alone, so
-  // that a coarse scene does not pull them.
+  // that a coarse scene does not pull them; after pose_refine_until (0: never) they stay as they
+  // are (e.g. the static stage's, for a field that would otherwise compete with them).
   double pose_rotation_lr = 3e-4, pose_translation_lr = 3e-3;
   int pose_refine_from = 300;
+  int64_t pose_refine_until = 0;
   // Losses (section 5).
   double lambda_dssim = 0.2, lambda_depth = 0.5;
   // Densification (section 7).

@@ -390,7 +390,8 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     og.depth = opt.depth_loss ? d_depth.data() : nullptr;
     if (absl::Status s = (*engine)->RenderBackward(*scene, og, bo, &grads); !s.ok()) return s;
     // The pose from the camera's gradient alone (before the LiDAR step adds to the means').
-    if (refine_poses && it > h.pose_refine_from) StepPoseCorrection(params, grads, camera, vi, h, pool, &st);
+    if (refine_poses && it > h.pose_refine_from && (h.pose_refine_until == 0 || it <= h.pose_refine_until))
+      StepPoseCorrection(params, grads, camera, vi, h, pool, &st);
     // The LiDAR step before the field's backward: in the fine stage it renders the camera's
     // deformed means (the frame's time) and its means gradient joins the camera's, so that
     // DeformBackward chains the sum through the field.

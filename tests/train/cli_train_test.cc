@@ -129,7 +129,9 @@ TEST(CliTrain, BadArgumentsExitTwoWithOneLine) {
         "train --log " + kKitti + " --out /tmp/x --pose-lr-scale 2",
         "train --log " + kKitti + " --out /tmp/x --pose-refine-from 2",
         "train --log " + kKitti + " --out /tmp/x --pose-refinement --pose-lr-scale 0",
-        "train --log " + kKitti + " --out /tmp/x --pose-refinement --pose-refine-from -1"}) {
+        "train --log " + kKitti + " --out /tmp/x --pose-refinement --pose-refine-from -1",
+        "train --log " + kKitti + " --out /tmp/x --pose-refine-until 5",
+        "train --log " + kKitti + " --out /tmp/x --pose-refinement --pose-refine-until 0"}) {
     const Result r = RunCli(args);
     EXPECT_EQ(r.code, 2) << args << ": " << r.err;
     EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << args << ": " << r.err;
@@ -183,6 +185,24 @@ TEST(CliTrain, PoseRefinementWritesCorrectionsThatEvalUses) {
   r = RunCli("train" + common + " --iterations 5");
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_FALSE(std::filesystem::exists(dir + "/pose_corrections.json"));
+}
+
+// --pose-refine-until M: the corrections stop at iteration M. Deterministic runs: 12 iterations
+// with corrections until 8 end with the corrections of an 8-iteration run.
+TEST(CliTrain, PoseRefinementStopsAtItsLastIteration) {
+  const std::string a = streetsim::testing::ScratchDir("streetsim_cli_train_scene", "poses_until");
+  const std::string b = streetsim::testing::ScratchDir("streetsim_cli_train_scene", "poses_8");
+  const std::string common = " --log " + kKitti +
+                             " --resolution-scale 0.08 --holdout-every 4 --deterministic --no-lidar-loss"
+                             " --pose-refinement --pose-refine-from 2 --pose-lr-scale 2";
+  Result r = RunCli("train --out " + a + common + " --iterations 12 --pose-refine-until 8");
+  ASSERT_EQ(r.code, 0) << r.err;
+  r = RunCli("train --out " + b + common + " --iterations 8");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const nlohmann::json ca = nlohmann::json::parse(std::ifstream(a + "/pose_corrections.json"));
+  const nlohmann::json cb = nlohmann::json::parse(std::ifstream(b + "/pose_corrections.json"));
+  EXPECT_GT(cb["max_rotation_deg"].get<double>(), 0.0);
+  EXPECT_EQ(ca["corrections"], cb["corrections"]);
 }
 
 // Low resolution first (docs/training.md "Low resolution first"): the first iterations at the low
