@@ -27,9 +27,9 @@
 #include "scene/gaussians/ply_io.h"
 #include "scene/log/open_log.h"
 #include "scene/train/dataset.h"
-#include "scene/train/pose_refinement.h"
 #include "scene/train/dynamic_stage.h"
 #include "scene/train/losses.h"
+#include "scene/train/pose_refinement.h"
 #include "scene/train/trainer.h"
 
 using namespace streetsim;

@@ -100,7 +100,8 @@ void InstallStopHandlers() {
 int RunTrainCommand(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(
       argv, {{"log"}, {"out"}, {"iterations"}, {"resolution-scale"}, {"holdout-every"}, {"seed"}, {"resume", false},
-             {"checkpoint-every"}, {"no-sky", false}, {"exposure", false}, {"pose-refinement", false}, {"pose-lr-scale"}, {"pose-refine-from"}, {"pose-refine-until"}, {"no-depth", false},
+             {"checkpoint-every"}, {"no-sky", false}, {"exposure", false}, {"pose-refinement", false},
+             {"pose-lr-scale"}, {"pose-refine-from"}, {"pose-refine-until"}, {"no-depth", false},
              {"deterministic", false}, {"backend"}, {"voxel"}, {"field"}, {"static-iterations"}, {"field-size"},
              {"lidar-weight"}, {"no-lidar-loss", false}, {"lidar-every"}, {"clip-frames"}, {"clip-overlap"},
              {"field-modules"}, {"field-decoder-max-dlog-scale"}, {"field-device"}, {"field-optimizer"},

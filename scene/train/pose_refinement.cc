@@ -1,11 +1,12 @@
 #include "scene/train/pose_refinement.h"
 
-#include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <map>
+
+#include <Eigen/Geometry>
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/str_cat.h"
@@ -31,6 +32,9 @@ Eigen::Matrix3d RightJacobian(const PoseDelta& d) {
   return Eigen::Matrix3d::Identity() - (1 - std::cos(t)) / (t * t) * W + (t - std::sin(t)) / (t * t * t) * W * W;
 }
 
+double RotationDeg(const PoseDelta& d) { return Eigen::Vector3d(d[0], d[1], d[2]).norm() * 180.0 / M_PI; }
+double TranslationM(const PoseDelta& d) { return Eigen::Vector3d(d[3], d[4], d[5]).norm(); }
+
 // Per-chunk partial sums in chunk order: the same bits for any thread count.
 constexpr int64_t kChunk = 1 << 15;
 
@@ -47,12 +51,11 @@ PinholeCamera CorrectedCamera(const PinholeCamera& camera, const PoseDelta& delt
 
 PoseDelta PoseGradient(const GaussianParamsView& rendered, const GaussianGrads& grads,
                        const PinholeCamera& corrected_camera, const PoseDelta& delta, ThreadPool& pool) {
-  // Moving the camera by a small motion (w, v) in its frame renders what the
-  // fixed camera sees of the Gaussians moved by the inverse motion: mean m -> m
-  // - w_w x (m - c) - v_w, rotation q -> (1, -w_w / 2) * q, with c the camera
-  // centre and w_w, v_w the motion in world axes. So
-  //   dL/dv_w = -sum g_m,   dL/dw_w = -sum [ (m - c) x g_m + 1/2 (q_w g_qv -
-  //   g_qw q_v + q_v x g_qv) ].
+  // Moving the camera by a small motion (w, v) in its frame renders what the fixed camera sees of
+  // the Gaussians moved by the inverse motion: mean m -> m - w_w x (m - c) - v_w, rotation q -> (1,
+  // -w_w / 2) * q, with c the camera centre and w_w, v_w the motion in world axes. So
+  //   dL/dv_w = -sum g_m,
+  //   dL/dw_w = -sum [ (m - c) x g_m + 1/2 (q_w g_qv - g_qw q_v + q_v x g_qv) ].
   const size_t n = rendered.n;
   const Eigen::Vector3d c = corrected_camera.T_world_from_cam.translation();
   const int64_t chunks = (static_cast<int64_t>(n) + kChunk - 1) / kChunk;
@@ -93,10 +96,9 @@ PoseDelta PoseGradient(const GaussianParamsView& rendered, const GaussianGrads& 
     dw_world -= Eigen::Vector3d(p[0], p[1], p[2]);
     dv_world -= Eigen::Vector3d(p[3], p[4], p[5]);
   }
-  // Into the corrected camera's axes, then onto the correction's parameters: a
-  // step e of the translation in the corrected frame is R(w) e in the
-  // uncorrected one, a step dw of the rotation vector turns the corrected
-  // camera by J_r(w) dw.
+  // Into the corrected camera's axes, then onto the correction's parameters: a step e of the
+  // translation in the corrected frame is R(w) e in the uncorrected one, a step dw of the rotation
+  // vector turns the corrected camera by J_r(w) dw.
   const Eigen::Matrix3d R_cam_from_world = corrected_camera.T_world_from_cam.linear().transpose();
   const Eigen::Vector3d dw = RightJacobian(delta).transpose() * (R_cam_from_world * dw_world);
   const Eigen::Vector3d dv = RotationOf(delta) * (R_cam_from_world * dv_world);
@@ -156,8 +158,8 @@ std::vector<PoseCorrection> TrainedCorrections(const std::vector<View>& views, c
 std::string CorrectionsSummary(const std::vector<PoseCorrection>& corrections) {
   double rot_sum = 0, rot_max = 0, trans_sum = 0, trans_max = 0;
   for (const PoseCorrection& c : corrections) {
-    const double r = Eigen::Vector3d(c.delta[0], c.delta[1], c.delta[2]).norm() * 180.0 / M_PI;
-    const double t = Eigen::Vector3d(c.delta[3], c.delta[4], c.delta[5]).norm() * 100.0;
+    const double r = RotationDeg(c.delta);
+    const double t = TranslationM(c.delta) * 100.0;
     rot_sum += r;
     trans_sum += t;
     rot_max = std::max(rot_max, r);
@@ -185,7 +187,7 @@ std::vector<PoseDelta> CorrectionsForViews(const std::vector<PoseCorrection>& tr
       continue;
     }
     auto cam = by_camera.find(v.camera_obs);
-    if (cam == by_camera.end() || cam->second.empty()) continue;
+    if (cam == by_camera.end()) continue;
     const auto& track = cam->second;
     auto after = track.lower_bound(v.time_us);
     if (after == track.begin()) {
@@ -199,8 +201,7 @@ std::vector<PoseDelta> CorrectionsForViews(const std::vector<PoseCorrection>& tr
     }
     const double span = static_cast<double>(after->first - before->first);
     const double a = span > 0 ? static_cast<double>(v.time_us - before->first) / span : 0.0;
-    // Linear in the rotation vector: exact enough for corrections of a fraction
-    // of a degree.
+    // Linear in the rotation vector: exact enough for corrections of a fraction of a degree.
     for (int j = 0; j < 6; ++j) {
       out[i][j] = static_cast<float>((1 - a) * before->second->delta[j] + a * after->second->delta[j]);
     }
@@ -224,8 +225,8 @@ absl::Status WritePoseCorrections(const std::string& dir, const std::vector<Pose
     e["rotation_rad"] = {c.delta[0], c.delta[1], c.delta[2]};
     e["translation_m"] = {c.delta[3], c.delta[4], c.delta[5]};
     list.push_back(e);
-    max_rot_deg = std::max(max_rot_deg, Eigen::Vector3d(c.delta[0], c.delta[1], c.delta[2]).norm() * 180.0 / M_PI);
-    max_trans_m = std::max(max_trans_m, Eigen::Vector3d(c.delta[3], c.delta[4], c.delta[5]).norm());
+    max_rot_deg = std::max(max_rot_deg, RotationDeg(c.delta));
+    max_trans_m = std::max(max_trans_m, TranslationM(c.delta));
   }
   nlohmann::json j;
   j["corrections"] = list;
@@ -265,8 +266,7 @@ absl::StatusOr<std::vector<PoseCorrection>> ReadPoseCorrections(const std::strin
     c.frame = e["frame"].get<int>();
     c.camera_obs = e["camera_obs"].get<int>();
     c.time_us = e["time_us"].get<int64_t>();
-    if (Eigen::Vector3d(c.delta[0], c.delta[1], c.delta[2]).norm() > 1.0 ||
-        Eigen::Vector3d(c.delta[3], c.delta[4], c.delta[5]).norm() > 100.0) {
+    if (RotationDeg(c.delta) > 180.0 / M_PI || TranslationM(c.delta) > 100.0) {
       return bad(absl::StrCat("correction ", out.size(), " is beyond a refinement (over 1 rad or 100 m)"));
     }
     out.push_back(c);

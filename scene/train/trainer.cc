@@ -550,7 +550,6 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     }
     cv::Mat plot = PlotCurve(st.curve);
     if (absl::Status s = WriteRgbPng((std::filesystem::path(out_dir) / "curve.png").string(), plot); !s.ok()) return s;
-    // Held-out previews (render | ground truth) and metrics.
     // The learned corrections of the training views; held-out views take them interpolated.
     std::vector<View> corrected_heldout;
     if (refine_poses) {
@@ -564,6 +563,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     } else {
       std::filesystem::remove(std::filesystem::path(out_dir) / kPoseCorrectionsFileName, ec);  // not this run's
     }
+    // Held-out previews (render | ground truth) and metrics.
     if (!heldout.empty()) {
       const std::vector<View>* test = refine_poses ? &corrected_heldout : &heldout;
       const Eigen::Vector3f bg = opt.sky ? Eigen::Vector3f(st.sky[0], st.sky[1], st.sky[2]) : Eigen::Vector3f::Zero();

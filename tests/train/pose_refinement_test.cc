@@ -1,7 +1,6 @@
-// Camera pose refinement (scene/train/pose_refinement.h): the pose gradient
-// against finite differences of the double-precision forward, recovery of
-// perturbed poses by gradient descent, the held-out interpolation, the
-// corrections file and the checkpoint section.
+// Camera pose refinement (scene/train/pose_refinement.h): the pose gradient against finite
+// differences of the double-precision forward, recovery of perturbed poses by gradient descent, the
+// held-out interpolation, the corrections file and the checkpoint section.
 #include "scene/train/pose_refinement.h"
 
 #include <cmath>
@@ -68,9 +67,9 @@ class PoseGradientCheck : public ::testing::TestWithParam<PoseCase> {
   }
 };
 
-// The camera moved by a correction sees what the unmoved camera sees of the
-// scene moved by the inverse motion G = C(0) C(x)^-1: the same image. (SH
-// degree 0: view-dependent colour does not move with the scene.)
+// The camera moved by a correction sees what the unmoved camera sees of the scene moved by the
+// inverse motion G = C(0) C(x)^-1: the same image. (SH degree 0: view-dependent colour does not
+// move with the scene.)
 TEST(PoseRefinement, MovingTheCameraRendersTheSceneMovedInverselyInPlace) {
   const gradcheck::Scene s = RandomScene(31, 24, 0);
   for (const PoseDelta delta : {PoseDelta{}, PoseDelta{0.004f, -0.006f, 0.003f, 0.03f, -0.02f, 0.05f}}) {
@@ -111,10 +110,9 @@ TEST(PoseRefinement, MovingTheCameraRendersTheSceneMovedInverselyInPlace) {
   }
 }
 
-// PoseGradient is the chain rule through that motion: the engine's per-Gaussian
-// gradients (held against finite differences in grad_check_test) times d(mean,
-// rotation)/d(correction), the latter by central differences of G here, at a
-// zero and a non-zero correction.
+// PoseGradient is the chain rule through that motion: the engine's per-Gaussian gradients (held
+// against finite differences in grad_check_test) times d(mean, rotation)/d(correction), the latter
+// by central differences of G here, at a zero and a non-zero correction.
 TEST_P(PoseGradientCheck, IsTheChainRuleThroughTheInverseSceneMotion) {
   const PoseCase c = GetParam();
   ThreadPool pool(0);
@@ -149,10 +147,9 @@ TEST_P(PoseGradientCheck, IsTheChainRuleThroughTheInverseSceneMotion) {
   }
 }
 
-// End to end against central differences of the double-precision forward. A
-// camera motion moves every Gaussian across the 1/255 alpha cut and tile edges
-// at once, so the loss is only piecewise smooth at small steps; at a step of
-// 1e-3 the difference quotient is the slope to a few percent.
+// End to end against central differences of the double-precision forward. A camera motion moves
+// every Gaussian across the 1/255 alpha cut and tile edges at once, so the loss is only piecewise
+// smooth at small steps; at a step of 1e-3 the difference quotient is the slope to a few percent.
 TEST_P(PoseGradientCheck, PointsAlongFiniteDifferencesOfTheRender) {
   const PoseCase c = GetParam();
   ThreadPool pool(0);
@@ -170,9 +167,9 @@ TEST_P(PoseGradientCheck, PointsAlongFiniteDifferencesOfTheRender) {
     a[j] = an[j];
   }
   const double cosine = fd.dot(a) / (fd.norm() * a.norm());
-  // Degree 3: the SH view direction's bias (PoseGradient); these random SH are
-  // strongly view-dependent (measured: cosine 0.997-0.999, magnitude 0.87-0.88;
-  // degree 0: 0.993-0.999, 0.97-1.07, the difference quotient's own spread).
+  // Degree 3: the SH view direction's bias (PoseGradient); these random SH are strongly
+  // view-dependent (measured: cosine 0.997-0.999, magnitude 0.87-0.88; degree 0: 0.993-0.999,
+  // 0.97-1.07, the difference quotient's own spread).
   const bool sh = c.degree > 0;
   EXPECT_GT(cosine, sh ? 0.97 : 0.99) << "fd " << fd.transpose() << " / analytic " << a.transpose();
   EXPECT_NEAR(a.norm() / fd.norm(), 1.0, sh ? 0.2 : 0.1) << "fd " << fd.transpose() << " / analytic " << a.transpose();
@@ -182,8 +179,8 @@ INSTANTIATE_TEST_SUITE_P(Cases, PoseGradientCheck,
                          ::testing::Values(PoseCase{0, false}, PoseCase{0, true}, PoseCase{3, false},
                                            PoseCase{3, true}));
 
-// Gradient descent on the correction alone brings a perturbed camera back to
-// the pose the target image was rendered from.
+// Gradient descent on the correction alone brings a perturbed camera back to the pose the target
+// image was rendered from.
 TEST(PoseRefinement, RecoversAPerturbedPose) {
   ThreadPool pool(0);
   gradcheck::Scene s = RandomScene(5, 400, 0, 96, 72);
@@ -194,8 +191,7 @@ TEST(PoseRefinement, RecoversAPerturbedPose) {
   ro.background = s.background;
   RenderOutput target;
   ASSERT_TRUE(engine->Render(**scene, s.cam, ro, &target).ok());
-  // The log's pose is off by 0.6 degrees and 4 cm; the correction should undo
-  // it.
+  // The log's pose is off by 0.6 degrees and 4 cm; the correction should undo it.
   const PoseDelta error = {0.006f, -0.008f, 0.004f, 0.03f, -0.025f, 0.02f};
   PinholeCamera logged = CorrectedCamera(s.cam, error);
   PoseDelta d{}, m{}, v{};
