@@ -352,6 +352,13 @@ TEST(PoseRefinement, CheckpointsCarryTheCorrectionsAndOlderOnesLoadWithout) {
   EXPECT_EQ(a->pose_steps.size(), 7u);
   EXPECT_FLOAT_EQ(ViewCorrection(*b, 1)[1], -0.25f);
 
+  // A non-finite correction is corruption, not a pose to render from.
+  TrainState bad = st;
+  bad.pose_delta[3] = std::nanf("");
+  const std::string nan_path = dir + "/nan.bin";
+  ASSERT_TRUE(SaveCheckpoint(bad, nan_path).ok());
+  EXPECT_TRUE(absl::IsDataLoss(LoadCheckpoint(nan_path).status()));
+
   // A truncated pose section is corruption, not a checkpoint without poses.
   std::ifstream in(with_poses, std::ios::binary);
   std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
