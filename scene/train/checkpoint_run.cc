@@ -25,6 +25,12 @@ absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run
     j["low_res_scale"] = run.low_res->resolution_scale;
     j["low_res_iterations"] = run.low_res->iterations;
   }
+  if (run.pose_refinement) {
+    j["pose_rotation_lr"] = run.pose_refinement->rotation_lr;
+    j["pose_translation_lr"] = run.pose_refinement->translation_lr;
+    j["pose_refine_from"] = run.pose_refinement->from;
+    j["pose_refine_until"] = run.pose_refinement->until;
+  }
   return checked_file::WriteAtomically((std::filesystem::path(dir) / kCheckpointRunFile).string(), j.dump(2) + "\n");
 }
 
@@ -88,6 +94,24 @@ absl::StatusOr<std::optional<LowResStage>> ReadCheckpointLowResStage(const std::
           return absl::DataLossError(absl::StrCat(path, ": low-resolution stage out of range"));
         }
         return std::optional<LowResStage>(low);
+      });
+}
+
+absl::StatusOr<std::optional<PoseRefinementSchedule>> ReadCheckpointPoseRefinement(const std::string& dir) {
+  const std::string path = RunFile(dir);
+  return ParseJsonFile<std::optional<PoseRefinementSchedule>>(
+      path, [&](const nlohmann::json& j) -> absl::StatusOr<std::optional<PoseRefinementSchedule>> {
+        if (!j.contains("pose_rotation_lr")) return std::nullopt;
+        PoseRefinementSchedule pose;
+        pose.rotation_lr = j.at("pose_rotation_lr").get<double>();
+        pose.translation_lr = j.at("pose_translation_lr").get<double>();
+        pose.from = j.at("pose_refine_from").get<int>();
+        pose.until = j.at("pose_refine_until").get<int64_t>();
+        if (!(pose.rotation_lr >= 0 && pose.rotation_lr <= 1) ||
+            !(pose.translation_lr >= 0 && pose.translation_lr <= 10) || pose.from < 0 || pose.until < 0) {
+          return absl::DataLossError(absl::StrCat(path, ": pose refinement schedule out of range"));
+        }
+        return std::optional<PoseRefinementSchedule>(pose);
       });
 }
 

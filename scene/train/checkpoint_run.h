@@ -27,13 +27,22 @@ struct LowResStage {
   int64_t iterations = 0;
 };
 
+// Camera pose refinement's schedule (Hyper::pose_*): the rates per Adam step and the iterations
+// between which the corrections move (until 0: to the run's end).
+struct PoseRefinementSchedule {
+  double rotation_lr = 3e-4, translation_lr = 3e-3;
+  int from = 300;
+  int64_t until = 0;
+};
+
 struct CheckpointRun {
   int64_t iteration = 0;
   std::string field = "static";  // "static", "s3gaussian" or "extended"
   // A run with a field (its static warm-up included): the warm-up's length and the schedule.
   std::optional<int> static_iterations;
   std::optional<FieldLrSchedule> field_lr;
-  std::optional<LowResStage> low_res;  // a run's low-resolution stage
+  std::optional<LowResStage> low_res;                     // a run's low-resolution stage
+  std::optional<PoseRefinementSchedule> pose_refinement;  // a run that refines its camera poses
 };
 
 absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run);
@@ -58,5 +67,10 @@ absl::StatusOr<std::optional<FieldLrSchedule>> ReadTrainMetaFieldLr(const std::s
 // where the run has none or the file predates them; NotFound without the file; DataLoss where
 // damaged or out of range.
 absl::StatusOr<std::optional<LowResStage>> ReadCheckpointLowResStage(const std::string& dir);
+
+// The pose refinement schedule the file records (`pose_rotation_lr`, `pose_translation_lr`,
+// `pose_refine_from`, `pose_refine_until`); nullopt where the run does not refine its poses or the
+// file predates the record; NotFound without the file; DataLoss where damaged or out of range.
+absl::StatusOr<std::optional<PoseRefinementSchedule>> ReadCheckpointPoseRefinement(const std::string& dir);
 
 }  // namespace streetsim::train

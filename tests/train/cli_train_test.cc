@@ -180,15 +180,34 @@ TEST(CliTrain, PoseRefinementWritesCorrectionsThatEvalUses) {
   // directory without refinement leaves no stale corrections behind.
   r = RunCli("train" + common + " --iterations 31 --resume");
   ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(nlohmann::json::parse(std::ifstream(dir + "/pose_corrections.json"))["corrections"].size(), 59u);
+  nlohmann::json run = nlohmann::json::parse(std::ifstream(dir + "/checkpoint.json"));
+  EXPECT_DOUBLE_EQ(run["pose_rotation_lr"].get<double>(), 6e-4);  // its own schedule, kept
+  EXPECT_EQ(run["pose_refine_from"], 5);
+  // So does one whose checkpoint.json predates the record of the schedule (the default schedule).
+  for (const char* key : {"pose_rotation_lr", "pose_translation_lr", "pose_refine_from", "pose_refine_until"}) {
+    run.erase(key);
+  }
+  std::ofstream(dir + "/checkpoint.json") << run.dump();
+  r = RunCli("train" + common + " --iterations 32 --resume");
+  ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_NE(r.err.find("the checkpoint refines its camera poses"), std::string::npos) << r.err;
   EXPECT_EQ(nlohmann::json::parse(std::ifstream(dir + "/pose_corrections.json"))["corrections"].size(), 59u);
+  // A damaged record is an error naming the file, not a run on some other schedule.
+  run = nlohmann::json::parse(std::ifstream(dir + "/checkpoint.json"));
+  run["pose_refine_from"] = -4;
+  std::ofstream(dir + "/checkpoint.json") << run.dump();
+  r = RunCli("train" + common + " --iterations 33 --resume");
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_NE(r.err.find("checkpoint.json: pose refinement schedule out of range"), std::string::npos) << r.err;
   r = RunCli("train" + common + " --iterations 5");
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_FALSE(std::filesystem::exists(dir + "/pose_corrections.json"));
 }
 
 // --pose-refine-until M: the corrections stop at iteration M. Deterministic runs: 12 iterations
-// with corrections until 8 end with the corrections of an 8-iteration run.
+// with corrections until 8 end with the corrections of an 8-iteration run, and so does a run
+// resumed without the flags.
 TEST(CliTrain, PoseRefinementStopsAtItsLastIteration) {
   const std::string a = streetsim::testing::ScratchDir("streetsim_cli_train_scene", "poses_until");
   const std::string b = streetsim::testing::ScratchDir("streetsim_cli_train_scene", "poses_8");
@@ -203,6 +222,39 @@ TEST(CliTrain, PoseRefinementStopsAtItsLastIteration) {
   const nlohmann::json cb = nlohmann::json::parse(std::ifstream(b + "/pose_corrections.json"));
   EXPECT_GT(cb["max_rotation_deg"].get<double>(), 0.0);
   EXPECT_EQ(ca["corrections"], cb["corrections"]);
+
+  // A resume without the pose flags keeps the run's schedule (checkpoint.json records it): 6
+  // iterations, then resumed to 12 with none of the flags, end where the 8-iteration run ended.
+  // The defaults instead (rates halved, refinement from 300, never frozen) would not.
+  const std::string c = streetsim::testing::ScratchDir("streetsim_cli_train_scene", "poses_resumed");
+  const std::string plain =
+      " --log " + kKitti + " --resolution-scale 0.08 --holdout-every 4 --deterministic --no-lidar-loss";
+  r = RunCli("train --out " + c + common + " --iterations 6 --pose-refine-until 8");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const nlohmann::json run = nlohmann::json::parse(std::ifstream(c + "/checkpoint.json"));
+  EXPECT_EQ(run["pose_refine_from"], 2);
+  EXPECT_EQ(run["pose_refine_until"], 8);
+  EXPECT_DOUBLE_EQ(run["pose_rotation_lr"].get<double>(), 6e-4);
+  r = RunCli("train --out " + c + plain + " --iterations 12 --resume");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(nlohmann::json::parse(std::ifstream(c + "/pose_corrections.json"))["corrections"], cb["corrections"]);
+  // Told otherwise, it does: --pose-refine-until 14 alone (no --pose-refinement needed on a run that
+  // refines) sets them moving again.
+  r = RunCli("train --out " + c + plain + " --iterations 14 --resume --pose-refine-until 14");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(nlohmann::json::parse(std::ifstream(c + "/pose_corrections.json"))["corrections"], cb["corrections"]);
+
+  // A field run freezes them at the end of its static stage unless told otherwise.
+  const std::string f = streetsim::testing::ScratchDir("streetsim_cli_train_scene", "poses_field");
+  r = RunCli("train --out " + f + common +
+             " --iterations 8 --field s3gaussian --field-size small --static-iterations 6 --checkpoint-every 0");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(nlohmann::json::parse(std::ifstream(f + "/checkpoint.json"))["pose_refine_until"], 6);
+  r = RunCli("train --out " + f + common +
+             " --iterations 8 --field s3gaussian --field-size small --static-iterations 6 --checkpoint-every 0"
+             " --pose-refine-until 7");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(nlohmann::json::parse(std::ifstream(f + "/checkpoint.json"))["pose_refine_until"], 7);
 }
 
 // Low resolution first (docs/training.md "Low resolution first"): the first iterations at the low
