@@ -344,21 +344,19 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   bool pose_schedule_recorded = false;
   // A resumed run that refines its poses keeps its own schedule, value by value, unless told: a
   // `--pose-refine-until` dropped on one resume would otherwise set its frozen corrections moving.
-  if (args->Has("resume") && std::filesystem::exists(std::filesystem::path(*out) / "checkpoint.bin")) {
+  if (opt.resume && std::filesystem::exists(std::filesystem::path(*out) / "checkpoint.bin")) {
     absl::StatusOr<std::optional<train::PoseRefinementSchedule>> recorded = train::ReadCheckpointPoseRefinement(*out);
     if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
     if (recorded.ok() && recorded->has_value()) {
       const train::PoseRefinementSchedule& own = **recorded;
       pose_schedule_recorded = true;
       opt.pose_refinement = true;
-      opt.hyper.pose_rotation_lr = own.rotation_lr;
-      opt.hyper.pose_translation_lr = own.translation_lr;
+      if (!args->Has("pose-lr-scale")) {  // given, it scales the defaults, as on a new run
+        opt.hyper.pose_rotation_lr = own.rotation_lr;
+        opt.hyper.pose_translation_lr = own.translation_lr;
+      }
       opt.hyper.pose_refine_from = own.from;
       opt.hyper.pose_refine_until = own.until;
-      if (args->Has("pose-lr-scale")) {  // the scale is of the defaults, as on a new run
-        opt.hyper.pose_rotation_lr = train::Hyper{}.pose_rotation_lr;
-        opt.hyper.pose_translation_lr = train::Hyper{}.pose_translation_lr;
-      }
     }
   }
   if (auto v = args->Get("pose-lr-scale")) {
