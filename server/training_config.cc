@@ -54,7 +54,8 @@ absl::Status ValidateTrainingConfig(const v1::TrainingConfig& c) {
       !c.field().empty() || !c.field_modules().empty() || c.has_static_iterations() || c.resolution_scale() != 0 ||
       c.low_res_scale() != 0 || c.low_res_iterations() != 0 || c.has_holdout_every() || c.clip_frames() != 0 ||
       c.has_clip_overlap() || c.field_lr_scale() != 0 || c.field_lr_decay_iterations() != 0 || !c.backend().empty() ||
-      !c.continue_from_scene().empty() || c.pose_refinement() || c.pose_lr_scale() != 0;
+      !c.continue_from_scene().empty() || c.pose_refinement() || c.pose_lr_scale() != 0 ||
+      c.position_lr_decay_iterations() != 0;
   if (c.max_iterations() == 0) {
     if (asks_training_options) return Bad("training options need max_iterations > 0 (0 is init only)");
     return absl::OkStatus();
@@ -88,6 +89,9 @@ absl::Status ValidateTrainingConfig(const v1::TrainingConfig& c) {
   }
   if (c.field_lr_decay_iterations() < 0 || c.field_lr_decay_iterations() > kMaxIterations) {
     return Bad(absl::StrCat("field_lr_decay_iterations must be in 1..", kMaxIterations, " (0: the default)"));
+  }
+  if (c.position_lr_decay_iterations() < 0 || c.position_lr_decay_iterations() > kMaxIterations) {
+    return Bad(absl::StrCat("position_lr_decay_iterations must be in 1..", kMaxIterations, " (0: the default)"));
   }
   if (!(std::isfinite(c.resolution_scale()) && c.resolution_scale() >= 0 && c.resolution_scale() <= 1)) {
     return Bad("resolution_scale must be in (0, 1] (0: 1)");
@@ -149,6 +153,9 @@ std::vector<std::string> TrainFlags(const v1::TrainingConfig& c) {
   if (c.has_clip_overlap()) add("--clip-overlap", std::to_string(c.clip_overlap()));
   if (c.field_lr_scale() != 0) add("--field-lr-scale", Number(c.field_lr_scale()));
   if (c.field_lr_decay_iterations() != 0) add("--field-lr-decay-iterations", std::to_string(c.field_lr_decay_iterations()));
+  if (c.position_lr_decay_iterations() != 0) {
+    add("--position-lr-decay-iterations", std::to_string(c.position_lr_decay_iterations()));
+  }
   if (!c.backend().empty()) add("--backend", c.backend());
   if (c.pose_refinement()) f.push_back("--pose-refinement");
   if (c.pose_lr_scale() != 0) add("--pose-lr-scale", Number(c.pose_lr_scale()));

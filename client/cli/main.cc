@@ -59,6 +59,8 @@ constexpr char kUsage[] =
                "              [--field-l1-time-planes W]   (time planes' L1 towards 1, 1e-4)\n"
                "              [--field-lr-scale S] [--field-lr-decay-iterations N]   (the field's lr x S, decayed\n"
                "               over N fine iterations; default 10 and 30000; S3Gaussian's: 1; a resume keeps its own)\n"
+               "              [--position-lr-decay-iterations N]   (the Gaussian means' lr decay, over N\n"
+               "               iterations of a stage; 3DGS's 30000; a resume keeps its own)\n"
                "              [--clip-frames N [--clip-overlap K (default N/10)]]\n"
                "              (SIGINT / SIGTERM: stop with a checkpoint, exit 130 / 143)\n"
                "              (default field: s3gaussian when --iterations > the 5000-iteration warm-up, else static)\n"

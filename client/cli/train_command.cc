@@ -107,6 +107,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
              {"field-modules"}, {"field-decoder-max-dlog-scale"}, {"field-device"}, {"field-optimizer"},
              {"field-init"}, {"field-lambda-dx"}, {"field-lambda-dsh"}, {"field-l1-time-planes"},
              {"field-lr-scale"}, {"field-lr-decay-iterations"}, {"field-time-resolution"},
+             {"position-lr-decay-iterations"},
              {"low-res-scale"}, {"low-res-iterations"}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
@@ -388,6 +389,20 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   if (opt.pose_refinement && opt.field.mode != train::FieldMode::kStatic && !args->Has("pose-refine-until") &&
       !pose_schedule_recorded && opt.field.static_iterations > opt.hyper.pose_refine_from) {
     opt.hyper.pose_refine_until = opt.field.static_iterations;
+  }
+  // The Gaussian means' rate decays over 30 000 iterations of a stage (3DGS's, set for a 30 000-
+  // iteration run); a shorter decay anneals them, as --field-lr-decay-iterations does the field's.
+  // A resume keeps its recorded one unless told.
+  if (auto v = args->Get("position-lr-decay-iterations")) {
+    if (!absl::SimpleAtoi(*v, &opt.hyper.lr_decay_steps) || opt.hyper.lr_decay_steps < 1 ||
+        opt.hyper.lr_decay_steps > 10'000'000) {
+      return Fail(2, absl::InvalidArgumentError(absl::StrCat(
+                         "--position-lr-decay-iterations must be an integer in 1..10000000, not '", *v, "'")));
+    }
+  } else if (opt.resume && std::filesystem::exists(std::filesystem::path(*out) / "checkpoint.bin")) {
+    absl::StatusOr<std::optional<int>> recorded = train::ReadCheckpointPositionLrDecay(*out);
+    if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
+    if (recorded.ok() && recorded->has_value()) opt.hyper.lr_decay_steps = **recorded;
   }
   opt.depth_loss = !args->Has("no-depth");
   opt.deterministic = args->Has("deterministic");

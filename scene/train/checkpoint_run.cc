@@ -31,6 +31,7 @@ absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run
     j["pose_refine_from"] = run.pose_refinement->from;
     j["pose_refine_until"] = run.pose_refinement->until;
   }
+  j["position_lr_decay_iterations"] = run.position_lr_decay_iterations;
   return checked_file::WriteAtomically((std::filesystem::path(dir) / kCheckpointRunFile).string(), j.dump(2) + "\n");
 }
 
@@ -113,6 +114,18 @@ absl::StatusOr<std::optional<PoseRefinementSchedule>> ReadCheckpointPoseRefineme
         }
         return std::optional<PoseRefinementSchedule>(pose);
       });
+}
+
+absl::StatusOr<std::optional<int>> ReadCheckpointPositionLrDecay(const std::string& dir) {
+  const std::string path = RunFile(dir);
+  return ParseJsonFile<std::optional<int>>(path, [&](const nlohmann::json& j) -> absl::StatusOr<std::optional<int>> {
+    if (!j.contains("position_lr_decay_iterations")) return std::nullopt;
+    const int n = j.at("position_lr_decay_iterations").get<int>();
+    if (n < 1 || n > 10'000'000) {
+      return absl::DataLossError(absl::StrCat(path, ": position learning-rate decay out of range"));
+    }
+    return std::optional<int>(n);
+  });
 }
 
 absl::StatusOr<std::optional<FieldLrSchedule>> ReadTrainMetaFieldLr(const std::string& dir) {

@@ -43,6 +43,7 @@ struct CheckpointRun {
   std::optional<FieldLrSchedule> field_lr;
   std::optional<LowResStage> low_res;                     // a run's low-resolution stage
   std::optional<PoseRefinementSchedule> pose_refinement;  // a run that refines its camera poses
+  int position_lr_decay_iterations = 30000;               // Hyper::lr_decay_steps
 };
 
 absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run);
@@ -72,5 +73,10 @@ absl::StatusOr<std::optional<LowResStage>> ReadCheckpointLowResStage(const std::
 // `pose_refine_from`, `pose_refine_until`); nullopt where the run does not refine its poses or the
 // file predates the record; NotFound without the file; DataLoss where damaged or out of range.
 absl::StatusOr<std::optional<PoseRefinementSchedule>> ReadCheckpointPoseRefinement(const std::string& dir);
+
+// The Gaussian means' learning-rate decay the file records (`position_lr_decay_iterations`);
+// nullopt where the file predates the record (such runs decayed over 3DGS's 30 000); NotFound
+// without the file; DataLoss where damaged or out of range.
+absl::StatusOr<std::optional<int>> ReadCheckpointPositionLrDecay(const std::string& dir);
 
 }  // namespace streetsim::train

@@ -20,6 +20,8 @@ namespace streetsim::train {
 struct Hyper {
   // Adam (section 6): eps 1e-15, betas (0.9, 0.999).
   double xyz_lr_init = 1.6e-4, xyz_lr_final = 1.6e-6;  // times the scene extent E
+  // The means' exponential decay, in iterations of the stage (a field run's fine stage counts from
+  // its own start): 3DGS's 30 000; shorter anneals a resumed run (--position-lr-decay-iterations).
   int lr_decay_steps = 30000;
   double f_dc_lr = 2.5e-3, f_rest_lr = 2.5e-3 / 20, opacity_lr = 0.05, scaling_lr = 5e-3, rotation_lr = 1e-3;
   double sky_lr = 1e-2, exposure_lr = 1e-3;  // streetsim's additions (not in S3Gaussian)

@@ -283,6 +283,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       run.field_lr = FieldLrSchedule{opt.field.hyper.lr_scale, opt.field.hyper.lr_decay_steps};
     }
     run.low_res = opt.low_res;
+    run.position_lr_decay_iterations = h.lr_decay_steps;
     if (refine_poses) {
       run.pose_refinement =
           PoseRefinementSchedule{h.pose_rotation_lr, h.pose_translation_lr, h.pose_refine_from, h.pose_refine_until};

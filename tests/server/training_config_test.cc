@@ -110,6 +110,10 @@ TEST(TrainingConfig, BadValuesAreRefusedNamingTheField) {
   ExpectRefused(Config(0, [](v1::TrainingConfig* c) { c->set_pose_refinement(true); }), "max_iterations > 0");
   ExpectRefused(Config(9000, [](v1::TrainingConfig* c) { c->set_field_lr_decay_iterations(-5); }),
                 "field_lr_decay_iterations");
+  ExpectRefused(Config(9000, [](v1::TrainingConfig* c) { c->set_position_lr_decay_iterations(-1); }),
+                "config.position_lr_decay_iterations");
+  ExpectRefused(Config(0, [](v1::TrainingConfig* c) { c->set_position_lr_decay_iterations(500); }),
+                "max_iterations > 0");
   ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_resolution_scale(1.5); }), "resolution_scale");
   ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_resolution_scale(-0.5); }), "resolution_scale");
   ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_resolution_scale(INFINITY); }), "resolution_scale");
@@ -151,9 +155,11 @@ TEST(TrainingConfig, BadValuesAreRefusedNamingTheField) {
   const v1::TrainingConfig anneal = Config(100, [](v1::TrainingConfig* c) {
     c->set_continue_from_scene("kitti_full");
     c->set_field_lr_decay_iterations(600);
+    c->set_position_lr_decay_iterations(700);
   });
   EXPECT_TRUE(ValidateTrainingConfig(anneal).ok()) << ValidateTrainingConfig(anneal);
-  EXPECT_EQ(TrainFlags(anneal), (std::vector<std::string>{"--field-lr-decay-iterations", "600"}));
+  EXPECT_EQ(TrainFlags(anneal), (std::vector<std::string>{"--field-lr-decay-iterations", "600",
+                                                          "--position-lr-decay-iterations", "700"}));
 }
 
 }  // namespace
