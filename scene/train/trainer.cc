@@ -527,6 +527,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     meta["seed"] = opt.seed;
     meta["sky"] = opt.sky;
     meta["exposure"] = opt.exposure;
+    meta["position_lr_decay_iterations"] = h.lr_decay_steps;  // the means' rate decay, per stage
     meta["field"] = !stage ? "static" : opt.field.extended ? "extended" : "s3gaussian";
     if (stage && opt.field.extended) meta["field_modules"] = opt.field.extended->ModulesString();
     if (stage && stage->extended() && stage->extended()->config().decoder) {

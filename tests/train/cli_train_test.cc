@@ -276,6 +276,7 @@ TEST(CliTrain, PositionLrDecayIsTheRunsAndAResumeKeepsIt) {
   Result r = RunCli("train --out " + a + common + " --iterations 10 --position-lr-decay-iterations 3");
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(nlohmann::json::parse(std::ifstream(a + "/checkpoint.json"))["position_lr_decay_iterations"], 3);
+  EXPECT_EQ(nlohmann::json::parse(std::ifstream(a + "/train_meta.json"))["position_lr_decay_iterations"], 3);
   r = RunCli("train --out " + b + common + " --iterations 10");
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(nlohmann::json::parse(std::ifstream(b + "/checkpoint.json"))["position_lr_decay_iterations"], 30000);
