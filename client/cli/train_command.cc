@@ -283,13 +283,16 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     return Fail(2, absl::InvalidArgumentError(
                        absl::StrCat("--field-lr-decay-iterations must be an integer in 1..10000000, not '", *v, "'")));
   }
+  // A resume of a run that has a checkpoint: its checkpoint.json's records (field rates, low-resolution
+  // stage, pose schedule, position decay) apply unless flags say otherwise.
+  const bool resumes_checkpoint =
+      args->Has("resume") && std::filesystem::exists(std::filesystem::path(*out) / "checkpoint.bin");
   // A resumed run keeps its own schedule unless told otherwise, value by value (annealing a run is
   // `--resume --field-lr-decay-iterations N` alone, which must not also reset its scale): the one
   // its checkpoint.json records, else the spec's where a fine stage began before the file recorded
   // it (its field trained at those rates); a run still in its static warm-up takes the default.
-  if (args->Has("resume") && opt.field.mode != train::FieldMode::kStatic &&
-      !(args->Has("field-lr-scale") && args->Has("field-lr-decay-iterations")) &&
-      std::filesystem::exists(std::filesystem::path(*out) / "checkpoint.bin")) {
+  if (resumes_checkpoint && opt.field.mode != train::FieldMode::kStatic &&
+      !(args->Has("field-lr-scale") && args->Has("field-lr-decay-iterations"))) {
     absl::StatusOr<std::optional<train::FieldLrSchedule>> recorded = train::ReadCheckpointFieldLr(*out);
     if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
     const train::FieldCheckpointsFound found = train::FindFieldCheckpoints(*out);
@@ -307,8 +310,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     }
   }
   // A resumed run keeps its low-resolution stage too, unless told (checkpoint.json records it).
-  if (args->Has("resume") && !args->Has("low-res-iterations") &&
-      std::filesystem::exists(std::filesystem::path(*out) / "checkpoint.bin")) {
+  if (resumes_checkpoint && !args->Has("low-res-iterations")) {
     absl::StatusOr<std::optional<train::LowResStage>> recorded = train::ReadCheckpointLowResStage(*out);
     if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
     if (recorded.ok() && recorded->has_value()) {
@@ -345,7 +347,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   bool pose_schedule_recorded = false;
   // A resumed run that refines its poses keeps its own schedule, value by value, unless told: a
   // `--pose-refine-until` dropped on one resume would otherwise set its frozen corrections moving.
-  if (opt.resume && std::filesystem::exists(std::filesystem::path(*out) / "checkpoint.bin")) {
+  if (resumes_checkpoint) {
     absl::StatusOr<std::optional<train::PoseRefinementSchedule>> recorded = train::ReadCheckpointPoseRefinement(*out);
     if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
     if (recorded.ok() && recorded->has_value()) {
@@ -399,7 +401,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
       return Fail(2, absl::InvalidArgumentError(absl::StrCat(
                          "--position-lr-decay-iterations must be an integer in 1..10000000, not '", *v, "'")));
     }
-  } else if (opt.resume && std::filesystem::exists(std::filesystem::path(*out) / "checkpoint.bin")) {
+  } else if (resumes_checkpoint) {
     absl::StatusOr<std::optional<int>> recorded = train::ReadCheckpointPositionLrDecay(*out);
     if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
     if (recorded.ok() && recorded->has_value()) opt.hyper.lr_decay_steps = **recorded;

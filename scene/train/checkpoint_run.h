@@ -27,11 +27,12 @@ struct LowResStage {
   int64_t iterations = 0;
 };
 
-// Camera pose refinement's schedule (Hyper::pose_*): the rates per Adam step and the iterations
-// between which the corrections move (until 0: to the run's end).
+// Camera pose refinement's schedule, a copy of the run's Hyper::pose_* (the defaults live there):
+// the rates per Adam step and the iterations between which the corrections move (until 0: to the
+// run's end).
 struct PoseRefinementSchedule {
-  double rotation_lr = 3e-4, translation_lr = 3e-3;
-  int from = 300;
+  double rotation_lr = 0, translation_lr = 0;
+  int from = 0;
   int64_t until = 0;
 };
 
