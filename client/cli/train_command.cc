@@ -406,6 +406,20 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
     if (recorded.ok() && recorded->has_value()) opt.hyper.lr_decay_steps = **recorded;
   }
+  // --field extended on a resume: an S3Gaussian run's checkpoint grows the modules (they join at
+  // their init, leaving its renders as they were; docs/training.md "Growing modules on a trained
+  // field"); an extended run's records where its modules joined.
+  if (resumes_checkpoint && opt.field.extended) {
+    absl::StatusOr<std::string> recorded = train::ReadCheckpointField(*out);
+    if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
+    if (recorded.ok() && *recorded == "s3gaussian") {
+      opt.field.grow_extension = true;
+    } else if (recorded.ok() && *recorded == "extended") {
+      absl::StatusOr<int64_t> from = train::ReadCheckpointExtensionFrom(*out);
+      if (!from.ok()) return Fail(2, from.status());
+      opt.field.extension_from_fine_iteration = *from;
+    }
+  }
   opt.depth_loss = !args->Has("no-depth");
   opt.deterministic = args->Has("deterministic");
   // LiDAR losses (docs/training.md "LiDAR losses").

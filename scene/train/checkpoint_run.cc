@@ -32,6 +32,7 @@ absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run
     j["pose_refine_until"] = run.pose_refinement->until;
   }
   j["position_lr_decay_iterations"] = run.position_lr_decay_iterations;
+  if (run.field_extension_from > 0) j["field_extension_from"] = run.field_extension_from;
   return checked_file::WriteAtomically((std::filesystem::path(dir) / kCheckpointRunFile).string(), j.dump(2) + "\n");
 }
 
@@ -125,6 +126,16 @@ absl::StatusOr<std::optional<int>> ReadCheckpointPositionLrDecay(const std::stri
       return absl::DataLossError(absl::StrCat(path, ": position learning-rate decay out of range"));
     }
     return std::optional<int>(n);
+  });
+}
+
+absl::StatusOr<int64_t> ReadCheckpointExtensionFrom(const std::string& dir) {
+  const std::string path = RunFile(dir);
+  return ParseJsonFile<int64_t>(path, [&](const nlohmann::json& j) -> absl::StatusOr<int64_t> {
+    if (!j.contains("field_extension_from")) return 0;
+    const int64_t from = j.at("field_extension_from").get<int64_t>();
+    if (from < 0) return absl::DataLossError(absl::StrCat(path, ": field_extension_from is negative"));
+    return from;
   });
 }
 

@@ -45,6 +45,9 @@ struct CheckpointRun {
   std::optional<LowResStage> low_res;                     // a run's low-resolution stage
   std::optional<PoseRefinementSchedule> pose_refinement;  // a run that refines its camera poses
   int position_lr_decay_iterations = 30000;               // Hyper::lr_decay_steps
+  // An extended run whose modules were grown on an S3Gaussian run's resume: the fine iteration
+  // they joined at (FieldOptions::extension_from_fine_iteration; 0 is not written).
+  int64_t field_extension_from = 0;
 };
 
 absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run);
@@ -79,5 +82,10 @@ absl::StatusOr<std::optional<PoseRefinementSchedule>> ReadCheckpointPoseRefineme
 // nullopt where the file predates the record (such runs decayed over 3DGS's 30 000); NotFound
 // without the file; DataLoss where damaged or out of range.
 absl::StatusOr<std::optional<int>> ReadCheckpointPositionLrDecay(const std::string& dir);
+
+// The fine iteration an extended run's modules joined at (`field_extension_from`): 0 where the
+// file does not record one (they joined with the fine stage); NotFound without the file; DataLoss
+// where damaged or negative.
+absl::StatusOr<int64_t> ReadCheckpointExtensionFrom(const std::string& dir);
 
 }  // namespace streetsim::train

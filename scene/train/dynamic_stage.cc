@@ -164,22 +164,28 @@ absl::StatusOr<std::unique_ptr<DynamicStage>> DynamicStage::Begin(TrainState* st
   std::fill(st->max_radii.begin(), st->max_radii.end(), 0.0f);
   auto stage = std::unique_ptr<DynamicStage>(new DynamicStage(std::move(*f), std::move(adam), options));
   if (options.extended) {
-    // --field extended: the base moves into the extended field; Δ of the token window is one
-    // frame on this run's time axis.
-    field::ExtendedFieldConfig ec = *options.extended;
-    const double span_us = static_cast<double>(time_range.end_us - time_range.start_us);
-    if (options.frame_interval_us > 0) {
-      ec.window_dt = span_us > 0 ? std::min(2.0, (stage->field_.config().full_time_range ? 2.0 : 1.0) *
-                                                     options.frame_interval_us / span_us)
-                                 : 0.0;
-    }
-    absl::StatusOr<field::ExtendedField> ext =
-        options.ext_prior ? ExtendedFromPrior(std::move(stage->field_), ec, *options.ext_prior)
-                          : field::ExtendedField::Create(std::move(stage->field_), ec, options.seed + 0x9e37);
-    if (!ext.ok()) return ext.status();
-    stage->ext_ = std::make_unique<field::ExtendedField>(std::move(*ext));
+    if (absl::Status s = stage->AttachExtension(options, /*from_prior=*/true); !s.ok()) return s;
   }
   return stage;
+}
+
+absl::Status DynamicStage::AttachExtension(const FieldOptions& options, bool from_prior) {
+  // --field extended: the base moves into the extended field; Δ of the token window is one frame
+  // on this run's time axis.
+  field::ExtendedFieldConfig ec = *options.extended;
+  const field::FieldTimeRange& range = field_.time_range();
+  const double span_us = static_cast<double>(range.end_us - range.start_us);
+  if (options.frame_interval_us > 0) {
+    ec.window_dt =
+        span_us > 0 ? std::min(2.0, (field_.config().full_time_range ? 2.0 : 1.0) * options.frame_interval_us / span_us)
+                    : 0.0;
+  }
+  absl::StatusOr<field::ExtendedField> ext =
+      from_prior && options.ext_prior ? ExtendedFromPrior(std::move(field_), ec, *options.ext_prior)
+                                      : field::ExtendedField::Create(std::move(field_), ec, options.seed + 0x9e37);
+  if (!ext.ok()) return ext.status();
+  ext_ = std::make_unique<field::ExtendedField>(std::move(*ext));
+  return absl::OkStatus();
 }
 
 absl::Status DynamicStage::OrderGaussians(TrainState* st, ThreadPool& pool) const {
@@ -207,6 +213,18 @@ absl::StatusOr<std::unique_ptr<DynamicStage>> DynamicStage::Resume(const std::st
     return std::unique_ptr<DynamicStage>(new DynamicStage(std::move(ck->field), std::move(ck->adam), options));
   }
   auto stage = std::unique_ptr<DynamicStage>(new DynamicStage(std::move(ck->field), std::move(ck->adam), options));
+  if (options.grow_extension) {
+    // An S3Gaussian run continued with modules (FieldOptions::grow_extension): they join at their
+    // init, which leaves the field's output as it was (gates and the decoder's last layers zero).
+    if (std::filesystem::exists(ext_path, ec)) {
+      return absl::FailedPreconditionError(
+          absl::StrCat(ext_path, ": the checkpoint already has an extension; resume it without growing one"));
+    }
+    if (absl::Status s = stage->AttachExtension(options, /*from_prior=*/false); !s.ok()) return s;
+    stage->ext_deforms_ = fine_iterations;
+    stage->extension_from_ = fine_iterations;
+    return stage;
+  }
   field::ExtAdamState ext_adam;
   absl::StatusOr<field::ExtendedField> ext =
       field::LoadExtendedCheckpoint(ext_path, std::move(stage->field_), &ext_adam);
@@ -216,13 +234,19 @@ absl::StatusOr<std::unique_ptr<DynamicStage>> DynamicStage::Resume(const std::st
                                                       ext->config().ModulesString(), ", not ",
                                                       options.extended->ModulesString()));
   }
-  if (ext_adam.step != fine_iterations) {
-    return absl::FailedPreconditionError(absl::StrCat(ext_path, ": ", ext_adam.step, " fine iterations, the "
-                                                      "Gaussian checkpoint ", fine_iterations));
+  // The extension's Adam steps from the fine iteration it joined at (0 unless grown on a resume).
+  if (options.extension_from_fine_iteration < 0 || options.extension_from_fine_iteration > fine_iterations ||
+      ext_adam.step != fine_iterations - options.extension_from_fine_iteration) {
+    return absl::FailedPreconditionError(
+        absl::StrCat(ext_path, ": ", ext_adam.step, " fine iterations, the Gaussian checkpoint ", fine_iterations,
+                     options.extension_from_fine_iteration > 0
+                         ? absl::StrCat(" with the extension grown at ", options.extension_from_fine_iteration)
+                         : ""));
   }
   stage->ext_ = std::make_unique<field::ExtendedField>(std::move(*ext));
   stage->ext_adam_ = std::move(ext_adam);
   stage->ext_deforms_ = fine_iterations;
+  stage->extension_from_ = options.extension_from_fine_iteration;
   return stage;
 }
 

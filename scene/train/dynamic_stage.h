@@ -64,6 +64,15 @@ struct FieldOptions {
   // schedules per clip, like the base field's).
   std::shared_ptr<const field::ExtendedField> ext_prior;
   field::ExtHyper ext_hyper;  // the extension's Adam group ("network", lr 1.6e-3)
+  // Resume only (docs/training.md "Growing modules on a trained field"): the checkpoint is an
+  // S3Gaussian run's and `extended`'s modules join it at their init (every module's output enters
+  // through a zero gate or a zero last layer, so the field renders as the checkpoint did), with a
+  // fresh Adam. The caller sets it only where checkpoint.json says the run is S3Gaussian's, so a
+  // lost extension file is refused rather than silently re-initialised.
+  bool grow_extension = false;
+  // The fine iteration an extended run's modules joined at (checkpoint.json; 0: from the start of
+  // the fine stage): the extension's Adam has done the fine iterations since.
+  int64_t extension_from_fine_iteration = 0;
   // The log's frame interval: the token window's Δ is one frame on the time axis (0: keep
   // extended->window_dt as given).
   int64_t frame_interval_us = 0;
@@ -150,6 +159,9 @@ class DynamicStage {
   // The means of the last Deform (what the camera rendered; the LiDAR step renders them too).
   const std::vector<float>& deformed_means() const { return ext_ ? ext_deformed_.means : deformed_.means; }
   const FineStageTimings& timings() const { return timings_; }
+  // FieldOptions::extension_from_fine_iteration as this stage runs it (a grown extension: the
+  // iteration it was grown at), for checkpoint.json.
+  int64_t extension_from_fine_iteration() const { return extension_from_; }
 
  private:
   DynamicStage(field::DeformationField f, field::FieldAdamState adam, const FieldOptions& options);
@@ -189,6 +201,10 @@ class DynamicStage {
   std::vector<float> d_ext_;
   uint64_t ext_noise_seed_ = 0;
   int64_t ext_deforms_ = 0;  // ε of the VAE: a new draw per fine iteration
+  int64_t extension_from_ = 0;
+  // Moves field_ into a new ext_ with options.extended's modules at their init (or, from_prior,
+  // the previous clip's parameters).
+  absl::Status AttachExtension(const FieldOptions& options, bool from_prior);
 };
 
 // The extension's fine-stage checkpoint beside FieldCheckpointPath's file (checkpoint_field_N_ext.bin).

@@ -284,6 +284,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     }
     run.low_res = opt.low_res;
     run.position_lr_decay_iterations = h.lr_decay_steps;
+    if (stage && stage->extended()) run.field_extension_from = stage->extension_from_fine_iteration();
     if (refine_poses) {
       run.pose_refinement =
           PoseRefinementSchedule{h.pose_rotation_lr, h.pose_translation_lr, h.pose_refine_from, h.pose_refine_until};
@@ -530,6 +531,9 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     meta["position_lr_decay_iterations"] = h.lr_decay_steps;  // the means' rate decay, per stage
     meta["field"] = !stage ? "static" : opt.field.extended ? "extended" : "s3gaussian";
     if (stage && opt.field.extended) meta["field_modules"] = opt.field.extended->ModulesString();
+    if (stage && stage->extended() && stage->extension_from_fine_iteration() > 0) {
+      meta["field_extension_from"] = stage->extension_from_fine_iteration();  // grown on a resume
+    }
     if (stage && stage->extended() && stage->extended()->config().decoder) {
       // The trained field's own (a resumed stage keeps its checkpoint's): 0 = unbounded.
       meta["field_decoder_max_dlog_scale"] = stage->extended()->config().decoder_max_dlog_scale;

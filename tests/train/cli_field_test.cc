@@ -134,6 +134,51 @@ TEST(CliField, FieldOptimizerOnTheDevice) {
   EXPECT_TRUE(std::filesystem::exists(dir + "/checkpoint_field_12.bin"));
 }
 
+TEST(CliField, ExtendedModulesGrowOnAnS3GaussianRunsResume) {
+  // docs/training.md "Growing modules on a trained field": --resume --field extended on an
+  // S3Gaussian run's fine-stage checkpoint; checkpoint.json records where they joined, and later
+  // resumes count the extension's Adam from there.
+  const std::string dir = streetsim::testing::ScratchDir("streetsim_cli_field_grow", "run");
+  const std::string train = "train --log " + kKitti + " --out " + dir + " --static-iterations 8 --checkpoint-every 10";
+  const std::string kSmall =
+      " --field-size small --resolution-scale 0.12 --holdout-every 10 --voxel 0.5 --seed 3 --no-lidar-loss";
+  Result r = RunCli(train + " --iterations 12 --field s3gaussian" + kSmall);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_FALSE(std::filesystem::exists(dir + "/field_ext.bin"));
+  r = RunCli(train + " --iterations 15 --resume --field extended --field-modules decoder" + kSmall);
+  ASSERT_EQ(r.code, 0) << r.err;
+  for (const char* f : {"field_ext.bin", "checkpoint_field_15.bin", "checkpoint_field_15_ext.bin"}) {
+    EXPECT_TRUE(std::filesystem::exists(dir + "/" + f)) << f;
+  }
+  const nlohmann::json run = nlohmann::json::parse(Slurp(dir + "/checkpoint.json"));
+  EXPECT_EQ(run["field"], "extended");
+  EXPECT_EQ(run["field_extension_from"], 4) << run.dump();  // 12 - 8 fine iterations
+  const nlohmann::json meta = nlohmann::json::parse(Slurp(dir + "/train_meta.json"));
+  EXPECT_EQ(meta["field_modules"], "decoder");
+  EXPECT_EQ(meta["field_extension_from"], 4);
+  // The next resume continues the grown extension (its Adam: 3 steps at 15, 5 at 17).
+  r = RunCli(train + " --iterations 17 --resume --field extended --field-modules decoder" + kSmall);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(nlohmann::json::parse(Slurp(dir + "/checkpoint.json"))["field_extension_from"], 4);
+  r = RunCli("eval --scene " + dir + " --log " + kKitti + " --no-lidar");
+  ASSERT_EQ(r.code, 0) << r.err;
+  // Other modules than the grown ones are refused; so is a lost extension (never re-grown).
+  r = RunCli(train + " --iterations 18 --resume --field extended --field-modules gru" + kSmall);
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.err.find("--field-modules decoder"), std::string::npos) << r.err;
+  std::filesystem::remove(dir + "/checkpoint_field_17_ext.bin");
+  r = RunCli(train + " --iterations 18 --resume --field extended --field-modules decoder" + kSmall);
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.err.find("checkpoint_field_17_ext.bin"), std::string::npos) << r.err;
+  // A damaged record is a one-line exit 2 naming the file.
+  std::ofstream(dir + "/checkpoint.json", std::ios::trunc)
+      << R"({"iteration": 17, "field": "extended", "static_iterations": 8, "field_extension_from": -3})";
+  r = RunCli(train + " --iterations 18 --resume --field extended --field-modules decoder" + kSmall);
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_NE(r.err.find("checkpoint.json: field_extension_from"), std::string::npos) << r.err;
+  std::filesystem::remove_all(dir);
+}
+
 TEST(CliField, BadValuesExitTwoWithOneLine) {
   const std::string train = "train --log " + kKitti + " --out /tmp/streetsim_cli_field_bad";
   const std::string render = "render --camera " + kKittiCamera + " --out-rgb /tmp/streetsim_cli_field_bad.png";

@@ -1,0 +1,173 @@
+// Growing the extended field's modules on an S3Gaussian run's fine-stage checkpoint
+// (FieldOptions::grow_extension, docs/training.md "Growing modules on a trained field"): the grown
+// field deforms the Gaussians as the checkpoint's field did, its Adam counts from the iteration it
+// joined at, and the resume checks that make a lost or mismatched extension an error.
+#include <cmath>
+#include <filesystem>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "gtest/gtest.h"
+#include "render/common/thread_pool.h"
+#include "scene/train/dynamic_stage.h"
+#include "scene/train/train_state.h"
+#include "tests/common/scratch_dir.h"
+
+namespace streetsim::train {
+namespace {
+
+TrainState RandomState(size_t n, uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<float> u(0, 1);
+  GaussianStore g;
+  g.sh_degree = 3;
+  for (size_t i = 0; i < n; ++i) {
+    g.means.insert(g.means.end(), {40 * u(rng) - 20, 20 * u(rng) - 10, 4 * u(rng)});
+    g.log_scales.insert(g.log_scales.end(), {-3 + u(rng), -3 + u(rng), -3 + u(rng)});
+    g.rotations.insert(g.rotations.end(), {1, 0.3f * u(rng), 0.3f * u(rng), 0.3f * u(rng)});
+    g.opacity_logits.push_back(4 * u(rng) - 2);
+    for (int k = 0; k < 48; ++k) g.sh.push_back(u(rng) - 0.5f);
+  }
+  return TrainState::Init(g, 10.0, 1, 1);
+}
+
+FieldOptions SmallField() {
+  FieldOptions options;
+  options.mode = FieldMode::kS3Gaussian;
+  options.config.channels = 4;
+  options.config.base_resolution = 8;
+  options.config.multires = {1, 2};
+  options.config.time_resolution = 4;
+  options.config.width = 16;
+  return options;
+}
+
+// One fine iteration's field step with made-up upstream gradients (the renderer's stand-in).
+void Step(DynamicStage& stage, const TrainState& st, int64_t fine_iteration, int64_t time_us, ThreadPool& pool) {
+  ASSERT_TRUE(stage.Deform(st, 3, time_us, pool).ok());
+  const size_t n = st.size();
+  std::mt19937_64 rng(fine_iteration);
+  std::normal_distribution<float> g(0, 1e-3f);
+  GaussianGrads grads;
+  for (auto [v, k] : {std::pair{&grads.means, 3},
+                      {&grads.log_scales, 3},
+                      {&grads.rotations, 4},
+                      {&grads.opacity_logits, 1},
+                      {&grads.sh, 48}}) {
+    v->resize(n * k);
+    for (float& x : *v) x = g(rng);
+  }
+  absl::StatusOr<double> loss = stage.Backward(st, 3, fine_iteration, &grads, pool);
+  ASSERT_TRUE(loss.ok()) << loss.status();
+}
+
+struct Deformed {
+  std::vector<float> means, log_scales, rotations, opacity_logits, sh;
+};
+Deformed Snapshot(const GaussianParamsView& v) {
+  return {std::vector<float>(v.means, v.means + v.n * 3), std::vector<float>(v.log_scales, v.log_scales + v.n * 3),
+          std::vector<float>(v.rotations, v.rotations + v.n * 4),
+          std::vector<float>(v.opacity_logits, v.opacity_logits + v.n),
+          std::vector<float>(v.sh, v.sh + v.n * static_cast<size_t>(v.sh_stride) * 3)};
+}
+
+TEST(GrowExtension, GrownModulesDeformAsTheCheckpointsFieldDid) {
+  const std::string dir = testing::ScratchDir("streetsim_grow_extension", "deform");
+  ThreadPool pool(2);
+  TrainState st = RandomState(2000, 7);
+  const TrainState canonical = st;
+  FieldOptions s3 = SmallField();
+  absl::StatusOr<std::unique_ptr<DynamicStage>> stage = DynamicStage::Begin(&st, s3, {0, 1'000'000});
+  ASSERT_TRUE(stage.ok()) << stage.status();
+  for (int64_t i = 1; i <= 3; ++i) Step(**stage, st, i, 250'000 * i, pool);
+  const std::string ckpt = FieldCheckpointPath(dir, 3);
+  ASSERT_TRUE((*stage)->SaveCheckpoint(ckpt).ok());
+
+  absl::StatusOr<std::unique_ptr<DynamicStage>> plain = DynamicStage::Resume(ckpt, s3, 3);
+  ASSERT_TRUE(plain.ok()) << plain.status();
+  absl::StatusOr<GaussianParamsView> pv = (*plain)->Deform(st, 3, 600'000, pool);
+  ASSERT_TRUE(pv.ok());
+  const Deformed before = Snapshot(*pv);
+
+  FieldOptions grow = s3;
+  absl::StatusOr<field::ExtendedFieldConfig> all = field::ExtendedFieldConfig::WithModules("all");
+  ASSERT_TRUE(all.ok());
+  grow.extended = *all;
+  grow.grow_extension = true;
+  absl::StatusOr<std::unique_ptr<DynamicStage>> grown = DynamicStage::Resume(ckpt, grow, 3);
+  ASSERT_TRUE(grown.ok()) << grown.status();
+  ASSERT_NE((*grown)->extended(), nullptr);
+  EXPECT_EQ((*grown)->extension_from_fine_iteration(), 3);
+  absl::StatusOr<GaussianParamsView> gv = (*grown)->Deform(st, 3, 600'000, pool);
+  ASSERT_TRUE(gv.ok()) << gv.status();
+  const Deformed after = Snapshot(*gv);
+
+  // The field moved the Gaussians (else the comparison below says nothing) ...
+  double moved = 0;
+  for (size_t i = 0; i < before.means.size(); ++i)
+    moved = std::max(moved, double(std::abs(before.means[i] - canonical.params.means[i])));
+  EXPECT_GT(moved, 1e-4);
+  // ... and the grown field moves them the same way, up to the extended path's other summation
+  // order (as --field-modules none against s3gaussian, tests/field/ext_cli_test.cc).
+  ASSERT_EQ(after.means.size(), before.means.size());
+  for (size_t i = 0; i < before.means.size(); ++i) ASSERT_NEAR(after.means[i], before.means[i], 1e-5) << i;
+  ASSERT_EQ(after.sh.size(), before.sh.size());
+  for (size_t i = 0; i < before.sh.size(); ++i) ASSERT_NEAR(after.sh[i], before.sh[i], 1e-5) << i;
+  // The decoder's heads start at zero: scales, rotations and opacities are the canonical ones.
+  EXPECT_EQ(after.log_scales, canonical.params.log_scales);
+  EXPECT_EQ(after.rotations, canonical.params.rotations);
+  EXPECT_EQ(after.opacity_logits, canonical.params.opacity_logits);
+  std::filesystem::remove_all(dir);
+}
+
+TEST(GrowExtension, ResumesCountTheExtensionFromWhereItJoined) {
+  const std::string dir = testing::ScratchDir("streetsim_grow_extension", "resume");
+  ThreadPool pool(2);
+  TrainState st = RandomState(500, 8);
+  FieldOptions s3 = SmallField();
+  absl::StatusOr<std::unique_ptr<DynamicStage>> stage = DynamicStage::Begin(&st, s3, {0, 1'000'000});
+  ASSERT_TRUE(stage.ok()) << stage.status();
+  for (int64_t i = 1; i <= 2; ++i) Step(**stage, st, i, 300'000 * i, pool);
+  ASSERT_TRUE((*stage)->SaveCheckpoint(FieldCheckpointPath(dir, 2)).ok());
+
+  FieldOptions grow = s3;
+  absl::StatusOr<field::ExtendedFieldConfig> decoder = field::ExtendedFieldConfig::WithModules("decoder");
+  ASSERT_TRUE(decoder.ok());
+  grow.extended = *decoder;
+  grow.grow_extension = true;
+  absl::StatusOr<std::unique_ptr<DynamicStage>> grown = DynamicStage::Resume(FieldCheckpointPath(dir, 2), grow, 2);
+  ASSERT_TRUE(grown.ok()) << grown.status();
+  for (int64_t i = 3; i <= 5; ++i) Step(**grown, st, i, 150'000 * i, pool);
+  ASSERT_TRUE((*grown)->SaveCheckpoint(FieldCheckpointPath(dir, 5)).ok());
+
+  FieldOptions resume = grow;
+  resume.grow_extension = false;
+  resume.extension_from_fine_iteration = 2;  // as checkpoint.json records it
+  absl::StatusOr<std::unique_ptr<DynamicStage>> again = DynamicStage::Resume(FieldCheckpointPath(dir, 5), resume, 5);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_EQ((*again)->extension_from_fine_iteration(), 2);
+  EXPECT_EQ((*again)->extended()->params(), (*grown)->extended()->params());
+
+  // Without the record the extension's 3 Adam steps do not match 5 fine iterations.
+  resume.extension_from_fine_iteration = 0;
+  absl::StatusOr<std::unique_ptr<DynamicStage>> unrecorded =
+      DynamicStage::Resume(FieldCheckpointPath(dir, 5), resume, 5);
+  ASSERT_FALSE(unrecorded.ok());
+  EXPECT_NE(unrecorded.status().message().find("3 fine iterations"), std::string::npos) << unrecorded.status();
+  // A record beyond the checkpoint is refused too.
+  resume.extension_from_fine_iteration = 6;
+  EXPECT_FALSE(DynamicStage::Resume(FieldCheckpointPath(dir, 5), resume, 5).ok());
+  // Growing again on a checkpoint that has an extension would throw the trained one away.
+  absl::StatusOr<std::unique_ptr<DynamicStage>> regrow = DynamicStage::Resume(FieldCheckpointPath(dir, 5), grow, 5);
+  ASSERT_FALSE(regrow.ok());
+  EXPECT_NE(regrow.status().message().find("already has an extension"), std::string::npos) << regrow.status();
+  // And an extended resume whose extension file is gone is an error, not a fresh extension.
+  std::filesystem::remove(ExtendedCheckpointPath(FieldCheckpointPath(dir, 5)));
+  resume.extension_from_fine_iteration = 2;
+  EXPECT_FALSE(DynamicStage::Resume(FieldCheckpointPath(dir, 5), resume, 5).ok());
+  std::filesystem::remove_all(dir);
+}
+
+}  // namespace
+}  // namespace streetsim::train
