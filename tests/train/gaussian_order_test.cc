@@ -10,6 +10,7 @@
 #include "scene/field/spatial_order.h"
 #include "scene/train/dynamic_stage.h"
 #include "scene/train/train_state.h"
+#include "tests/train/field_stage_fixtures.h"
 
 namespace streetsim::train {
 namespace {
@@ -17,16 +18,13 @@ namespace {
 // n Gaussians scattered in a 40 x 20 x 4 m box; every per-Gaussian value of row i encodes i, so
 // that a test can tell which row a value came from.
 TrainState TaggedState(size_t n, uint64_t seed) {
-  std::mt19937_64 rng(seed);
-  std::uniform_real_distribution<float> u(0, 1);
-  GaussianStore g;
-  g.sh_degree = 3;
+  GaussianStore g = fixtures::ScatteredGaussians(n, seed);
   for (size_t i = 0; i < n; ++i) {
-    g.means.insert(g.means.end(), {40 * u(rng) - 20, 20 * u(rng) - 10, 4 * u(rng)});
-    g.log_scales.insert(g.log_scales.end(), 3, -3.0f - 0.001f * static_cast<float>(i));
-    g.rotations.insert(g.rotations.end(), {1, 0, 0, 0.001f * static_cast<float>(i)});
-    g.opacity_logits.push_back(0.01f * static_cast<float>(i));
-    for (int k = 0; k < 48; ++k) g.sh.push_back(static_cast<float>(i) + 0.001f * static_cast<float>(k));
+    const float fi = static_cast<float>(i);
+    for (int k = 0; k < 3; ++k) g.log_scales[i * 3 + k] = -3.0f - 0.001f * fi;
+    for (int k = 0; k < 4; ++k) g.rotations[i * 4 + k] = k == 0 ? 1.0f : k == 3 ? 0.001f * fi : 0.0f;
+    g.opacity_logits[i] = 0.01f * fi;
+    for (int k = 0; k < 48; ++k) g.sh[i * 48 + k] = fi + 0.001f * static_cast<float>(k);
   }
   TrainState st = TrainState::Init(g, 10.0, 1, 1);
   for (size_t i = 0; i < n; ++i) {
@@ -103,13 +101,7 @@ TEST(GaussianOrder, PermuteRowsRefusesWhatIsNotAPermutation) {
 TEST(GaussianOrder, FineStageOrdersTheGaussiansAlongTheFieldsMortonCurve) {
   const size_t n = 3000;
   TrainState st = TaggedState(n, 5);
-  FieldOptions options;
-  options.mode = FieldMode::kS3Gaussian;
-  options.config.channels = 4;
-  options.config.base_resolution = 8;
-  options.config.multires = {1, 2};
-  options.config.time_resolution = 4;
-  options.config.width = 16;
+  FieldOptions options = fixtures::TinyFieldOptions(4);
   absl::StatusOr<std::unique_ptr<DynamicStage>> stage = DynamicStage::Begin(&st, options, {0, 1'000'000});
   ASSERT_TRUE(stage.ok()) << stage.status();
   for (size_t i = 0; i < n; ++i) st.grad_accum[i] = static_cast<float>(i);  // Begin restarted the statistics

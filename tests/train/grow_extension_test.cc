@@ -13,35 +13,13 @@
 #include "scene/train/dynamic_stage.h"
 #include "scene/train/train_state.h"
 #include "tests/common/scratch_dir.h"
+#include "tests/train/field_stage_fixtures.h"
 
 namespace streetsim::train {
 namespace {
 
-TrainState RandomState(size_t n, uint64_t seed) {
-  std::mt19937_64 rng(seed);
-  std::uniform_real_distribution<float> u(0, 1);
-  GaussianStore g;
-  g.sh_degree = 3;
-  for (size_t i = 0; i < n; ++i) {
-    g.means.insert(g.means.end(), {40 * u(rng) - 20, 20 * u(rng) - 10, 4 * u(rng)});
-    g.log_scales.insert(g.log_scales.end(), {-3 + u(rng), -3 + u(rng), -3 + u(rng)});
-    g.rotations.insert(g.rotations.end(), {1, 0.3f * u(rng), 0.3f * u(rng), 0.3f * u(rng)});
-    g.opacity_logits.push_back(4 * u(rng) - 2);
-    for (int k = 0; k < 48; ++k) g.sh.push_back(u(rng) - 0.5f);
-  }
-  return TrainState::Init(g, 10.0, 1, 1);
-}
-
-FieldOptions SmallField() {
-  FieldOptions options;
-  options.mode = FieldMode::kS3Gaussian;
-  options.config.channels = 4;
-  options.config.base_resolution = 8;
-  options.config.multires = {1, 2};
-  options.config.time_resolution = 4;
-  options.config.width = 16;
-  return options;
-}
+TrainState RandomState(size_t n, uint64_t seed) { return TrainState::Init(fixtures::ScatteredGaussians(n, seed), 10.0, 1, 1); }
+FieldOptions SmallField() { return fixtures::TinyFieldOptions(4); }
 
 // One fine iteration's field step with made-up upstream gradients (the renderer's stand-in).
 void Step(DynamicStage& stage, const TrainState& st, int64_t fine_iteration, int64_t time_us, ThreadPool& pool) {

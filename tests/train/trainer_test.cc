@@ -6,6 +6,7 @@
 
 #include "gtest/gtest.h"
 #include "tests/common/scratch_dir.h"
+#include "tests/train/field_stage_fixtures.h"
 #include "scene/log/open_log.h"
 #include "scene/field/field_io.h"
 #include "scene/train/trainer.h"
@@ -88,14 +89,8 @@ TEST(Trainer, ResumeAfterKillReachesTheSameBits) {
 
 // A tiny field: the point is the bookkeeping, not the quality.
 FieldOptions TinyField(int static_iterations) {
-  FieldOptions f;
-  f.mode = FieldMode::kS3Gaussian;
+  FieldOptions f = fixtures::TinyFieldOptions(5);
   f.static_iterations = static_iterations;
-  f.config.channels = 4;
-  f.config.base_resolution = 8;
-  f.config.multires = {1, 2};
-  f.config.time_resolution = 5;
-  f.config.width = 16;
   return f;
 }
 
