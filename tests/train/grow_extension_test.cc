@@ -18,8 +18,9 @@
 namespace streetsim::train {
 namespace {
 
-TrainState RandomState(size_t n, uint64_t seed) { return TrainState::Init(fixtures::ScatteredGaussians(n, seed), 10.0, 1, 1); }
-FieldOptions SmallField() { return fixtures::TinyFieldOptions(4); }
+TrainState RandomState(size_t n, uint64_t seed) {
+  return TrainState::Init(fixtures::ScatteredGaussians(n, seed), 10.0, 1, 1);
+}
 
 // One fine iteration's field step with made-up upstream gradients (the renderer's stand-in).
 void Step(DynamicStage& stage, const TrainState& st, int64_t fine_iteration, int64_t time_us, ThreadPool& pool) {
@@ -55,7 +56,7 @@ TEST(GrowExtension, GrownModulesDeformAsTheCheckpointsFieldDid) {
   ThreadPool pool(2);
   TrainState st = RandomState(2000, 7);
   const TrainState canonical = st;
-  FieldOptions s3 = SmallField();
+  FieldOptions s3 = fixtures::TinyFieldOptions(4);
   absl::StatusOr<std::unique_ptr<DynamicStage>> stage = DynamicStage::Begin(&st, s3, {0, 1'000'000});
   ASSERT_TRUE(stage.ok()) << stage.status();
   for (int64_t i = 1; i <= 3; ++i) Step(**stage, st, i, 250'000 * i, pool);
@@ -103,7 +104,7 @@ TEST(GrowExtension, ResumesCountTheExtensionFromWhereItJoined) {
   const std::string dir = testing::ScratchDir("streetsim_grow_extension", "resume");
   ThreadPool pool(2);
   TrainState st = RandomState(500, 8);
-  FieldOptions s3 = SmallField();
+  FieldOptions s3 = fixtures::TinyFieldOptions(4);
   absl::StatusOr<std::unique_ptr<DynamicStage>> stage = DynamicStage::Begin(&st, s3, {0, 1'000'000});
   ASSERT_TRUE(stage.ok()) << stage.status();
   for (int64_t i = 1; i <= 2; ++i) Step(**stage, st, i, 300'000 * i, pool);
