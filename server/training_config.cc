@@ -55,7 +55,7 @@ absl::Status ValidateTrainingConfig(const v1::TrainingConfig& c) {
       c.low_res_scale() != 0 || c.low_res_iterations() != 0 || c.has_holdout_every() || c.clip_frames() != 0 ||
       c.has_clip_overlap() || c.field_lr_scale() != 0 || c.field_lr_decay_iterations() != 0 || !c.backend().empty() ||
       !c.continue_from_scene().empty() || c.pose_refinement() || c.pose_lr_scale() != 0 ||
-      c.position_lr_decay_iterations() != 0;
+      c.position_lr_decay_iterations() != 0 || c.field_ext_lr_scale() != 0 || c.field_ext_lr_decay_iterations() != 0;
   if (c.max_iterations() == 0) {
     if (asks_training_options) return Bad("training options need max_iterations > 0 (0 is init only)");
     return absl::OkStatus();
@@ -89,6 +89,15 @@ absl::Status ValidateTrainingConfig(const v1::TrainingConfig& c) {
   }
   if (c.field_lr_decay_iterations() < 0 || c.field_lr_decay_iterations() > kMaxIterations) {
     return Bad(absl::StrCat("field_lr_decay_iterations must be in 1..", kMaxIterations, " (0: the default)"));
+  }
+  if ((c.field_ext_lr_scale() != 0 || c.field_ext_lr_decay_iterations() != 0) && field != "extended") {
+    return Bad("field_ext_lr_scale / field_ext_lr_decay_iterations need field \"extended\"");
+  }
+  if (!(std::isfinite(c.field_ext_lr_scale()) && c.field_ext_lr_scale() >= 0 && c.field_ext_lr_scale() <= 1000)) {
+    return Bad("field_ext_lr_scale must be in (0, 1000] (0: the default)");
+  }
+  if (c.field_ext_lr_decay_iterations() < 0 || c.field_ext_lr_decay_iterations() > kMaxIterations) {
+    return Bad(absl::StrCat("field_ext_lr_decay_iterations must be in 1..", kMaxIterations, " (0: the default)"));
   }
   if (c.position_lr_decay_iterations() < 0 || c.position_lr_decay_iterations() > kMaxIterations) {
     return Bad(absl::StrCat("position_lr_decay_iterations must be in 1..", kMaxIterations, " (0: the default)"));
@@ -155,6 +164,10 @@ std::vector<std::string> TrainFlags(const v1::TrainingConfig& c) {
   if (c.field_lr_decay_iterations() != 0) add("--field-lr-decay-iterations", std::to_string(c.field_lr_decay_iterations()));
   if (c.position_lr_decay_iterations() != 0) {
     add("--position-lr-decay-iterations", std::to_string(c.position_lr_decay_iterations()));
+  }
+  if (c.field_ext_lr_scale() != 0) add("--field-ext-lr-scale", Number(c.field_ext_lr_scale()));
+  if (c.field_ext_lr_decay_iterations() != 0) {
+    add("--field-ext-lr-decay-iterations", std::to_string(c.field_ext_lr_decay_iterations()));
   }
   if (!c.backend().empty()) add("--backend", c.backend());
   if (c.pose_refinement()) f.push_back("--pose-refinement");

@@ -107,7 +107,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
              {"field-modules"}, {"field-decoder-max-dlog-scale"}, {"field-device"}, {"field-optimizer"},
              {"field-init"}, {"field-lambda-dx"}, {"field-lambda-dsh"}, {"field-l1-time-planes"},
              {"field-lr-scale"}, {"field-lr-decay-iterations"}, {"field-time-resolution"},
-             {"position-lr-decay-iterations"},
+             {"position-lr-decay-iterations"}, {"field-ext-lr-scale"}, {"field-ext-lr-decay-iterations"},
              {"low-res-scale"}, {"low-res-iterations"}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
@@ -405,6 +405,38 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     absl::StatusOr<std::optional<int>> recorded = train::ReadCheckpointPositionLrDecay(*out);
     if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
     if (recorded.ok() && recorded->has_value()) opt.hyper.lr_decay_steps = **recorded;
+  }
+  // The extension's network rate (ExtHyper: the paper's 1.6e-3 -> 1.6e-4 over 30 000 fine
+  // iterations) has its own switches: the base field's flags leave it alone, so that modules
+  // grown on an annealed field can be annealed with it (docs/training.md "Growing modules on a
+  // trained field"). A resumed extended run keeps its recorded schedule, value by value.
+  if (auto v = args->Get("field-ext-lr-scale");
+      v && (!absl::SimpleAtod(*v, &opt.field.ext_hyper.lr_scale) ||
+            !(opt.field.ext_hyper.lr_scale > 0 && opt.field.ext_hyper.lr_scale <= 1000))) {
+    return Fail(2, absl::InvalidArgumentError(
+                       absl::StrCat("--field-ext-lr-scale must be a number in (0, 1000], not '", *v, "'")));
+  }
+  if (auto v = args->Get("field-ext-lr-decay-iterations");
+      v && (!absl::SimpleAtoi(*v, &opt.field.ext_hyper.lr_decay_steps) || opt.field.ext_hyper.lr_decay_steps < 1 ||
+            opt.field.ext_hyper.lr_decay_steps > 10'000'000)) {
+    return Fail(2, absl::InvalidArgumentError(absl::StrCat(
+                       "--field-ext-lr-decay-iterations must be an integer in 1..10000000, not '", *v, "'")));
+  }
+  for (const char* flag : {"field-ext-lr-scale", "field-ext-lr-decay-iterations"}) {
+    if (args->Has(flag) && !opt.field.extended) {
+      return Fail(2, absl::InvalidArgumentError(absl::StrCat("--", flag, " needs --field extended")));
+    }
+  }
+  if (resumes_checkpoint && opt.field.extended &&
+      !(args->Has("field-ext-lr-scale") && args->Has("field-ext-lr-decay-iterations"))) {
+    absl::StatusOr<std::optional<train::FieldLrSchedule>> recorded = train::ReadCheckpointExtLr(*out);
+    if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
+    if (recorded.ok() && recorded->has_value()) {
+      if (!args->Has("field-ext-lr-scale")) opt.field.ext_hyper.lr_scale = (*recorded)->scale;
+      if (!args->Has("field-ext-lr-decay-iterations")) {
+        opt.field.ext_hyper.lr_decay_steps = (*recorded)->decay_iterations;
+      }
+    }
   }
   // --field extended on a resume: an S3Gaussian run's checkpoint grows the modules (they join at
   // their init, leaving its renders as they were; docs/training.md "Growing modules on a trained

@@ -33,6 +33,10 @@ absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run
   }
   j["position_lr_decay_iterations"] = run.position_lr_decay_iterations;
   if (run.field_extension_from > 0) j["field_extension_from"] = run.field_extension_from;
+  if (run.field_ext_lr) {
+    j["field_ext_lr_scale"] = run.field_ext_lr->scale;
+    j["field_ext_lr_decay_iterations"] = run.field_ext_lr->decay_iterations;
+  }
   return checked_file::WriteAtomically((std::filesystem::path(dir) / kCheckpointRunFile).string(), j.dump(2) + "\n");
 }
 
@@ -54,14 +58,17 @@ absl::StatusOr<T> ParseJsonFile(const std::string& path,
 
 std::string RunFile(const std::string& dir) { return (std::filesystem::path(dir) / kCheckpointRunFile).string(); }
 
-// The schedule `j` records (nullopt: neither key); throws where a key is missing or mistyped.
-absl::StatusOr<std::optional<FieldLrSchedule>> LrScheduleIn(const nlohmann::json& j, const std::string& path) {
-  if (!j.contains("field_lr_scale") && !j.contains("field_lr_decay_iterations")) return std::nullopt;
+// The schedule `j` records under `prefix` + "_scale" / "_decay_iterations" (nullopt: neither
+// key); throws where a key is missing or mistyped.
+absl::StatusOr<std::optional<FieldLrSchedule>> LrScheduleIn(const nlohmann::json& j, const std::string& path,
+                                                            const std::string& prefix = "field_lr") {
+  const std::string scale_key = prefix + "_scale", decay_key = prefix + "_decay_iterations";
+  if (!j.contains(scale_key) && !j.contains(decay_key)) return std::nullopt;
   FieldLrSchedule lr;
-  lr.scale = j.at("field_lr_scale").get<double>();
-  lr.decay_iterations = j.at("field_lr_decay_iterations").get<int>();
+  lr.scale = j.at(scale_key).get<double>();
+  lr.decay_iterations = j.at(decay_key).get<int>();
   if (!(lr.scale > 0 && lr.scale <= 1000) || lr.decay_iterations < 1) {
-    return absl::DataLossError(absl::StrCat(path, ": field learning-rate schedule out of range"));
+    return absl::DataLossError(absl::StrCat(path, ": ", prefix, " schedule out of range"));
   }
   return std::optional<FieldLrSchedule>(lr);
 }
@@ -82,6 +89,12 @@ absl::StatusOr<std::string> ReadCheckpointField(const std::string& dir) {
 absl::StatusOr<std::optional<FieldLrSchedule>> ReadCheckpointFieldLr(const std::string& dir) {
   const std::string path = RunFile(dir);
   return ParseJsonFile<std::optional<FieldLrSchedule>>(path, [&](const nlohmann::json& j) { return LrScheduleIn(j, path); });
+}
+
+absl::StatusOr<std::optional<FieldLrSchedule>> ReadCheckpointExtLr(const std::string& dir) {
+  const std::string path = RunFile(dir);
+  return ParseJsonFile<std::optional<FieldLrSchedule>>(
+      path, [&](const nlohmann::json& j) { return LrScheduleIn(j, path, "field_ext_lr"); });
 }
 
 absl::StatusOr<std::optional<LowResStage>> ReadCheckpointLowResStage(const std::string& dir) {

@@ -48,6 +48,8 @@ struct CheckpointRun {
   // An extended run whose modules were grown on an S3Gaussian run's resume: the fine iteration
   // they joined at (FieldOptions::extension_from_fine_iteration; 0 is not written).
   int64_t field_extension_from = 0;
+  // An extended run: the extension's network group (ExtHyper::lr_scale / lr_decay_steps).
+  std::optional<FieldLrSchedule> field_ext_lr;
 };
 
 absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run);
@@ -82,6 +84,12 @@ absl::StatusOr<std::optional<PoseRefinementSchedule>> ReadCheckpointPoseRefineme
 // nullopt where the file predates the record (such runs decayed over 3DGS's 30 000); NotFound
 // without the file; DataLoss where damaged or out of range.
 absl::StatusOr<std::optional<int>> ReadCheckpointPositionLrDecay(const std::string& dir);
+
+// The extension's network learning-rate schedule the file records (`field_ext_lr_scale`,
+// `field_ext_lr_decay_iterations`). nullopt where the run is not extended or the file predates the
+// record (such runs trained at ExtHyper's defaults); NotFound without the file; DataLoss where
+// damaged or out of range.
+absl::StatusOr<std::optional<FieldLrSchedule>> ReadCheckpointExtLr(const std::string& dir);
 
 // The fine iteration an extended run's modules joined at (`field_extension_from`): 0 where the
 // file does not record one (they joined with the fine stage); NotFound without the file; DataLoss

@@ -284,7 +284,10 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     }
     run.low_res = opt.low_res;
     run.position_lr_decay_iterations = h.lr_decay_steps;
-    if (stage && stage->extended()) run.field_extension_from = stage->extension_from_fine_iteration();
+    if (stage && stage->extended()) {
+      run.field_extension_from = stage->extension_from_fine_iteration();
+      run.field_ext_lr = FieldLrSchedule{opt.field.ext_hyper.lr_scale, opt.field.ext_hyper.lr_decay_steps};
+    }
     if (refine_poses) {
       run.pose_refinement =
           PoseRefinementSchedule{h.pose_rotation_lr, h.pose_translation_lr, h.pose_refine_from, h.pose_refine_until};
@@ -530,7 +533,11 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     meta["exposure"] = opt.exposure;
     meta["position_lr_decay_iterations"] = h.lr_decay_steps;  // the means' rate decay, per stage
     meta["field"] = !stage ? "static" : opt.field.extended ? "extended" : "s3gaussian";
-    if (stage && opt.field.extended) meta["field_modules"] = opt.field.extended->ModulesString();
+    if (stage && opt.field.extended) {
+      meta["field_modules"] = opt.field.extended->ModulesString();
+      meta["field_ext_lr_scale"] = opt.field.ext_hyper.lr_scale;  // the extension's network rate
+      meta["field_ext_lr_decay_iterations"] = opt.field.ext_hyper.lr_decay_steps;
+    }
     if (stage && stage->extended() && stage->extension_from_fine_iteration() > 0) {
       meta["field_extension_from"] = stage->extension_from_fine_iteration();  // grown on a resume
     }

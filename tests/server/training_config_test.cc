@@ -53,6 +53,8 @@ TEST(TrainingConfig, EveryOptionBecomesTheTrainersFlag) {
     c->set_backend("vulkan");
     c->set_pose_refinement(true);
     c->set_pose_lr_scale(3);
+    c->set_field_ext_lr_scale(0.4);
+    c->set_field_ext_lr_decay_iterations(4500);
   });
   ASSERT_TRUE(ValidateTrainingConfig(c).ok()) << ValidateTrainingConfig(c);
   EXPECT_EQ(TrainFlags(c), (std::vector<std::string>{
@@ -60,6 +62,7 @@ TEST(TrainingConfig, EveryOptionBecomesTheTrainersFlag) {
                                "--static-iterations", "4000", "--resolution-scale", "0.5", "--low-res-scale", "0.25",
                                "--low-res-iterations", "3000", "--holdout-every", "0", "--clip-frames", "50",
                                "--clip-overlap", "0", "--field-lr-scale", "2.5", "--field-lr-decay-iterations", "6000",
+                               "--field-ext-lr-scale", "0.4", "--field-ext-lr-decay-iterations", "4500",
                                "--backend", "vulkan", "--pose-refinement", "--pose-lr-scale", "3"}));
   // Numbers go to the trainer exactly (not rounded to 6 digits).
   const v1::TrainingConfig exact = Config(300, [](v1::TrainingConfig* c) { c->set_resolution_scale(0.1234567891); });
@@ -114,6 +117,31 @@ TEST(TrainingConfig, BadValuesAreRefusedNamingTheField) {
                 "config.position_lr_decay_iterations");
   ExpectRefused(Config(0, [](v1::TrainingConfig* c) { c->set_position_lr_decay_iterations(500); }),
                 "max_iterations > 0");
+  // The modules' rate: field "extended" only (a continuation must say so, as the trainer's resume does).
+  ExpectRefused(Config(9000, [](v1::TrainingConfig* c) { c->set_field_ext_lr_scale(0.5); }), "need field \"extended\"");
+  ExpectRefused(Config(9000, [](v1::TrainingConfig* c) {
+                  c->set_field("s3gaussian");
+                  c->set_field_ext_lr_decay_iterations(600);
+                }),
+                "need field \"extended\"");
+  ExpectRefused(Config(9000, [](v1::TrainingConfig* c) {
+                  c->set_continue_from_scene("kitti_full");
+                  c->set_field_ext_lr_scale(0.5);
+                }),
+                "need field \"extended\"");
+  for (double bad : {-1.0, 1001.0, double(NAN)}) {
+    ExpectRefused(Config(9000, [&](v1::TrainingConfig* c) {
+                    c->set_field("extended");
+                    c->set_field_ext_lr_scale(bad);
+                  }),
+                  "config.field_ext_lr_scale");
+  }
+  ExpectRefused(Config(9000, [](v1::TrainingConfig* c) {
+                  c->set_field("extended");
+                  c->set_field_ext_lr_decay_iterations(-3);
+                }),
+                "config.field_ext_lr_decay_iterations");
+  ExpectRefused(Config(0, [](v1::TrainingConfig* c) { c->set_field_ext_lr_scale(0.5); }), "max_iterations > 0");
   ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_resolution_scale(1.5); }), "resolution_scale");
   ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_resolution_scale(-0.5); }), "resolution_scale");
   ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_resolution_scale(INFINITY); }), "resolution_scale");

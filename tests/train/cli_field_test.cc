@@ -145,7 +145,8 @@ TEST(CliField, ExtendedModulesGrowOnAnS3GaussianRunsResume) {
   Result r = RunCli(train + " --iterations 12 --field s3gaussian" + kSmall);
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_FALSE(std::filesystem::exists(dir + "/field_ext.bin"));
-  r = RunCli(train + " --iterations 15 --resume --field extended --field-modules decoder" + kSmall);
+  r = RunCli(train + " --iterations 15 --resume --field extended --field-modules decoder --field-ext-lr-scale 0.4" +
+             " --field-ext-lr-decay-iterations 4500" + kSmall);
   ASSERT_EQ(r.code, 0) << r.err;
   for (const char* f : {"field_ext.bin", "checkpoint_field_15.bin", "checkpoint_field_15_ext.bin"}) {
     EXPECT_TRUE(std::filesystem::exists(dir + "/" + f)) << f;
@@ -156,10 +157,21 @@ TEST(CliField, ExtendedModulesGrowOnAnS3GaussianRunsResume) {
   const nlohmann::json meta = nlohmann::json::parse(Slurp(dir + "/train_meta.json"));
   EXPECT_EQ(meta["field_modules"], "decoder");
   EXPECT_EQ(meta["field_extension_from"], 4);
-  // The next resume continues the grown extension (its Adam: 3 steps at 15, 5 at 17).
-  r = RunCli(train + " --iterations 17 --resume --field extended --field-modules decoder" + kSmall);
+  // The modules' own rate is recorded, and apart from the base field's schedule.
+  EXPECT_EQ(run["field_ext_lr_scale"], 0.4);
+  EXPECT_EQ(run["field_ext_lr_decay_iterations"], 4500);
+  EXPECT_EQ(meta["field_ext_lr_scale"], 0.4);
+  EXPECT_EQ(meta["field_ext_lr_decay_iterations"], 4500);
+  EXPECT_EQ(meta["field_lr_scale"], 10.0);
+  // The next resume continues the grown extension (its Adam: 3 steps at 15, 5 at 17) and keeps its
+  // rate, value by value: a new decay leaves the scale as recorded.
+  r = RunCli(train + " --iterations 17 --resume --field extended --field-modules decoder" +
+             " --field-ext-lr-decay-iterations 900" + kSmall);
   ASSERT_EQ(r.code, 0) << r.err;
-  EXPECT_EQ(nlohmann::json::parse(Slurp(dir + "/checkpoint.json"))["field_extension_from"], 4);
+  const nlohmann::json resumed = nlohmann::json::parse(Slurp(dir + "/checkpoint.json"));
+  EXPECT_EQ(resumed["field_extension_from"], 4);
+  EXPECT_EQ(resumed["field_ext_lr_scale"], 0.4);
+  EXPECT_EQ(resumed["field_ext_lr_decay_iterations"], 900);
   r = RunCli("eval --scene " + dir + " --log " + kKitti + " --no-lidar");
   ASSERT_EQ(r.code, 0) << r.err;
   // Other modules than the grown ones are refused; so is a lost extension (never re-grown).
@@ -222,6 +234,13 @@ TEST(CliField, BadValuesExitTwoWithOneLine) {
            train + " --iterations 20 --static-iterations 5 --field extended --field-modules gru"
                    " --field-decoder-max-dlog-scale 2",  // the bound needs the decoder
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-decoder-max-dlog-scale 2",
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-ext-lr-scale 0.5",
+           train + " --iterations 20 --field static --field-ext-lr-decay-iterations 100",
+           train + " --iterations 20 --static-iterations 5 --field extended --field-ext-lr-scale 0",
+           train + " --iterations 20 --static-iterations 5 --field extended --field-ext-lr-scale nan",
+           train + " --iterations 20 --static-iterations 5 --field extended --field-ext-lr-scale 1e4",
+           train + " --iterations 20 --static-iterations 5 --field extended --field-ext-lr-decay-iterations 0",
+           train + " --iterations 20 --static-iterations 5 --field extended --field-ext-lr-decay-iterations 1.5",
            eval + " --static-motion-m 0.1",                 // needs --served
            eval + " --served --static-sh -1",
            eval + " --served --static-motion-m nan",

@@ -148,5 +148,47 @@ TEST(GrowExtension, ResumesCountTheExtensionFromWhereItJoined) {
   std::filesystem::remove_all(dir);
 }
 
+TEST(GrowExtension, TheExtensionStepsAtItsOwnRate) {
+  // --field-ext-lr-scale / --field-ext-lr-decay-iterations (ExtHyper) set the modules' Adam rate,
+  // apart from the base field's: Adam's first step moves each parameter with a gradient by exactly
+  // the rate, so the largest change after one grown iteration is ExtNetworkLr at that iteration.
+  const std::string dir = testing::ScratchDir("streetsim_grow_extension", "rate");
+  ThreadPool pool(2);
+  TrainState st = RandomState(400, 9);
+  FieldOptions s3 = fixtures::TinyFieldOptions(4);
+  absl::StatusOr<std::unique_ptr<DynamicStage>> stage = DynamicStage::Begin(&st, s3, {0, 1'000'000});
+  ASSERT_TRUE(stage.ok()) << stage.status();
+  for (int64_t i = 1; i <= 2; ++i) Step(**stage, st, i, 300'000 * i, pool);
+  ASSERT_TRUE((*stage)->SaveCheckpoint(FieldCheckpointPath(dir, 2)).ok());
+
+  absl::StatusOr<field::ExtendedFieldConfig> decoder = field::ExtendedFieldConfig::WithModules("decoder");
+  ASSERT_TRUE(decoder.ok());
+  for (const auto& [scale, decay] : {std::pair{1.0, 30000}, {0.04, 4}}) {
+    FieldOptions grow = s3;
+    grow.extended = *decoder;
+    grow.grow_extension = true;
+    grow.ext_hyper.lr_scale = scale;
+    grow.ext_hyper.lr_decay_steps = decay;
+    TrainState run = st;
+    absl::StatusOr<std::unique_ptr<DynamicStage>> grown = DynamicStage::Resume(FieldCheckpointPath(dir, 2), grow, 2);
+    ASSERT_TRUE(grown.ok()) << grown.status();
+    const std::vector<float> before = (*grown)->extended()->params();
+    Step(**grown, run, 3, 450'000, pool);
+    const std::vector<float>& after = (*grown)->extended()->params();
+    ASSERT_EQ(after.size(), before.size());
+    double largest = 0;
+    for (size_t i = 0; i < before.size(); ++i) largest = std::max(largest, double(std::abs(after[i] - before[i])));
+    const double lr = field::ExtNetworkLr(grow.ext_hyper, 3);
+    EXPECT_NEAR(largest, lr, 1e-2 * lr) << "scale " << scale << " decay " << decay;
+  }
+  // The paper's rate at fine iteration 3, and 0.04 x its final rate once the decay of 4 is past.
+  EXPECT_NEAR(field::ExtNetworkLr(field::ExtHyper{}, 3), 1.6e-3 * std::pow(0.1, 3.0 / 30000), 1e-12);
+  field::ExtHyper annealed;
+  annealed.lr_scale = 0.04;
+  annealed.lr_decay_steps = 4;
+  EXPECT_NEAR(field::ExtNetworkLr(annealed, 5), 0.04 * 1.6e-4, 1e-12);
+  std::filesystem::remove_all(dir);
+}
+
 }  // namespace
 }  // namespace streetsim::train

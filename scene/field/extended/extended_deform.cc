@@ -12,7 +12,7 @@
 namespace streetsim::field {
 
 double ExtNetworkLr(const ExtHyper& h, int64_t fine_iteration) {
-  return FieldExpLr(h.network_lr_init, h.network_lr_final, fine_iteration, h.lr_decay_steps);
+  return FieldExpLr(h.network_lr_init * h.lr_scale, h.network_lr_final * h.lr_scale, fine_iteration, h.lr_decay_steps);
 }
 
 double ExtKlBeta(const ExtendedFieldConfig& c, int64_t fine_iteration) {

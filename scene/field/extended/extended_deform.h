@@ -27,6 +27,10 @@ namespace streetsim::field {
 struct ExtHyper {
   double network_lr_init = 1.6e-3, network_lr_final = 1.6e-4;
   int lr_decay_steps = 30000;
+  // `streetsim train --field-ext-lr-scale`: multiplies both ends of the rate. The base field's
+  // rates have their own switches (FieldHyper::lr_scale / lr_decay_steps); a module grown on an
+  // annealed field would otherwise learn at nearly the paper's full rate beside it.
+  double lr_scale = 1.0;
 };
 double ExtNetworkLr(const ExtHyper& h, int64_t fine_iteration);
 // β · min(1, fine_iteration / kl_warmup_iterations) (β alone without warm-up).
