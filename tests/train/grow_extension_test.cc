@@ -41,6 +41,29 @@ void Step(DynamicStage& stage, const TrainState& st, int64_t fine_iteration, int
   ASSERT_TRUE(loss.ok()) << loss.status();
 }
 
+// Each test grows modules on an S3Gaussian run's checkpoint: `st` after `steps` fine iterations
+// (view times dt_us apart), saved in `dir` at fine iteration `steps`.
+class GrowExtension : public ::testing::Test {
+ protected:
+  void TrainS3GaussianCheckpoint(const std::string& name, size_t n, uint64_t seed, int64_t steps, int64_t dt_us) {
+    dir = testing::ScratchDir("streetsim_grow_extension", name);
+    st = RandomState(n, seed);
+    canonical = st;
+    absl::StatusOr<std::unique_ptr<DynamicStage>> stage = DynamicStage::Begin(&st, s3, {0, 1'000'000});
+    ASSERT_TRUE(stage.ok()) << stage.status();
+    for (int64_t i = 1; i <= steps; ++i) Step(**stage, st, i, dt_us * i, pool);
+    ASSERT_TRUE((*stage)->SaveCheckpoint(FieldCheckpointPath(dir, steps)).ok());
+  }
+  void TearDown() override {
+    if (!dir.empty()) std::filesystem::remove_all(dir);
+  }
+
+  ThreadPool pool{2};
+  FieldOptions s3 = fixtures::TinyFieldOptions(4);
+  std::string dir;
+  TrainState st, canonical;  // the trained state; the Gaussians before the field's steps
+};
+
 struct Deformed {
   std::vector<float> means, log_scales, rotations, opacity_logits, sh;
 };
@@ -51,17 +74,9 @@ Deformed Snapshot(const GaussianParamsView& v) {
           std::vector<float>(v.sh, v.sh + v.n * static_cast<size_t>(v.sh_stride) * 3)};
 }
 
-TEST(GrowExtension, GrownModulesDeformAsTheCheckpointsFieldDid) {
-  const std::string dir = testing::ScratchDir("streetsim_grow_extension", "deform");
-  ThreadPool pool(2);
-  TrainState st = RandomState(2000, 7);
-  const TrainState canonical = st;
-  FieldOptions s3 = fixtures::TinyFieldOptions(4);
-  absl::StatusOr<std::unique_ptr<DynamicStage>> stage = DynamicStage::Begin(&st, s3, {0, 1'000'000});
-  ASSERT_TRUE(stage.ok()) << stage.status();
-  for (int64_t i = 1; i <= 3; ++i) Step(**stage, st, i, 250'000 * i, pool);
+TEST_F(GrowExtension, GrownModulesDeformAsTheCheckpointsFieldDid) {
+  ASSERT_NO_FATAL_FAILURE(TrainS3GaussianCheckpoint("deform", 2000, 7, 3, 250'000));
   const std::string ckpt = FieldCheckpointPath(dir, 3);
-  ASSERT_TRUE((*stage)->SaveCheckpoint(ckpt).ok());
 
   absl::StatusOr<std::unique_ptr<DynamicStage>> plain = DynamicStage::Resume(ckpt, s3, 3);
   ASSERT_TRUE(plain.ok()) << plain.status();
@@ -97,18 +112,10 @@ TEST(GrowExtension, GrownModulesDeformAsTheCheckpointsFieldDid) {
   EXPECT_EQ(after.log_scales, canonical.params.log_scales);
   EXPECT_EQ(after.rotations, canonical.params.rotations);
   EXPECT_EQ(after.opacity_logits, canonical.params.opacity_logits);
-  std::filesystem::remove_all(dir);
 }
 
-TEST(GrowExtension, ResumesCountTheExtensionFromWhereItJoined) {
-  const std::string dir = testing::ScratchDir("streetsim_grow_extension", "resume");
-  ThreadPool pool(2);
-  TrainState st = RandomState(500, 8);
-  FieldOptions s3 = fixtures::TinyFieldOptions(4);
-  absl::StatusOr<std::unique_ptr<DynamicStage>> stage = DynamicStage::Begin(&st, s3, {0, 1'000'000});
-  ASSERT_TRUE(stage.ok()) << stage.status();
-  for (int64_t i = 1; i <= 2; ++i) Step(**stage, st, i, 300'000 * i, pool);
-  ASSERT_TRUE((*stage)->SaveCheckpoint(FieldCheckpointPath(dir, 2)).ok());
+TEST_F(GrowExtension, ResumesCountTheExtensionFromWhereItJoined) {
+  ASSERT_NO_FATAL_FAILURE(TrainS3GaussianCheckpoint("resume", 500, 8, 2, 300'000));
 
   FieldOptions grow = s3;
   absl::StatusOr<field::ExtendedFieldConfig> decoder = field::ExtendedFieldConfig::WithModules("decoder");
@@ -145,21 +152,13 @@ TEST(GrowExtension, ResumesCountTheExtensionFromWhereItJoined) {
   std::filesystem::remove(ExtendedCheckpointPath(FieldCheckpointPath(dir, 5)));
   resume.extension_from_fine_iteration = 2;
   EXPECT_FALSE(DynamicStage::Resume(FieldCheckpointPath(dir, 5), resume, 5).ok());
-  std::filesystem::remove_all(dir);
 }
 
-TEST(GrowExtension, TheExtensionStepsAtItsOwnRate) {
+TEST_F(GrowExtension, TheExtensionStepsAtItsOwnRate) {
   // --field-ext-lr-scale / --field-ext-lr-decay-iterations (ExtHyper) set the modules' Adam rate,
   // apart from the base field's: Adam's first step moves each parameter with a gradient by exactly
   // the rate, so the largest change after one grown iteration is ExtNetworkLr at that iteration.
-  const std::string dir = testing::ScratchDir("streetsim_grow_extension", "rate");
-  ThreadPool pool(2);
-  TrainState st = RandomState(400, 9);
-  FieldOptions s3 = fixtures::TinyFieldOptions(4);
-  absl::StatusOr<std::unique_ptr<DynamicStage>> stage = DynamicStage::Begin(&st, s3, {0, 1'000'000});
-  ASSERT_TRUE(stage.ok()) << stage.status();
-  for (int64_t i = 1; i <= 2; ++i) Step(**stage, st, i, 300'000 * i, pool);
-  ASSERT_TRUE((*stage)->SaveCheckpoint(FieldCheckpointPath(dir, 2)).ok());
+  ASSERT_NO_FATAL_FAILURE(TrainS3GaussianCheckpoint("rate", 400, 9, 2, 300'000));
 
   absl::StatusOr<field::ExtendedFieldConfig> decoder = field::ExtendedFieldConfig::WithModules("decoder");
   ASSERT_TRUE(decoder.ok());
@@ -187,7 +186,6 @@ TEST(GrowExtension, TheExtensionStepsAtItsOwnRate) {
   annealed.lr_scale = 0.04;
   annealed.lr_decay_steps = 4;
   EXPECT_NEAR(field::ExtNetworkLr(annealed, 5), 0.04 * 1.6e-4, 1e-12);
-  std::filesystem::remove_all(dir);
 }
 
 }  // namespace
