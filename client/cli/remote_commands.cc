@@ -229,9 +229,12 @@ static absl::Status TrainingConfigFromFlags(const ParsedArgs& args, v1::Training
            integer("clip-frames", [&](int32_t n) { c->set_clip_frames(n); }),
            integer("clip-overlap", [&](int32_t n) { c->set_clip_overlap(n); }),
            integer("field-lr-decay-iterations", [&](int32_t n) { c->set_field_lr_decay_iterations(n); }),
+           integer("position-lr-decay-iterations", [&](int32_t n) { c->set_position_lr_decay_iterations(n); }),
+           integer("field-ext-lr-decay-iterations", [&](int32_t n) { c->set_field_ext_lr_decay_iterations(n); }),
            number("resolution-scale", [&](double x) { c->set_resolution_scale(x); }),
            number("low-res-scale", [&](double x) { c->set_low_res_scale(x); }),
            number("field-lr-scale", [&](double x) { c->set_field_lr_scale(x); }),
+           number("field-ext-lr-scale", [&](double x) { c->set_field_ext_lr_scale(x); }),
            number("pose-lr-scale", [&](double x) { c->set_pose_lr_scale(x); }),
        }) {
     if (!s.ok()) return s;
@@ -245,8 +248,10 @@ int RunJobsCommand(const std::vector<std::string>& argv) {
                                               {"seed"}, {"field"}, {"field-modules"}, {"static-iterations"},
                                               {"resolution-scale"}, {"low-res-scale"}, {"low-res-iterations"},
                                               {"holdout-every"}, {"clip-frames"}, {"clip-overlap"}, {"field-lr-scale"},
-                                              {"field-lr-decay-iterations"}, {"backend"}, {"continue-from"},
-                                              {"pose-refinement", false}, {"pose-lr-scale"}}));
+                                              {"field-lr-decay-iterations"}, {"position-lr-decay-iterations"},
+                                              {"field-ext-lr-scale"}, {"field-ext-lr-decay-iterations"},
+                                              {"backend"}, {"continue-from"}, {"pose-refinement", false},
+                                              {"pose-lr-scale"}}));
   if (!args.ok()) return Fail("jobs", 2, args.status());
   const std::vector<std::string>& pos = args->positional();
   const std::string verb = pos.empty() ? "list" : pos[0];
@@ -292,6 +297,7 @@ int RunJobsCommand(const std::vector<std::string>& argv) {
       "usage: streetsim jobs [list | train LOG_PATH [--scene-name N] [--request-id R] [--max-iterations N] "
       "[streetsim train's --seed --field --field-modules --static-iterations --resolution-scale --low-res-scale "
       "--low-res-iterations --holdout-every --clip-frames --clip-overlap --field-lr-scale --field-lr-decay-iterations "
+      "--position-lr-decay-iterations --field-ext-lr-scale --field-ext-lr-decay-iterations "
       "--backend --pose-refinement --pose-lr-scale] [--continue-from SCENE] [--watch] | watch ID | "
       "get ID | cancel ID] [--server HOST:PORT]"));
 }
