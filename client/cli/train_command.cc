@@ -95,6 +95,30 @@ void InstallStopHandlers() {
   sigaction(SIGTERM, &sa, nullptr);
 }
 
+// A learning-rate schedule's pair of flags, `--PREFIX-scale S` ((0, 1000]) and
+// `--PREFIX-decay-iterations N` (1..10^7): the given ones into *scale / *decay_iterations.
+absl::Status ParseLrScheduleFlags(const ParsedArgs& args, const std::string& prefix, double* scale,
+                                  int* decay_iterations) {
+  if (auto v = args.Get(prefix + "-scale"); v && (!absl::SimpleAtod(*v, scale) || !(*scale > 0 && *scale <= 1000))) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("--", prefix, "-scale must be a number in (0, 1000], not '", *v, "'"));
+  }
+  if (auto v = args.Get(prefix + "-decay-iterations");
+      v && (!absl::SimpleAtoi(*v, decay_iterations) || *decay_iterations < 1 || *decay_iterations > 10'000'000)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("--", prefix, "-decay-iterations must be an integer in 1..10000000, not '", *v, "'"));
+  }
+  return absl::OkStatus();
+}
+
+// A resumed run keeps its recorded schedule value by value: a flag given wins over its value only
+// (annealing is `--resume --PREFIX-decay-iterations N` alone, which must not reset the scale).
+void KeepRecordedLrSchedule(const ParsedArgs& args, const std::string& prefix, const train::FieldLrSchedule& recorded,
+                            double* scale, int* decay_iterations) {
+  if (!args.Has(prefix + "-scale")) *scale = recorded.scale;
+  if (!args.Has(prefix + "-decay-iterations")) *decay_iterations = recorded.decay_iterations;
+}
+
 }  // namespace
 
 int RunTrainCommand(const std::vector<std::string>& argv) {
@@ -273,15 +297,10 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   // resolution 500 fine iterations reach what the spec's rates reached after ~2000;
   // `--field-lr-scale 1` is S3Gaussian's.
   opt.field.hyper.lr_scale = kDefaultFieldLrScale;
-  if (auto v = args->Get("field-lr-scale"); v && (!absl::SimpleAtod(*v, &opt.field.hyper.lr_scale) ||
-                                                  !(opt.field.hyper.lr_scale > 0 && opt.field.hyper.lr_scale <= 1000))) {
-    return Fail(2, absl::InvalidArgumentError(absl::StrCat("--field-lr-scale must be a number in (0, 1000], not '", *v, "'")));
-  }
-  if (auto v = args->Get("field-lr-decay-iterations");
-      v && (!absl::SimpleAtoi(*v, &opt.field.hyper.lr_decay_steps) || opt.field.hyper.lr_decay_steps < 1 ||
-            opt.field.hyper.lr_decay_steps > 10'000'000)) {
-    return Fail(2, absl::InvalidArgumentError(
-                       absl::StrCat("--field-lr-decay-iterations must be an integer in 1..10000000, not '", *v, "'")));
+  if (absl::Status st =
+          ParseLrScheduleFlags(*args, "field-lr", &opt.field.hyper.lr_scale, &opt.field.hyper.lr_decay_steps);
+      !st.ok()) {
+    return Fail(2, st);
   }
   // A resume of a run that has a checkpoint: its checkpoint.json's records (field rates, low-resolution
   // stage, pose schedule, position decay) apply unless flags say otherwise.
@@ -305,8 +324,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
       own = meta->value_or(train::FieldLrSchedule{});  // else the spec's, the only one then
     }
     if (own) {
-      if (!args->Has("field-lr-scale")) opt.field.hyper.lr_scale = own->scale;
-      if (!args->Has("field-lr-decay-iterations")) opt.field.hyper.lr_decay_steps = own->decay_iterations;
+      KeepRecordedLrSchedule(*args, "field-lr", *own, &opt.field.hyper.lr_scale, &opt.field.hyper.lr_decay_steps);
     }
   }
   // A resumed run keeps its low-resolution stage too, unless told (checkpoint.json records it).
@@ -410,17 +428,10 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   // iterations) has its own switches: the base field's flags leave it alone, so that modules
   // grown on an annealed field can be annealed with it (docs/training.md "Growing modules on a
   // trained field"). A resumed extended run keeps its recorded schedule, value by value.
-  if (auto v = args->Get("field-ext-lr-scale");
-      v && (!absl::SimpleAtod(*v, &opt.field.ext_hyper.lr_scale) ||
-            !(opt.field.ext_hyper.lr_scale > 0 && opt.field.ext_hyper.lr_scale <= 1000))) {
-    return Fail(2, absl::InvalidArgumentError(
-                       absl::StrCat("--field-ext-lr-scale must be a number in (0, 1000], not '", *v, "'")));
-  }
-  if (auto v = args->Get("field-ext-lr-decay-iterations");
-      v && (!absl::SimpleAtoi(*v, &opt.field.ext_hyper.lr_decay_steps) || opt.field.ext_hyper.lr_decay_steps < 1 ||
-            opt.field.ext_hyper.lr_decay_steps > 10'000'000)) {
-    return Fail(2, absl::InvalidArgumentError(absl::StrCat(
-                       "--field-ext-lr-decay-iterations must be an integer in 1..10000000, not '", *v, "'")));
+  if (absl::Status st = ParseLrScheduleFlags(*args, "field-ext-lr", &opt.field.ext_hyper.lr_scale,
+                                             &opt.field.ext_hyper.lr_decay_steps);
+      !st.ok()) {
+    return Fail(2, st);
   }
   for (const char* flag : {"field-ext-lr-scale", "field-ext-lr-decay-iterations"}) {
     if (args->Has(flag) && !opt.field.extended) {
@@ -432,10 +443,8 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     absl::StatusOr<std::optional<train::FieldLrSchedule>> recorded = train::ReadCheckpointExtLr(*out);
     if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
     if (recorded.ok() && recorded->has_value()) {
-      if (!args->Has("field-ext-lr-scale")) opt.field.ext_hyper.lr_scale = (*recorded)->scale;
-      if (!args->Has("field-ext-lr-decay-iterations")) {
-        opt.field.ext_hyper.lr_decay_steps = (*recorded)->decay_iterations;
-      }
+      KeepRecordedLrSchedule(*args, "field-ext-lr", **recorded, &opt.field.ext_hyper.lr_scale,
+                             &opt.field.ext_hyper.lr_decay_steps);
     }
   }
   // --field extended on a resume: an S3Gaussian run's checkpoint grows the modules (they join at

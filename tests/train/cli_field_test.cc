@@ -182,7 +182,14 @@ TEST(CliField, ExtendedModulesGrowOnAnS3GaussianRunsResume) {
   r = RunCli(train + " --iterations 18 --resume --field extended --field-modules decoder" + kSmall);
   EXPECT_NE(r.code, 0);
   EXPECT_NE(r.err.find("checkpoint_field_17_ext.bin"), std::string::npos) << r.err;
-  // A damaged record is a one-line exit 2 naming the file.
+  // A damaged record is a one-line exit 2 naming the file: the modules' rate out of range ...
+  std::ofstream(dir + "/checkpoint.json", std::ios::trunc)
+      << R"({"iteration": 17, "field": "extended", "static_iterations": 8, "field_extension_from": 4,)"
+      << R"( "field_ext_lr_scale": 0, "field_ext_lr_decay_iterations": 900})";
+  r = RunCli(train + " --iterations 18 --resume --field extended --field-modules decoder" + kSmall);
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_NE(r.err.find("checkpoint.json: field_ext_lr schedule out of range"), std::string::npos) << r.err;
+  // ... or where the modules joined.
   std::ofstream(dir + "/checkpoint.json", std::ios::trunc)
       << R"({"iteration": 17, "field": "extended", "static_iterations": 8, "field_extension_from": -3})";
   r = RunCli(train + " --iterations 18 --resume --field extended --field-modules decoder" + kSmall);
