@@ -18,7 +18,7 @@ int RunScenesCommand(const std::vector<std::string>& args);
 int RunJobsCommand(const std::vector<std::string>& args);
 int RunRemoteRenderCommand(const std::vector<std::string>& args);  // render --server
 int RunReplayCommand(const std::vector<std::string>& args);
-int RunLogCommand(const std::vector<std::string>& args);   // log info|preview|poses|camera
+int RunLogCommand(const std::vector<std::string>& args);  // log info|preview|poses|camera|tracks
 int RunInitCommand(const std::vector<std::string>& args);
 int RunTrainCommand(const std::vector<std::string>& args);
 int RunEvalCommand(const std::vector<std::string>& args);

@@ -1,4 +1,4 @@
-// streetsim log info | preview | poses | camera: inspecting driving logs.
+// streetsim log info | preview | poses | camera | tracks: inspecting driving logs.
 #include <unistd.h>
 
 #include <cmath>
@@ -15,7 +15,10 @@
 #include "client/cli/args.h"
 #include "client/cli/camera_json.h"
 #include "client/cli/commands.h"
+#include "nlohmann/json.hpp"
+#include "scene/common/checked_file.h"
 #include "scene/init/lidar_accumulation.h"
+#include "scene/init/moving_objects.h"
 #include "scene/log/lidar_odometry.h"
 #include "scene/log/open_log.h"
 #include "scene/log/poses_file.h"
@@ -271,11 +274,97 @@ int Camera(const std::vector<std::string>& argv) {
   return 0;
 }
 
+// The log's moving objects, followed in its LiDAR alone (scene/init/moving_objects.h).
+int Tracks(const std::vector<std::string>& argv) {
+  absl::StatusOr<ParsedArgs> args =
+      ParsedArgs::Parse(argv, {{"frames"}, {"min-scans"}, {"min-displacement-m"}, {"json"}});
+  if (!args.ok()) return Fail("tracks", 2, args.status());
+  absl::StatusOr<std::string> path = OnePath(*args);
+  if (!path.ok()) return Fail("tracks", 2, path.status());
+  MovingObjectOptions options;
+  if (auto f = args->Get("frames")) {
+    absl::StatusOr<FrameRange> r = ParseFrameRange(*f);
+    if (!r.ok()) return Fail("tracks", 2, r.status());
+    options.frames = *r;
+  }
+  if (options.frames.stride != 1) {
+    return Fail("tracks", 2, absl::InvalidArgumentError("--frames: tracking needs consecutive frames (stride 1)"));
+  }
+  int min_scans = 5;
+  double min_displacement_m = 1.0;
+  if (auto v = args->Get("min-scans"); v && (!absl::SimpleAtoi(*v, &min_scans) || min_scans < 1)) {
+    return Fail("tracks", 2, absl::InvalidArgumentError("--min-scans: a whole number >= 1"));
+  }
+  if (auto v = args->Get("min-displacement-m");
+      v && (!absl::SimpleAtod(*v, &min_displacement_m) || !(min_displacement_m >= 0 && min_displacement_m < 1e4))) {
+    return Fail("tracks", 2, absl::InvalidArgumentError("--min-displacement-m: metres, 0 .. 10000"));
+  }
+  absl::StatusOr<DriveLog> log = OpenLog(*path);
+  if (!log.ok()) return Fail("tracks", ExitCodeForLog(log.status()), log.status());
+  absl::StatusOr<MovingObjects> objects = TrackMovingObjects(*log, options);
+  if (!objects.ok()) {
+    const absl::Status& s = objects.status();
+    return Fail("tracks", absl::IsInvalidArgument(s) || absl::IsFailedPrecondition(s) ? 2 : ExitCodeForLog(s), s);
+  }
+  std::vector<const MovingObjectTrack*> shown;
+  for (const MovingObjectTrack& t : objects->tracks) {
+    if (static_cast<int>(t.observations.size()) >= min_scans && t.NetDisplacementM() >= min_displacement_m) {
+      shown.push_back(&t);
+    }
+  }
+  std::printf("moving objects, LiDAR only: %d scans, %zu tracks, %zu followed for >= %d scans and moved >= %.2f m\n",
+              objects->frames_used, objects->tracks.size(), shown.size(), min_scans, min_displacement_m);
+  std::printf(
+      "| id | frames | scans | moved (m) | path (m) | mean speed (m/s) | first seen at x, y (ego, m) | "
+      "points |\n|---|---|---|---|---|---|---|---|\n");
+  for (const MovingObjectTrack* t : shown) {
+    const ObjectObservation& a = t->observations.front();
+    const ObjectObservation& b = t->observations.back();
+    const Eigen::Vector3d c = log->frames[a.frame].T_world_from_ego.inverse() * a.centroid_world;
+    const double span_s = (b.time_us - a.time_us) * 1e-6;
+    std::printf("| %d | %d-%d | %zu | %.2f | %.2f | %.2f | %.1f, %.1f | %d |\n", t->id, a.frame, b.frame,
+                t->observations.size(), t->NetDisplacementM(), t->PathLengthM(),
+                span_s > 0 ? t->PathLengthM() / span_s : 0.0, c.x(), c.y(), a.num_points);
+  }
+  if (auto out = args->Get("json")) {
+    nlohmann::json j;
+    j["log"] = log->root;
+    j["frames_used"] = objects->frames_used;
+    j["min_scans"] = min_scans;
+    j["min_displacement_m"] = min_displacement_m;
+    j["tracks"] = nlohmann::json::array();
+    for (const MovingObjectTrack* t : shown) {
+      nlohmann::json jt;
+      jt["id"] = t->id;
+      jt["net_displacement_m"] = t->NetDisplacementM();
+      jt["path_length_m"] = t->PathLengthM();
+      jt["observations"] = nlohmann::json::array();
+      for (const ObjectObservation& ob : t->observations) {
+        const Eigen::Vector3d tr = ob.T_world_motion.translation();
+        const Eigen::Matrix3d r = ob.T_world_motion.linear();
+        jt["observations"].push_back(
+            {{"frame", ob.frame},
+             {"time_us", ob.time_us},
+             {"centroid_world", {ob.centroid_world.x(), ob.centroid_world.y(), ob.centroid_world.z()}},
+             {"T_world_motion_translation", {tr.x(), tr.y(), tr.z()}},
+             {"T_world_motion_rotation",
+              {r(0, 0), r(0, 1), r(0, 2), r(1, 0), r(1, 1), r(1, 2), r(2, 0), r(2, 1), r(2, 2)}},
+             {"num_points", ob.num_points},
+             {"num_dynamic", ob.num_dynamic},
+             {"icp_rms_m", ob.icp_rms_m}});
+      }
+      j["tracks"].push_back(std::move(jt));
+    }
+    if (absl::Status s = checked_file::WriteAtomically(*out, j.dump(1) + "\n"); !s.ok()) return Fail("tracks", 1, s);
+  }
+  return 0;
+}
+
 }  // namespace
 
 int RunLogCommand(const std::vector<std::string>& args) {
   if (args.empty()) {
-    std::fprintf(stderr, "streetsim log: expects a subcommand: info, preview, poses or camera\n");
+    std::fprintf(stderr, "streetsim log: expects a subcommand: info, preview, poses, camera or tracks\n");
     return 2;
   }
   const std::vector<std::string> rest(args.begin() + 1, args.end());
@@ -283,7 +372,9 @@ int RunLogCommand(const std::vector<std::string>& args) {
   if (args[0] == "preview") return Preview(rest);
   if (args[0] == "poses") return Poses(rest);
   if (args[0] == "camera") return Camera(rest);
-  std::fprintf(stderr, "streetsim log: unknown subcommand '%s' (info, preview, poses, camera)\n", args[0].c_str());
+  if (args[0] == "tracks") return Tracks(rest);
+  std::fprintf(stderr, "streetsim log: unknown subcommand '%s' (info, preview, poses, camera, tracks)\n",
+               args[0].c_str());
   return 2;
 }
 

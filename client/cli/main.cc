@@ -30,6 +30,8 @@ constexpr char kUsage[] =
                "            streetsim log preview PATH --frame N --out F.png [--camera NAME] [--max-depth M]\n"
                "            streetsim log poses PATH [--from-lidar] [--frames A:B] [--out POSES.txt]\n"
                "            streetsim log camera PATH --frame N --out CAMERA.json [--camera NAME]\n"
+               "            streetsim log tracks PATH [--frames A:B] [--min-scans N] [--min-displacement-m M]\n"
+               "              [--json OUT.json]   (moving objects followed in the LiDAR, no boxes)\n"
                "  init      initial Gaussians of a log: streetsim init PATH --out SCENE.ply [--frames A:B[:S]]\n"
                "              [--voxel M] [--max-range M] [--sky] [--drop-dynamic] [--random-points N]\n"
                "  serve     run the gRPC simulator server (docs/server.md): streetsim serve\n"

@@ -5,15 +5,15 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
-#include <string>
-
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+#include <string>
 
 #include "gtest/gtest.h"
-#include "tests/common/scratch_dir.h"
+#include "nlohmann/json.hpp"
 #include "scene/log/poses_file.h"
+#include "tests/common/scratch_dir.h"
 
 namespace streetsim {
 namespace {
@@ -117,6 +117,32 @@ TEST(CliLog, CameraWritesARenderableCamera) {
   fs::remove(out);
 }
 
+// The clip's tanker, followed in the LiDAR alone: the object with the most points when first seen
+// (beside the ego car on the right), about 9.5 m in the world over frames 0-39 by the right lane's
+// occupancy (docs/benchmarks.md "Where the held-out error is", session 22).
+TEST(CliLog, TracksFollowTheTanker) {
+  const std::string out = Scratch() + "/tracks.json";
+  const Result r = Exec("log tracks " + kData + "/kitti_raw/2011_09_26 --frames 0:40 --json " + out);
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  EXPECT_NE(r.out.find("| id | frames | scans | moved (m)"), std::string::npos) << r.out;
+  const nlohmann::json j = nlohmann::json::parse(Slurp(out));
+  EXPECT_EQ(j["frames_used"], 40);
+  ASSERT_FALSE(j["tracks"].empty());
+  const nlohmann::json* tanker = nullptr;
+  for (const nlohmann::json& t : j["tracks"]) {
+    if (tanker == nullptr || t["observations"][0]["num_points"] > (*tanker)["observations"][0]["num_points"]) {
+      tanker = &t;
+    }
+  }
+  ASSERT_EQ((*tanker)["observations"].size(), 40u);
+  const double moved = (*tanker)["net_displacement_m"];
+  EXPECT_GT(moved, 8.0);
+  EXPECT_LT(moved, 11.5);
+  const double y = (*tanker)["observations"][0]["centroid_world"][1];
+  EXPECT_LT(y, -1.5) << "the tanker is on the right";
+  fs::remove(out);
+}
+
 TEST(CliLog, BadInputIsExitTwoAndOneLine) {
   ExpectRefusal("log", "expects a subcommand");
   ExpectRefusal("log frobnicate x", "unknown subcommand");
@@ -131,6 +157,12 @@ TEST(CliLog, BadInputIsExitTwoAndOneLine) {
   ExpectRefusal("log preview " + kData + "/kitti_odometry_excerpt/seq_a --out /tmp/x.png", "no LiDAR and no sparse points");
   ExpectRefusal("log poses " + kData + "/kitti_odometry_excerpt/seq_a --from-lidar", "no LiDAR");
   ExpectRefusal("log poses " + kData + "/kitti_raw/2011_09_26 --frames 5:2", "--frames '5:2'");
+  ExpectRefusal("log tracks " + kData + "/colmap_plush", "no LiDAR");
+  ExpectRefusal("log tracks " + kData + "/kitti_raw/2011_09_26 --frames 0:40:2", "stride 1");
+  ExpectRefusal("log tracks " + kData + "/kitti_raw/2011_09_26 --frames 5:6", "fewer than 2 frames");
+  ExpectRefusal("log tracks " + kData + "/kitti_raw/2011_09_26 --min-scans 0", "--min-scans");
+  ExpectRefusal("log tracks " + kData + "/kitti_raw/2011_09_26 --min-displacement-m nan", "--min-displacement-m");
+  ExpectRefusal("log tracks " + kData + "/kitti_raw/2011_09_26 --json", "--json");
 }
 
 }  // namespace

@@ -1,0 +1,413 @@
+#include "scene/init/moving_objects.h"
+
+#include <Eigen/Eigenvalues>
+#include <algorithm>
+#include <cmath>
+#include <thread>
+#include <unordered_map>
+
+#include "absl/strings/str_cat.h"
+#include "scene/log/kdtree.h"
+#include "scene/log/voxel_hash.h"
+
+namespace streetsim {
+
+Eigen::Vector3d MovingObjectTrack::ReferencePoint(size_t observation) const {
+  return observations[observation].T_world_motion * observations.front().centroid_world;
+}
+
+double MovingObjectTrack::NetDisplacementM() const {
+  if (observations.empty()) return 0;
+  return (ReferencePoint(observations.size() - 1) - ReferencePoint(0)).norm();
+}
+
+double MovingObjectTrack::PathLengthM() const {
+  double sum = 0;
+  for (size_t i = 1; i < observations.size(); ++i) sum += (ReferencePoint(i) - ReferencePoint(i - 1)).norm();
+  return sum;
+}
+
+namespace {
+
+constexpr double kIcpVoxelM = 0.15;  // thinning of a registration's source: same surfaces, fewer points
+constexpr int kIcpIterations = 30;
+
+struct Object {
+  std::vector<Eigen::Vector3f> points;  // level frame
+  int num_dynamic = 0;
+  Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
+  std::vector<Eigen::Vector3f> thinned;  // registration source when it is a track's last view
+  KdTree3 tree;                          // over `points`: the registration target
+  std::vector<Eigen::Vector3f> normals;  // of `points`; zero where no plane fits
+};
+
+struct CellKey {
+  int32_t x, y;
+  bool operator==(const CellKey& o) const { return x == o.x && y == o.y; }
+};
+struct CellKeyHash {
+  size_t operator()(const CellKey& k) const {
+    return static_cast<size_t>(static_cast<uint32_t>(k.x)) * 73856093u ^
+           static_cast<size_t>(static_cast<uint32_t>(k.y)) * 19349669u;
+  }
+};
+
+void ComputeNormals(Object* o);
+
+// One measured point per voxel (not the centroid: a centroid across an edge lies inside the
+// object, and registering it would pull the motion).
+std::vector<Eigen::Vector3f> FirstPointPerVoxel(const std::vector<Eigen::Vector3f>& points, double voxel_m) {
+  std::unordered_map<VoxelKey, int, VoxelKeyHash> seen;
+  std::vector<Eigen::Vector3f> out;
+  const double inv = 1.0 / voxel_m;
+  for (const Eigen::Vector3f& p : points) {
+    if (seen.emplace(VoxelOf(p.cast<double>(), inv), 1).second) out.push_back(p);
+  }
+  return out;
+}
+
+// Connected groups of occupied 2-D cells, in the order of their first point (deterministic).
+std::vector<std::unique_ptr<Object>> GroupObjects(const LevelScan& scan, const MovingObjectOptions& o) {
+  const double inv = 1.0 / o.cell_m;
+  const auto key_of = [&](const Eigen::Vector3f& p) {
+    return CellKey{static_cast<int32_t>(std::floor(p.x() * inv)), static_cast<int32_t>(std::floor(p.y() * inv))};
+  };
+  std::unordered_map<CellKey, std::vector<int>, CellKeyHash> cells;
+  for (size_t i = 0; i < scan.points.size(); ++i) cells[key_of(scan.points[i])].push_back(static_cast<int>(i));
+  std::unordered_map<CellKey, int, CellKeyHash> group_of;
+  std::vector<std::unique_ptr<Object>> objects;
+  std::vector<CellKey> stack;
+  for (size_t i = 0; i < scan.points.size(); ++i) {
+    const CellKey seed = key_of(scan.points[i]);
+    if (group_of.count(seed)) continue;
+    auto object = std::make_unique<Object>();
+    const int id = static_cast<int>(objects.size());
+    group_of[seed] = id;
+    stack.assign(1, seed);
+    Eigen::Vector2f lo(1e30f, 1e30f), hi(-1e30f, -1e30f);
+    while (!stack.empty()) {
+      const CellKey c = stack.back();
+      stack.pop_back();
+      for (int p : cells[c]) {
+        object->points.push_back(scan.points[p]);
+        object->num_dynamic += scan.dynamic[p] ? 1 : 0;
+        lo = lo.cwiseMin(scan.points[p].head<2>());
+        hi = hi.cwiseMax(scan.points[p].head<2>());
+      }
+      for (int dx = -1; dx <= 1; ++dx) {
+        for (int dy = -1; dy <= 1; ++dy) {
+          const CellKey n{c.x + dx, c.y + dy};
+          if (!cells.count(n) || group_of.count(n)) continue;
+          group_of[n] = id;
+          stack.push_back(n);
+        }
+      }
+    }
+    const float length = (hi - lo).maxCoeff();
+    if (static_cast<int>(object->points.size()) < o.min_points || length > o.max_length_m) {
+      object->points.clear();  // kept as a placeholder so that ids stay dense; never matched
+    }
+    objects.push_back(std::move(object));
+  }
+  for (auto& object : objects) {
+    if (object->points.empty()) continue;
+    for (const Eigen::Vector3f& p : object->points) object->centroid += p.cast<double>();
+    object->centroid /= static_cast<double>(object->points.size());
+    object->thinned = FirstPointPerVoxel(object->points, kIcpVoxelM);
+    object->tree.Build(&object->points);
+    ComputeNormals(object.get());
+  }
+  return objects;
+}
+
+Eigen::Vector3d Centroid(const std::vector<Eigen::Vector3f>& points) {
+  Eigen::Vector3d c = Eigen::Vector3d::Zero();
+  for (const Eigen::Vector3f& p : points) c += p.cast<double>();
+  return points.empty() ? c : Eigen::Vector3d(c / static_cast<double>(points.size()));
+}
+
+// Surface normals of an object's points (smallest principal axis of 8 neighbours).
+void ComputeNormals(Object* o) {
+  constexpr int kNeighbours = 8;
+  o->normals.resize(o->points.size());
+  int idx[kNeighbours];
+  float d2[kNeighbours];
+  for (size_t i = 0; i < o->points.size(); ++i) {
+    const int n = o->tree.KNearest(o->points[i], kNeighbours, 1.0f, idx, d2);
+    if (n < 3) {
+      o->normals[i] = Eigen::Vector3f::Zero();  // isolated: no plane, no constraint
+      continue;
+    }
+    Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+    for (int k = 0; k < n; ++k) mean += o->points[idx[k]].cast<double>();
+    mean /= n;
+    Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
+    for (int k = 0; k < n; ++k) {
+      const Eigen::Vector3d d = o->points[idx[k]].cast<double>() - mean;
+      cov += d * d.transpose();
+    }
+    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(cov);
+    o->normals[i] = eig.eigenvectors().col(0).cast<float>();
+  }
+}
+
+// Rotation about z plus translation taking `source` onto `target`, point-to-plane: LiDAR samples
+// a surface at the sensor's angles, not at fixed places on the object, so a vehicle sliding along
+// itself shows the same side in both scans; point-to-point pairs would hold it still, while
+// point-to-plane leaves the slide to the ends and edges. A small damping keeps a direction no
+// surface constrains at the prediction. Returns the motion and the final RMS point-to-plane
+// distance of the matched pairs.
+Eigen::Isometry3d RegisterYawTranslation(const std::vector<Eigen::Vector3f>& source, const Object& target,
+                                         double first_radius_m, double last_radius_m, double* rms_m) {
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  *rms_m = 0;
+  for (int it = 0; it < kIcpIterations; ++it) {
+    const double a = kIcpIterations > 1 ? double(it) / (kIcpIterations - 1) : 1.0;
+    const double radius = first_radius_m + (last_radius_m - first_radius_m) * std::min(1.0, 2 * a);
+    Eigen::Matrix4d H = Eigen::Matrix4d::Identity() * 1e-3;
+    Eigen::Vector4d g = Eigen::Vector4d::Zero();
+    double sq = 0;
+    int pairs = 0;
+    for (const Eigen::Vector3f& s : source) {
+      const Eigen::Vector3d p = T * s.cast<double>();
+      const int j = target.tree.Nearest(p.cast<float>(), static_cast<float>(radius * radius));
+      if (j < 0 || target.normals[j].isZero()) continue;
+      const Eigen::Vector3d n = target.normals[j].cast<double>();
+      const double r = n.dot(p - target.points[j].cast<double>());
+      Eigen::Vector4d J;
+      J << n, n.x() * -p.y() + n.y() * p.x();
+      H += J * J.transpose();
+      g += J * r;
+      sq += r * r;
+      ++pairs;
+    }
+    if (pairs < 6) break;
+    *rms_m = std::sqrt(sq / pairs);
+    const Eigen::Vector4d x = -H.ldlt().solve(g);
+    Eigen::Isometry3d step = Eigen::Isometry3d::Identity();
+    step.linear() = Eigen::AngleAxisd(x(3), Eigen::Vector3d::UnitZ()).toRotationMatrix();
+    step.translation() = x.head<3>();
+    T = step * T;
+    if (x.head<3>().norm() < 1e-5 && std::abs(x(3)) < 1e-6 && radius == last_radius_m) break;
+  }
+  return T;
+}
+
+struct Track {
+  MovingObjectTrack out;
+  Eigen::Isometry3d motion = Eigen::Isometry3d::Identity();  // level frame, since the first observation
+  std::vector<Eigen::Vector3f> last_points;                  // thinned, level frame
+  Eigen::Vector3d velocity_mps = Eigen::Vector3d::Zero();
+  bool has_velocity = false;
+  int64_t last_time_us = 0;
+  int missed = 0;
+};
+
+}  // namespace
+
+std::vector<MovingObjectTrack> TrackObjectsInLevelScans(const std::vector<LevelScan>& scans,
+                                                        const MovingObjectOptions& o) {
+  std::vector<Track> tracks;
+  std::vector<size_t> active;
+  for (const LevelScan& scan : scans) {
+    std::vector<std::unique_ptr<Object>> objects = GroupObjects(scan, o);
+    // Votes: each track's predicted points on the objects they land on.
+    struct Candidate {
+      int votes;  // a track's predicted points on the object: a long-followed object outranks a
+                  // fragment's short track that lies wholly on it
+      double overlap;
+      size_t track;
+      int object;
+      Eigen::Isometry3d predicted;
+    };
+    std::vector<Candidate> candidates;
+    for (size_t t : active) {
+      Track& tr = tracks[t];
+      const double dt_s = (scan.time_us - tr.last_time_us) * 1e-6;
+      Eigen::Isometry3d predicted = Eigen::Isometry3d::Identity();
+      if (tr.has_velocity) predicted.translation() = tr.velocity_mps * dt_s;
+      const double radius = tr.has_velocity ? o.match_distance_m : o.match_distance_m + o.max_speed_mps * dt_s;
+      std::unordered_map<int, int> votes;
+      for (const Eigen::Vector3f& p : tr.last_points) {
+        const Eigen::Vector3f q = (predicted * p.cast<double>()).cast<float>();
+        int best = -1;
+        float best_d2 = static_cast<float>(radius * radius);
+        for (size_t k = 0; k < objects.size(); ++k) {
+          if (objects[k]->points.empty()) continue;
+          if ((objects[k]->centroid - q.cast<double>()).head<2>().norm() > radius + o.max_length_m) continue;
+          float d2;
+          if (objects[k]->tree.Nearest(q, best_d2, &d2) >= 0 && d2 < best_d2) {
+            best_d2 = d2;
+            best = static_cast<int>(k);
+          }
+        }
+        if (best >= 0) ++votes[best];
+      }
+      for (const auto& [k, n] : votes) {
+        const double overlap = double(n) / tr.last_points.size();
+        if (overlap >= o.min_overlap) candidates.push_back({n, overlap, t, k, predicted});
+      }
+    }
+    std::sort(candidates.begin(), candidates.end(), [](const Candidate& a, const Candidate& b) {
+      if (a.votes != b.votes) return a.votes > b.votes;
+      return a.track != b.track ? a.track < b.track : a.object < b.object;
+    });
+    std::vector<uint8_t> object_taken(objects.size(), 0), track_matched(tracks.size(), 0);
+    for (const Candidate& c : candidates) {
+      if (object_taken[c.object] || track_matched[c.track]) continue;
+      object_taken[c.object] = track_matched[c.track] = 1;
+      Track& tr = tracks[c.track];
+      const Object& obj = *objects[c.object];
+      const double dt_s = (scan.time_us - tr.last_time_us) * 1e-6;
+      std::vector<Eigen::Vector3f> source;
+      source.reserve(tr.last_points.size());
+      for (const Eigen::Vector3f& p : tr.last_points) source.push_back((c.predicted * p.cast<double>()).cast<float>());
+      const double first_radius =
+          tr.has_velocity ? 2 * o.match_distance_m + 0.5 : o.match_distance_m + o.max_speed_mps * dt_s;
+      double rms = 0;
+      const Eigen::Isometry3d step =
+          RegisterYawTranslation(source, obj, first_radius, o.match_distance_m, &rms) * c.predicted;
+      const Eigen::Vector3d c_last = Centroid(tr.last_points);
+      if (dt_s > 0) {
+        tr.velocity_mps = (step * c_last - c_last) / dt_s;
+        tr.has_velocity = true;
+      }
+      tr.motion = step * tr.motion;
+      tr.last_points = obj.thinned;
+      tr.last_time_us = scan.time_us;
+      tr.missed = 0;
+      ObjectObservation ob;
+      ob.frame = scan.frame;
+      ob.time_us = scan.time_us;
+      ob.T_world_motion = tr.motion;
+      ob.centroid_world = obj.centroid;
+      ob.num_points = static_cast<int>(obj.points.size());
+      ob.num_dynamic = obj.num_dynamic;
+      ob.icp_rms_m = rms;
+      tr.out.observations.push_back(ob);
+    }
+    std::vector<size_t> still_active;
+    for (size_t t : active) {
+      if (!track_matched[t] && ++tracks[t].missed > o.max_missed_frames) continue;
+      still_active.push_back(t);
+    }
+    for (size_t k = 0; k < objects.size(); ++k) {
+      const Object& obj = *objects[k];
+      if (object_taken[k] || obj.points.empty()) continue;
+      if (obj.num_dynamic < o.min_dynamic_points ||
+          obj.num_dynamic < o.min_dynamic_fraction * static_cast<double>(obj.points.size())) {
+        continue;
+      }
+      Track tr;
+      tr.out.id = static_cast<int>(tracks.size());
+      tr.last_points = obj.thinned;
+      tr.last_time_us = scan.time_us;
+      ObjectObservation ob;
+      ob.frame = scan.frame;
+      ob.time_us = scan.time_us;
+      ob.centroid_world = obj.centroid;
+      ob.num_points = static_cast<int>(obj.points.size());
+      ob.num_dynamic = obj.num_dynamic;
+      tr.out.observations.push_back(ob);
+      still_active.push_back(tracks.size());
+      tracks.push_back(std::move(tr));
+    }
+    active = std::move(still_active);
+  }
+  std::vector<MovingObjectTrack> out;
+  out.reserve(tracks.size());
+  for (Track& t : tracks) out.push_back(std::move(t.out));
+  return out;
+}
+
+namespace {
+
+// Ground height under the scanner, sensor frame: a low percentile of the returns 3-20 m away,
+// which the road dominates even beside a truck.
+double GroundZ(const std::vector<Eigen::Vector3f>& points) {
+  std::vector<float> z;
+  for (const Eigen::Vector3f& p : points) {
+    const float r = p.head<2>().norm();
+    if (r > 3 && r < 20) z.push_back(p.z());
+  }
+  if (z.empty()) return 0;
+  const size_t k = z.size() / 10;
+  std::nth_element(z.begin(), z.begin() + k, z.end());
+  return z[k];
+}
+
+}  // namespace
+
+absl::StatusOr<MovingObjects> TrackMovingObjects(const DriveLog& log, const MovingObjectOptions& options) {
+  if (!(options.cell_m > 0.01 && options.cell_m <= 5) || !(options.max_range_m > options.min_range_m) ||
+      !(options.max_height_m > options.min_height_m) || !(options.max_speed_mps > 0) ||
+      !(options.match_distance_m > 0) || !(options.min_overlap > 0 && options.min_overlap <= 1)) {
+    return absl::InvalidArgumentError("moving objects: an option is out of range");
+  }
+  if (log.lidars.empty()) return absl::FailedPreconditionError("moving objects: the log has no LiDAR");
+  const std::vector<int> frames = options.frames.Select(log);
+  if (frames.size() < 2) return absl::InvalidArgumentError("moving objects: fewer than 2 frames selected");
+  const Eigen::Isometry3d T_world_from_level = log.frames[frames.front()].T_world_from_ego;
+  const Eigen::Isometry3d T_level_from_world = T_world_from_level.inverse();
+  const Eigen::Isometry3d T_ego_from_lidar = log.lidars[0].T_ego_from_lidar;
+
+  std::vector<LevelScan> scans(frames.size());
+  std::vector<absl::Status> status(frames.size());
+  const auto prepare = [&](size_t i) -> absl::Status {
+    const int f = frames[i];
+    const LidarObservation* obs = nullptr;
+    for (const LidarObservation& l : log.frames[f].lidars) {
+      if (l.lidar == 0) obs = &l;
+    }
+    if (obs == nullptr) return absl::FailedPreconditionError(absl::StrCat("frame ", f, " has no LiDAR scan"));
+    absl::StatusOr<LidarScan> scan = LoadLidarScan(obs->path);
+    if (!scan.ok()) return scan.status();
+    absl::StatusOr<DynamicMask> mask = ComputeDynamicMask(log, f, options.dynamic);
+    if (!mask.ok()) return mask.status();
+    if (mask->dynamic.size() != scan->points.size()) return absl::InternalError("dynamic mask size mismatch");
+    const double ground_z = GroundZ(scan->points);
+    const Eigen::Isometry3f T_level_from_lidar =
+        (T_level_from_world * log.frames[f].T_world_from_ego * T_ego_from_lidar).cast<float>();
+    LevelScan& out = scans[i];
+    out.frame = f;
+    out.time_us = obs->time_us;
+    for (size_t k = 0; k < scan->points.size(); ++k) {
+      const Eigen::Vector3f& p = scan->points[k];
+      const float r = p.norm(), h = p.z() - static_cast<float>(ground_z);
+      if (r < options.min_range_m || r > options.max_range_m) continue;
+      if (h < options.min_height_m || h > options.max_height_m) continue;
+      out.points.push_back(T_level_from_lidar * p);
+      out.dynamic.push_back(mask->dynamic[k]);
+    }
+    return absl::OkStatus();
+  };
+  const size_t workers = std::max<size_t>(1, std::min<size_t>(std::thread::hardware_concurrency(), frames.size()));
+  std::vector<std::thread> pool;
+  for (size_t w = 0; w < workers; ++w) {
+    pool.emplace_back([&, w] {
+      for (size_t i = w; i < frames.size(); i += workers) status[i] = prepare(i);
+    });
+  }
+  for (std::thread& t : pool) t.join();
+  for (const absl::Status& s : status) {
+    if (!s.ok()) return s;
+  }
+  for (size_t i = 1; i < scans.size(); ++i) {
+    if (scans[i].time_us <= scans[i - 1].time_us) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("moving objects: LiDAR times do not increase at frame ", scans[i].frame));
+    }
+  }
+  MovingObjects result;
+  result.frames_used = static_cast<int>(scans.size());
+  result.tracks = TrackObjectsInLevelScans(scans, options);
+  for (MovingObjectTrack& t : result.tracks) {
+    for (ObjectObservation& ob : t.observations) {
+      ob.T_world_motion = T_world_from_level * ob.T_world_motion * T_level_from_world;
+      ob.centroid_world = T_world_from_level * ob.centroid_world;
+    }
+  }
+  return result;
+}
+
+}  // namespace streetsim
