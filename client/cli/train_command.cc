@@ -132,7 +132,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
              {"field-init"}, {"field-lambda-dx"}, {"field-lambda-dsh"}, {"field-l1-time-planes"},
              {"field-lr-scale"}, {"field-lr-decay-iterations"}, {"field-time-resolution"},
              {"position-lr-decay-iterations"}, {"field-ext-lr-scale"}, {"field-ext-lr-decay-iterations"},
-             {"low-res-scale"}, {"low-res-iterations"}});
+             {"low-res-scale"}, {"low-res-iterations"}, {"field-motion-prior"}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
@@ -289,6 +289,19 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     if (args->Has(flag) && opt.field.mode == train::FieldMode::kStatic) {
       return Fail(2, absl::InvalidArgumentError(absl::StrCat("--", flag, " needs a field (a static run has none)")));
     }
+  }
+  // The LiDAR motion prior (docs/training.md "Motion prior"): the weight of Δx's pull towards the
+  // motion of the moving objects tracked in the training frames' scans.
+  if (auto v = args->Get("field-motion-prior")) {
+    double w;
+    if (!absl::SimpleAtod(*v, &w) || !(w >= 0 && w <= 1e4)) {
+      return Fail(2, absl::InvalidArgumentError(
+                         absl::StrCat("--field-motion-prior must be a number in [0, 10000], not '", *v, "'")));
+    }
+    if (opt.field.mode == train::FieldMode::kStatic) {
+      return Fail(2, absl::InvalidArgumentError("--field-motion-prior needs a field (a static run has none)"));
+    }
+    opt.motion_prior.weight = w;
   }
   // The field's learning rates (docs/training.md "Field learning rates"): a multiplier on both
   // groups and the length of their exponential decay (spec 30 000 fine iterations). streetsim's

@@ -1,10 +1,12 @@
 #include "scene/init/moving_objects.h"
 
-#include <Eigen/Eigenvalues>
 #include <algorithm>
 #include <cmath>
+#include <memory>
 #include <thread>
 #include <unordered_map>
+
+#include <Eigen/Eigenvalues>
 
 #include "absl/strings/str_cat.h"
 #include "scene/log/kdtree.h"
@@ -284,6 +286,7 @@ std::vector<MovingObjectTrack> TrackObjectsInLevelScans(const std::vector<LevelS
       ob.num_points = static_cast<int>(obj.points.size());
       ob.num_dynamic = obj.num_dynamic;
       ob.icp_rms_m = rms;
+      if (o.keep_points) ob.points_world = obj.thinned;
       tr.out.observations.push_back(ob);
     }
     std::vector<size_t> still_active;
@@ -308,6 +311,7 @@ std::vector<MovingObjectTrack> TrackObjectsInLevelScans(const std::vector<LevelS
       ob.centroid_world = obj.centroid;
       ob.num_points = static_cast<int>(obj.points.size());
       ob.num_dynamic = obj.num_dynamic;
+      if (o.keep_points) ob.points_world = obj.thinned;
       tr.out.observations.push_back(ob);
       still_active.push_back(tracks.size());
       tracks.push_back(std::move(tr));
@@ -405,6 +409,8 @@ absl::StatusOr<MovingObjects> TrackMovingObjects(const DriveLog& log, const Movi
     for (ObjectObservation& ob : t.observations) {
       ob.T_world_motion = T_world_from_level * ob.T_world_motion * T_level_from_world;
       ob.centroid_world = T_world_from_level * ob.centroid_world;
+      const Eigen::Isometry3f T = T_world_from_level.cast<float>();
+      for (Eigen::Vector3f& p : ob.points_world) p = T * p;
     }
   }
   return result;

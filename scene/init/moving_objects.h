@@ -41,6 +41,7 @@ struct MovingObjectOptions {
   double match_distance_m = 0.5;       // a predicted point is on an object within this
   double min_overlap = 0.3;            // share of a track's predicted points an object must cover
   int max_missed_frames = 3;           // a track ends after this many scans without its object
+  bool keep_points = false;            // ObjectObservation::points_world (thinned to 15 cm)
 };
 
 struct ObjectObservation {
@@ -53,6 +54,7 @@ struct ObjectObservation {
   int num_points = 0;
   int num_dynamic = 0;
   double icp_rms_m = 0;  // of the registration that placed it; 0 for the first observation
+  std::vector<Eigen::Vector3f> points_world;  // with MovingObjectOptions::keep_points
 };
 
 struct MovingObjectTrack {

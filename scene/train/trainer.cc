@@ -295,6 +295,28 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     return WriteCheckpointRun(out_dir, run);
   };
 
+  // The fine stage's motion prior: the log's moving objects tracked once, Gaussians assigned to
+  // them whenever the rows change.
+  std::unique_ptr<MotionPrior> motion_prior;
+  bool prior_rows_changed = true;
+  std::vector<float> prior_grad;
+  if (dynamic && opt.motion_prior.weight > 0) {
+    if (opt.lidar_log == nullptr) return absl::FailedPreconditionError("the motion prior needs the log's LiDAR");
+    const auto t0 = Clock::now();
+    // Tracked in the training frames' scans only: held-out frames are never used.
+    DriveLog train_log = *opt.lidar_log;
+    train_log.frames.clear();
+    for (size_t f = 0; f < opt.lidar_log->frames.size(); ++f) {
+      if (!IsHeldOut(static_cast<int>(f), opt.holdout_every)) train_log.frames.push_back(opt.lidar_log->frames[f]);
+    }
+    absl::StatusOr<std::unique_ptr<MotionPrior>> mp = MotionPrior::Build(train_log, opt.motion_prior);
+    if (!mp.ok()) return mp.status();
+    motion_prior = std::move(*mp);
+    LOG(INFO) << "motion prior: " << motion_prior->num_tracks() << " moving objects from " << train_log.frames.size()
+              << " training frames' LiDAR (" << std::chrono::duration<double>(Clock::now() - t0).count()
+              << " s), weight " << opt.motion_prior.weight;
+  }
+
   // LiDAR losses (lidar_stage.h) on every stage.
   std::unique_ptr<LidarStage> lidar_stage;
   if (opt.lidar_weight > 0 && opt.lidar_log != nullptr) {
@@ -414,10 +436,28 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     if (absl::Status s = GuardGradients(it, st.size(), kMaxNonFiniteGradientFraction, &grads, pool); !s.ok()) {
       return s;
     }
+    if (fine && motion_prior) {
+      if (prior_rows_changed || motion_prior->n() != st.size()) {
+        motion_prior->Assign(st.params.means.data(), st.size(), pool);
+        if (motion_prior->n() == 0 || prior_grad.empty()) {
+          LOG(INFO) << "motion prior: " << motion_prior->assigned() << " of " << st.size()
+                    << " Gaussians on moving objects";
+        }
+        prior_rows_changed = false;
+      }
+      prior_grad.assign(st.size() * 3, 0.0f);
+      loss += motion_prior->AddGradient(view.time_us, st.params.means.data(), stage->deformed_means().data(),
+                                        prior_grad.data(), pool);
+      for (size_t k = 0; k < prior_grad.size(); ++k) grads.means[k] += prior_grad[k];
+    }
     if (fine) {
       absl::StatusOr<double> field_loss = stage->Backward(st, active, stage_it, &grads, *field_pool);
       if (!field_loss.ok()) return field_loss.status();
       loss += *field_loss;
+    }
+    // The prior depends on Δx alone: its identity path into the canonical means comes back out.
+    if (fine && motion_prior) {
+      for (size_t k = 0; k < prior_grad.size(); ++k) grads.means[k] -= prior_grad[k];
     }
 
     bool replaced = false;
@@ -431,6 +471,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
         if (fine) {
           if (absl::Status s = stage->OrderGaussians(&st, pool); !s.ok()) return s;
         }
+        prior_rows_changed = true;
         LOG(INFO) << "iteration " << it << ": densified +" << added << " -" << removed << " -> " << st.size();
         replaced = true;
       }
@@ -552,6 +593,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       meta["field_lambda_dx"] = opt.field.hyper.lambda_dx;  // the Δ sparsity weights trained with
       meta["field_lambda_dsh"] = opt.field.hyper.lambda_dsh;
       meta["field_l1_time_planes"] = opt.field.hyper.l1_time_planes;
+      meta["field_motion_prior"] = opt.motion_prior.weight;
       meta["field_lr_scale"] = opt.field.hyper.lr_scale;  // the field's learning-rate schedule
       meta["field_lr_decay_iterations"] = opt.field.hyper.lr_decay_steps;
       meta["field_time_resolution"] = stage->field().config().time_resolution;  // cells along time

@@ -17,6 +17,7 @@
 #include "scene/train/dataset.h"
 #include "scene/train/dynamic_stage.h"
 #include "scene/train/lidar_stage.h"
+#include "scene/train/motion_prior.h"
 #include "scene/train/train_state.h"
 
 namespace streetsim::train {
@@ -49,6 +50,8 @@ struct TrainOptions {
   // Static only, or S3Gaussian's static + fine stages with the deformation field (iterations is
   // the total; field.static_iterations < iterations). docs/training.md "Dynamic field".
   FieldOptions field;
+  // The fine stage's LiDAR motion prior (motion_prior.h; weight 0: off). Built from lidar_log.
+  MotionPriorOptions motion_prior;
   // LiDAR losses (lidar_stage.h, docs/training.md "LiDAR losses"): scales the three terms'
   // weights (LidarLossWeights); 0 disables them. Static iterations only; needs lidar_log.
   double lidar_weight = 1.0;

@@ -208,7 +208,7 @@ TEST(CliField, BadValuesExitTwoWithOneLine) {
            train + " --iterations 20 --field s3gaussian --static-iterations -1",
            train + " --iterations 20 --field s3gaussian --static-iterations x",
            train + " --iterations 20 --field static --static-iterations 5",  // needs --field s3gaussian
-           train + " --iterations 100 --field s3gaussian",     // the default 5000 static iterations
+           train + " --iterations 100 --field s3gaussian",                   // the default 5000 static iterations
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-size huge",
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-device gpu",
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-init random",
@@ -220,6 +220,10 @@ TEST(CliField, BadValuesExitTwoWithOneLine) {
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-l1-time-planes -0.1",
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-l1-time-planes 1e3",
            train + " --iterations 20 --field static --field-l1-time-planes 0.1",
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-motion-prior -1",
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-motion-prior nan",
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-motion-prior 1e5",
+           train + " --iterations 20 --field static --field-motion-prior 1",
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-lr-scale 0",
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-lr-scale -3",
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-lr-scale 1e4",
@@ -248,7 +252,7 @@ TEST(CliField, BadValuesExitTwoWithOneLine) {
            train + " --iterations 20 --static-iterations 5 --field extended --field-ext-lr-scale 1e4",
            train + " --iterations 20 --static-iterations 5 --field extended --field-ext-lr-decay-iterations 0",
            train + " --iterations 20 --static-iterations 5 --field extended --field-ext-lr-decay-iterations 1.5",
-           eval + " --static-motion-m 0.1",                 // needs --served
+           eval + " --static-motion-m 0.1",  // needs --served
            eval + " --served --static-sh -1",
            eval + " --served --static-motion-m nan",
            eval + " --served --static-motion-m 1e6",
@@ -281,9 +285,13 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
   const std::string staged_dir = streetsim::testing::ScratchDir("streetsim_cli_field_default", "staged");
   r = RunCli("train --log " + kKitti + " --out " + staged_dir + " --iterations 10 --static-iterations 6" +
              " --field-lambda-dx 0.25 --field-lambda-dsh 0 --field-l1-time-planes 0.5" +
-             " --field-lr-scale 2.5 --field-lr-decay-iterations 4000 --field-time-resolution 5" + common);
+             " --field-lr-scale 2.5 --field-lr-decay-iterations 4000 --field-time-resolution 5" +
+             " --field-motion-prior 0.5" + common);
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_NE(r.err.find("--field s3gaussian (the default"), std::string::npos) << r.err;
+  // The motion prior tracks the training frames' scans only (78 frames, every 10th held out).
+  EXPECT_NE(r.err.find("moving objects from 71 training frames' LiDAR"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("Gaussians on moving objects"), std::string::npos) << r.err;
   // Where the fine stage's time went, once at the end (docs/training.md "Fine-stage timings").
   EXPECT_NE(r.err.find("fine stage: 4 iterations, ms per iteration: field forward"), std::string::npos) << r.err;
   // The progress's ETA says when it covers the static stage only (the fine stage is slower).
@@ -300,6 +308,7 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
   EXPECT_DOUBLE_EQ(staged_meta["field_lambda_dx"].get<double>(), 0.25);  // the weights given
   EXPECT_DOUBLE_EQ(staged_meta["field_lambda_dsh"].get<double>(), 0.0);
   EXPECT_DOUBLE_EQ(staged_meta["field_l1_time_planes"].get<double>(), 0.5);
+  EXPECT_DOUBLE_EQ(staged_meta["field_motion_prior"].get<double>(), 0.5);
   EXPECT_DOUBLE_EQ(staged_meta["field_lr_scale"].get<double>(), 2.5);  // the learning-rate schedule given
   EXPECT_EQ(staged_meta["field_lr_decay_iterations"], 4000);
   EXPECT_EQ(staged_meta["field_time_resolution"], 5);  // the field's cells along time (spec 25)
