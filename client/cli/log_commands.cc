@@ -41,6 +41,12 @@ absl::StatusOr<std::string> OnePath(const ParsedArgs& args) {
   return args.positional()[0];
 }
 
+// --frames A:B[:S]; every frame when absent.
+absl::StatusOr<FrameRange> FramesFlag(const ParsedArgs& args) {
+  if (auto f = args.Get("frames")) return ParseFrameRange(*f);
+  return FrameRange{};
+}
+
 absl::StatusOr<int> FrameFlag(const ParsedArgs& args, const DriveLog& log) {
   const std::string text = args.Get("frame").value_or("0");
   int frame;
@@ -204,12 +210,9 @@ int Poses(const std::vector<std::string>& argv) {
   if (!args.ok()) return Fail("poses", 2, args.status());
   absl::StatusOr<std::string> path = OnePath(*args);
   if (!path.ok()) return Fail("poses", 2, path.status());
-  FrameRange range;
-  if (auto f = args->Get("frames")) {
-    absl::StatusOr<FrameRange> r = ParseFrameRange(*f);
-    if (!r.ok()) return Fail("poses", 2, r.status());
-    range = *r;
-  }
+  absl::StatusOr<FrameRange> frames_flag = FramesFlag(*args);
+  if (!frames_flag.ok()) return Fail("poses", 2, frames_flag.status());
+  const FrameRange range = *frames_flag;
   absl::StatusOr<DriveLog> log = OpenLog(*path);
   if (!log.ok()) return Fail("poses", ExitCodeForLog(log.status()), log.status());
   std::vector<int> frames = range.Select(*log);
@@ -282,11 +285,9 @@ int Tracks(const std::vector<std::string>& argv) {
   absl::StatusOr<std::string> path = OnePath(*args);
   if (!path.ok()) return Fail("tracks", 2, path.status());
   MovingObjectOptions options;
-  if (auto f = args->Get("frames")) {
-    absl::StatusOr<FrameRange> r = ParseFrameRange(*f);
-    if (!r.ok()) return Fail("tracks", 2, r.status());
-    options.frames = *r;
-  }
+  absl::StatusOr<FrameRange> frames_flag = FramesFlag(*args);
+  if (!frames_flag.ok()) return Fail("tracks", 2, frames_flag.status());
+  options.frames = *frames_flag;
   if (options.frames.stride != 1) {
     return Fail("tracks", 2, absl::InvalidArgumentError("--frames: tracking needs consecutive frames (stride 1)"));
   }
