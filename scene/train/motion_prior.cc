@@ -81,16 +81,15 @@ void MotionPrior::Assign(const float* means, size_t n, ThreadPool& pool) {
     for (int64_t i = begin; i < end; ++i) {
       const Eigen::Vector3f q(means[i * 3], means[i * 3 + 1], means[i * 3 + 2]);
       const int found = tree_.KNearest(q, kK, r2, idx, d2);
-      // The latest scan among the nearby points: where a vehicle stops is its latest place.
-      int64_t best_time = INT64_MIN;
+      // On an object where its track ends only (the nearest such point): a static stage fits a
+      // vehicle where it stands at the end of the log, and the Gaussians it left on the vehicle's
+      // earlier places are a smear that, carried along, would lie over it there.
       for (int k = 0; k < found; ++k) {
         const int t = point_track_[idx[k]], o = point_obs_[idx[k]];
-        const int64_t time = tracks_[t].time_us[o];
-        if (time > best_time) {
-          best_time = time;
-          track_of_[i] = t;
-          obs_of_[i] = o;
-        }
+        if (o + 1 != static_cast<int>(tracks_[t].time_us.size())) continue;
+        track_of_[i] = t;
+        obs_of_[i] = o;
+        break;
       }
     }
   });

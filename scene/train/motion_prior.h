@@ -6,10 +6,10 @@
 // recolours instead of carrying it (docs/field.md "What limits held-out PSNR", session 22). The
 // prior gives the field the motion the LiDAR measured: the log's moving objects are followed in
 // its scans (scene/init/moving_objects.h, training frames only), and a canonical Gaussian that
-// lies on an object's points (within radius_m) is assigned to that object at the latest scan
-// where it does (a static stage's canonical vehicle sits where the vehicle stops, which is its
-// latest place). At a view's time t its Δx is pulled towards the object's rigid motion from that
-// scan to t:
+// lies on an object's points (within radius_m) at the object's last scan is assigned to it (a
+// static stage fits a vehicle where it stands at the end of the log; Gaussians on its earlier
+// places are smear, and carried along they would lie over it: measured, docs/training.md). At a
+// view's time t its Δx is pulled towards the object's rigid motion from that scan to t:
 //   target_i(t) = M(t) M(t_ref)^-1 μ_i - μ_i,   L = W / N Σ_i huber(|Δx_i - target_i|, huber_m)
 // over the N assigned Gaussians. L depends on Δx only, so its gradient enters the field and the
 // canonical means only through the field (the trainer adds it to dL/d(deformed means) before the
