@@ -303,10 +303,7 @@ int Tracks(const std::vector<std::string>& argv) {
   absl::StatusOr<DriveLog> log = OpenLog(*path);
   if (!log.ok()) return Fail("tracks", ExitCodeForLog(log.status()), log.status());
   absl::StatusOr<MovingObjects> objects = TrackMovingObjects(*log, options);
-  if (!objects.ok()) {
-    const absl::Status& s = objects.status();
-    return Fail("tracks", absl::IsInvalidArgument(s) || absl::IsFailedPrecondition(s) ? 2 : ExitCodeForLog(s), s);
-  }
+  if (!objects.ok()) return Fail("tracks", ExitCodeForLog(objects.status()), objects.status());
   std::vector<const MovingObjectTrack*> shown;
   for (const MovingObjectTrack& t : objects->tracks) {
     if (static_cast<int>(t.observations.size()) >= min_scans && t.NetDisplacementM() >= min_displacement_m) {

@@ -90,28 +90,40 @@ DynamicMask DynamicMaskFromScans(const std::vector<Eigen::Vector3f>& scan,
   return mask;
 }
 
+namespace {
+// The frame's first LiDAR's scan, or null.
+const LidarObservation* ScanOf(const DriveLog& log, int frame) {
+  for (const LidarObservation& o : log.frames[frame].lidars) {
+    if (o.lidar == 0) return &o;
+  }
+  return nullptr;
+}
+}  // namespace
+
 absl::StatusOr<DynamicMask> ComputeDynamicMask(const DriveLog& log, int frame,
                                                const DynamicMaskOptions& options) {
   if (frame < 0 || frame >= static_cast<int>(log.frames.size())) {
     return absl::OutOfRangeError(absl::StrCat("frame ", frame, " not in 0..", log.frames.size() - 1));
   }
-  const auto scan_of = [&](int f) -> const LidarObservation* {
-    for (const LidarObservation& o : log.frames[f].lidars) {
-      if (o.lidar == 0) return &o;
-    }
-    return nullptr;
-  };
-  const LidarObservation* obs = scan_of(frame);
+  const LidarObservation* obs = ScanOf(log, frame);
   if (obs == nullptr) return absl::FailedPreconditionError(absl::StrCat("frame ", frame, " has no LiDAR scan"));
   absl::StatusOr<LidarScan> scan = LoadLidarScan(obs->path);
   if (!scan.ok()) return scan.status();
+  return ComputeDynamicMask(log, frame, scan->points, options);
+}
+
+absl::StatusOr<DynamicMask> ComputeDynamicMask(const DriveLog& log, int frame, const std::vector<Eigen::Vector3f>& scan,
+                                               const DynamicMaskOptions& options) {
+  if (frame < 0 || frame >= static_cast<int>(log.frames.size())) {
+    return absl::OutOfRangeError(absl::StrCat("frame ", frame, " not in 0..", log.frames.size() - 1));
+  }
   const Eigen::Isometry3d T_ego_from_lidar = log.lidars[0].T_ego_from_lidar;
   const Eigen::Isometry3d T_lidar_from_world =
       (log.frames[frame].T_world_from_ego * T_ego_from_lidar).inverse();
   std::vector<NeighbourScan> neighbours;
   for (int f : {frame - options.frame_gap, frame + options.frame_gap}) {
     if (f < 0 || f >= static_cast<int>(log.frames.size())) continue;
-    const LidarObservation* n = scan_of(f);
+    const LidarObservation* n = ScanOf(log, f);
     if (n == nullptr) continue;
     absl::StatusOr<LidarScan> other = LoadLidarScan(n->path);
     if (!other.ok()) return other.status();
@@ -122,7 +134,7 @@ absl::StatusOr<DynamicMask> ComputeDynamicMask(const DriveLog& log, int frame,
     return absl::FailedPreconditionError(absl::StrCat("frame ", frame, ": no neighbouring scan within ",
                                                       options.frame_gap, " frames"));
   }
-  return DynamicMaskFromScans(scan->points, neighbours, options);
+  return DynamicMaskFromScans(scan, neighbours, options);
 }
 
 }  // namespace streetsim

@@ -36,6 +36,10 @@ struct DynamicMask {
 // Mask for log.frames[frame]'s first LiDAR scan.
 absl::StatusOr<DynamicMask> ComputeDynamicMask(const DriveLog& log, int frame,
                                                const DynamicMaskOptions& options = {});
+// The same for the frame's scan already loaded (LoadLidarScan's points, sensor frame); only the
+// neighbours are read.
+absl::StatusOr<DynamicMask> ComputeDynamicMask(const DriveLog& log, int frame, const std::vector<Eigen::Vector3f>& scan,
+                                               const DynamicMaskOptions& options = {});
 
 struct NeighbourScan {
   std::vector<Eigen::Vector3f> points;  // in the neighbour's own sensor frame

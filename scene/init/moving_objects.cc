@@ -366,9 +366,8 @@ absl::StatusOr<MovingObjects> TrackMovingObjects(const DriveLog& log, const Movi
     if (obs == nullptr) return absl::FailedPreconditionError(absl::StrCat("frame ", f, " has no LiDAR scan"));
     absl::StatusOr<LidarScan> scan = LoadLidarScan(obs->path);
     if (!scan.ok()) return scan.status();
-    absl::StatusOr<DynamicMask> mask = ComputeDynamicMask(log, f, options.dynamic);
+    absl::StatusOr<DynamicMask> mask = ComputeDynamicMask(log, f, scan->points, options.dynamic);
     if (!mask.ok()) return mask.status();
-    if (mask->dynamic.size() != scan->points.size()) return absl::InternalError("dynamic mask size mismatch");
     const double ground_z = GroundZ(scan->points);
     const Eigen::Isometry3f T_level_from_lidar =
         (T_level_from_world * log.frames[f].T_world_from_ego * T_ego_from_lidar).cast<float>();

@@ -13,10 +13,11 @@
 // returned in the world frame.
 #pragma once
 
-#include <Eigen/Core>
-#include <Eigen/Geometry>
 #include <cstdint>
 #include <vector>
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
 
 #include "absl/status/statusor.h"
 #include "scene/init/dynamic_mask.h"

@@ -63,9 +63,13 @@ std::unique_ptr<MotionPrior> MotionPrior::FromTracks(std::vector<Track> tracks, 
   auto p = std::unique_ptr<MotionPrior>(new MotionPrior());
   p->options_ = options;
   p->tracks_ = std::move(tracks);
-  p->points_ = std::move(points);
-  p->point_track_ = std::move(point_track);
-  p->point_obs_ = std::move(point_obs);
+  // Only where each track ends is a Gaussian assigned (Assign), so only those points are searched.
+  for (size_t k = 0; k < points.size(); ++k) {
+    if (point_obs[k] + 1 != static_cast<int>(p->tracks_[point_track[k]].time_us.size())) continue;
+    p->points_.push_back(points[k]);
+    p->point_track_.push_back(point_track[k]);
+    p->point_obs_.push_back(point_obs[k]);
+  }
   p->tree_.Build(&p->points_);
   return p;
 }
@@ -75,22 +79,14 @@ void MotionPrior::Assign(const float* means, size_t n, ThreadPool& pool) {
   obs_of_.assign(n, -1);
   const float r2 = static_cast<float>(options_.radius_m * options_.radius_m);
   pool.ParallelFor(static_cast<int64_t>(n), 4096, [&](int64_t begin, int64_t end, int) {
-    constexpr int kK = 32;
-    int idx[kK];
-    float d2[kK];
     for (int64_t i = begin; i < end; ++i) {
-      const Eigen::Vector3f q(means[i * 3], means[i * 3 + 1], means[i * 3 + 2]);
-      const int found = tree_.KNearest(q, kK, r2, idx, d2);
-      // On an object where its track ends only (the nearest such point): a static stage fits a
-      // vehicle where it stands at the end of the log, and the Gaussians it left on the vehicle's
-      // earlier places are a smear that, carried along, would lie over it there.
-      for (int k = 0; k < found; ++k) {
-        const int t = point_track_[idx[k]], o = point_obs_[idx[k]];
-        if (o + 1 != static_cast<int>(tracks_[t].time_us.size())) continue;
-        track_of_[i] = t;
-        obs_of_[i] = o;
-        break;
-      }
+      // On an object where its track ends (the nearest such point; the tree holds no other): a
+      // static stage fits a vehicle where it stands at the end of the log, and the Gaussians it
+      // left on the vehicle's earlier places are a smear that, carried along, would lie over it.
+      const int k = tree_.Nearest(Eigen::Vector3f(means[i * 3], means[i * 3 + 1], means[i * 3 + 2]), r2);
+      if (k < 0) continue;
+      track_of_[i] = point_track_[k];
+      obs_of_[i] = point_obs_[k];
     }
   });
   assigned_ = static_cast<size_t>(std::count_if(track_of_.begin(), track_of_.end(), [](int t) { return t >= 0; }));

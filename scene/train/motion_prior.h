@@ -66,7 +66,7 @@ class MotionPrior {
     Eigen::Isometry3d At(int64_t t) const;
   };
   // For tests: a prior over given tracks and points (points[k] on track point_track[k] at its
-  // observation point_obs[k]).
+  // observation point_obs[k]; only the points of each track's last observation are kept).
   static std::unique_ptr<MotionPrior> FromTracks(std::vector<Track> tracks, std::vector<Eigen::Vector3f> points,
                                                  std::vector<int> point_track, std::vector<int> point_obs,
                                                  const MotionPriorOptions& options);

@@ -96,12 +96,23 @@ absl::StatusOr<SceneMeta> ReadSceneMeta(const std::string& dir) {
   return meta;
 }
 
-absl::StatusOr<GaussianStore> BuildTrainingInitialScene(const DriveLog& log, int first_frame, int end_frame,
-                                                        const TrainOptions& opt) {
+namespace {
+
+// A copy of `log` with only frames [first_frame, end_frame) that are not held out: what scene init
+// and the motion prior may see.
+DriveLog TrainingFramesLog(const DriveLog& log, int first_frame, int end_frame, int holdout_every) {
   DriveLog train_log = log;
   train_log.frames.clear();
   for (int f = first_frame; f < end_frame; ++f)
-    if (!IsHeldOut(f, opt.holdout_every)) train_log.frames.push_back(log.frames[f]);
+    if (!IsHeldOut(f, holdout_every)) train_log.frames.push_back(log.frames[f]);
+  return train_log;
+}
+
+}  // namespace
+
+absl::StatusOr<GaussianStore> BuildTrainingInitialScene(const DriveLog& log, int first_frame, int end_frame,
+                                                        const TrainOptions& opt) {
+  const DriveLog train_log = TrainingFramesLog(log, first_frame, end_frame, opt.holdout_every);
   InitOptions iopt;
   iopt.voxel_m = opt.init_voxel_m;
   iopt.seed = static_cast<unsigned>(opt.seed + 1);
@@ -295,26 +306,13 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     return WriteCheckpointRun(out_dir, run);
   };
 
-  // The fine stage's motion prior: the log's moving objects tracked once, Gaussians assigned to
-  // them whenever the rows change.
+  // The fine stage's motion prior (built when the fine stage starts): the log's moving objects
+  // tracked once, Gaussians assigned to them whenever the rows change.
   std::unique_ptr<MotionPrior> motion_prior;
   bool prior_rows_changed = true;
   std::vector<float> prior_grad;
-  if (dynamic && opt.motion_prior.weight > 0) {
-    if (opt.lidar_log == nullptr) return absl::FailedPreconditionError("the motion prior needs the log's LiDAR");
-    const auto t0 = Clock::now();
-    // Tracked in the training frames' scans only: held-out frames are never used.
-    DriveLog train_log = *opt.lidar_log;
-    train_log.frames.clear();
-    for (size_t f = 0; f < opt.lidar_log->frames.size(); ++f) {
-      if (!IsHeldOut(static_cast<int>(f), opt.holdout_every)) train_log.frames.push_back(opt.lidar_log->frames[f]);
-    }
-    absl::StatusOr<std::unique_ptr<MotionPrior>> mp = MotionPrior::Build(train_log, opt.motion_prior);
-    if (!mp.ok()) return mp.status();
-    motion_prior = std::move(*mp);
-    LOG(INFO) << "motion prior: " << motion_prior->num_tracks() << " moving objects from " << train_log.frames.size()
-              << " training frames' LiDAR (" << std::chrono::duration<double>(Clock::now() - t0).count()
-              << " s), weight " << opt.motion_prior.weight;
+  if (dynamic && opt.motion_prior.weight > 0 && opt.lidar_log == nullptr) {
+    return absl::FailedPreconditionError("the motion prior needs the log's LiDAR");
   }
 
   // LiDAR losses (lidar_stage.h) on every stage.
@@ -436,13 +434,24 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     if (absl::Status s = GuardGradients(it, st.size(), kMaxNonFiniteGradientFraction, &grads, pool); !s.ok()) {
       return s;
     }
+    if (fine && opt.motion_prior.weight > 0 && !motion_prior) {
+      const auto t0 = Clock::now();
+      // Tracked in the training frames' scans only: held-out frames are never used.
+      const DriveLog train_log =
+          TrainingFramesLog(*opt.lidar_log, 0, static_cast<int>(opt.lidar_log->frames.size()), opt.holdout_every);
+      absl::StatusOr<std::unique_ptr<MotionPrior>> mp = MotionPrior::Build(train_log, opt.motion_prior);
+      if (!mp.ok()) return mp.status();
+      motion_prior = std::move(*mp);
+      motion_prior->Assign(st.params.means.data(), st.size(), pool);
+      prior_rows_changed = false;
+      LOG(INFO) << "motion prior: " << motion_prior->num_tracks() << " moving objects from " << train_log.frames.size()
+                << " training frames' LiDAR (" << std::chrono::duration<double>(Clock::now() - t0).count()
+                << " s), weight " << opt.motion_prior.weight << "; " << motion_prior->assigned() << " of " << st.size()
+                << " Gaussians on moving objects";
+    }
     if (fine && motion_prior) {
       if (prior_rows_changed || motion_prior->n() != st.size()) {
         motion_prior->Assign(st.params.means.data(), st.size(), pool);
-        if (motion_prior->n() == 0 || prior_grad.empty()) {
-          LOG(INFO) << "motion prior: " << motion_prior->assigned() << " of " << st.size()
-                    << " Gaussians on moving objects";
-        }
         prior_rows_changed = false;
       }
       prior_grad.assign(st.size() * 3, 0.0f);

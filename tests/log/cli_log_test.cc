@@ -141,6 +141,11 @@ TEST(CliLog, TracksFollowTheTanker) {
   const double y = (*tanker)["observations"][0]["centroid_world"][1];
   EXPECT_LT(y, -1.5) << "the tanker is on the right";
   fs::remove(out);
+  // An unwritable --json: exit 1 and one line naming it, nothing left behind.
+  const Result bad = Exec("log tracks " + kData + "/kitti_raw/2011_09_26 --frames 0:3 --json /nonexistent_dir/t.json");
+  EXPECT_EQ(bad.exit_code, 1) << bad.err;
+  EXPECT_EQ(Lines(bad.err), 1) << bad.err;
+  EXPECT_NE(bad.err.find("/nonexistent_dir/t.json"), std::string::npos) << bad.err;
 }
 
 TEST(CliLog, BadInputIsExitTwoAndOneLine) {
