@@ -9,6 +9,7 @@
 #include "scene/field/extended/extended_config.h"
 #include "scene/train/clips.h"
 #include "scene/train/dynamic_stage.h"
+#include "scene/train/motion_prior.h"
 #include "scene/train/resolution_schedule.h"
 
 namespace streetsim::server {
@@ -55,7 +56,8 @@ absl::Status ValidateTrainingConfig(const v1::TrainingConfig& c) {
       c.low_res_scale() != 0 || c.low_res_iterations() != 0 || c.has_holdout_every() || c.clip_frames() != 0 ||
       c.has_clip_overlap() || c.field_lr_scale() != 0 || c.field_lr_decay_iterations() != 0 || !c.backend().empty() ||
       !c.continue_from_scene().empty() || c.pose_refinement() || c.pose_lr_scale() != 0 ||
-      c.position_lr_decay_iterations() != 0 || c.field_ext_lr_scale() != 0 || c.field_ext_lr_decay_iterations() != 0;
+      c.position_lr_decay_iterations() != 0 || c.field_ext_lr_scale() != 0 || c.field_ext_lr_decay_iterations() != 0 ||
+      c.has_field_motion_prior();
   if (c.max_iterations() == 0) {
     if (asks_training_options) return Bad("training options need max_iterations > 0 (0 is init only)");
     return absl::OkStatus();
@@ -83,6 +85,11 @@ absl::Status ValidateTrainingConfig(const v1::TrainingConfig& c) {
     if (c.field_lr_scale() != 0 || c.field_lr_decay_iterations() != 0) {
       return Bad("field_lr_scale / field_lr_decay_iterations need a field (this run is static)");
     }
+    if (c.has_field_motion_prior()) return Bad("field_motion_prior needs a field (this run is static)");
+  }
+  if (c.has_field_motion_prior() &&
+      !(c.field_motion_prior() >= 0 && c.field_motion_prior() <= train::kMaxMotionPriorWeight)) {
+    return Bad("field_motion_prior must be in [0, 10000] (0: off)");
   }
   if (!(std::isfinite(c.field_lr_scale()) && c.field_lr_scale() >= 0 && c.field_lr_scale() <= 1000)) {
     return Bad("field_lr_scale must be in (0, 1000] (0: the default)");
@@ -169,6 +176,7 @@ std::vector<std::string> TrainFlags(const v1::TrainingConfig& c) {
   if (c.field_ext_lr_decay_iterations() != 0) {
     add("--field-ext-lr-decay-iterations", std::to_string(c.field_ext_lr_decay_iterations()));
   }
+  if (c.has_field_motion_prior()) add("--field-motion-prior", Number(c.field_motion_prior()));
   if (!c.backend().empty()) add("--backend", c.backend());
   if (c.pose_refinement()) f.push_back("--pose-refinement");
   if (c.pose_lr_scale() != 0) add("--pose-lr-scale", Number(c.pose_lr_scale()));

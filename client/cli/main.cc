@@ -64,6 +64,7 @@ constexpr char kUsage[] =
                "              [--field-ext-lr-scale S] [--field-ext-lr-decay-iterations N]   (--field extended:\n"
                "               the modules' lr 1.6e-3 x S, decayed over N fine iterations (30000);\n"
                "               a resume keeps its own)\n"
+               "              [--field-motion-prior W]   (LiDAR motion prior, 0: off; a resume keeps its own)\n"
                "              [--position-lr-decay-iterations N]   (the Gaussian means' lr decay, over N\n"
                "               iterations of a stage; 3DGS's 30000; a resume keeps its own)\n"
                "              [--clip-frames N [--clip-overlap K (default N/10)]]\n"

@@ -236,6 +236,7 @@ static absl::Status TrainingConfigFromFlags(const ParsedArgs& args, v1::Training
            number("field-lr-scale", [&](double x) { c->set_field_lr_scale(x); }),
            number("field-ext-lr-scale", [&](double x) { c->set_field_ext_lr_scale(x); }),
            number("pose-lr-scale", [&](double x) { c->set_pose_lr_scale(x); }),
+           number("field-motion-prior", [&](double x) { c->set_field_motion_prior(x); }),
        }) {
     if (!s.ok()) return s;
   }
@@ -251,7 +252,7 @@ int RunJobsCommand(const std::vector<std::string>& argv) {
                                               {"field-lr-decay-iterations"}, {"position-lr-decay-iterations"},
                                               {"field-ext-lr-scale"}, {"field-ext-lr-decay-iterations"},
                                               {"backend"}, {"continue-from"}, {"pose-refinement", false},
-                                              {"pose-lr-scale"}}));
+                                              {"pose-lr-scale"}, {"field-motion-prior"}}));
   if (!args.ok()) return Fail("jobs", 2, args.status());
   const std::vector<std::string>& pos = args->positional();
   const std::string verb = pos.empty() ? "list" : pos[0];
@@ -297,7 +298,7 @@ int RunJobsCommand(const std::vector<std::string>& argv) {
       "usage: streetsim jobs [list | train LOG_PATH [--scene-name N] [--request-id R] [--max-iterations N] "
       "[streetsim train's --seed --field --field-modules --static-iterations --resolution-scale --low-res-scale "
       "--low-res-iterations --holdout-every --clip-frames --clip-overlap --field-lr-scale --field-lr-decay-iterations "
-      "--position-lr-decay-iterations --field-ext-lr-scale --field-ext-lr-decay-iterations "
+      "--position-lr-decay-iterations --field-ext-lr-scale --field-ext-lr-decay-iterations --field-motion-prior "
       "--backend --pose-refinement --pose-lr-scale] [--continue-from SCENE] [--watch] | watch ID | "
       "get ID | cancel ID] [--server HOST:PORT]"));
 }

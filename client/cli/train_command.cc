@@ -294,7 +294,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   // motion of the moving objects tracked in the training frames' scans.
   if (auto v = args->Get("field-motion-prior")) {
     double w;
-    if (!absl::SimpleAtod(*v, &w) || !(w >= 0 && w <= 1e4)) {
+    if (!absl::SimpleAtod(*v, &w) || !(w >= 0 && w <= train::kMaxMotionPriorWeight)) {
       return Fail(2, absl::InvalidArgumentError(
                          absl::StrCat("--field-motion-prior must be a number in [0, 10000], not '", *v, "'")));
     }
@@ -352,6 +352,13 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
                            s.message(), " (--low-res-iterations 0: none)")));
       }
     }
+  }
+  // ... and its motion prior (a segmented run must not drop it on the resume that forgets the flag;
+  // `--field-motion-prior 0` turns it off).
+  if (resumes_checkpoint && opt.field.mode != train::FieldMode::kStatic && !args->Has("field-motion-prior")) {
+    absl::StatusOr<std::optional<double>> recorded = train::ReadCheckpointMotionPrior(*out);
+    if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
+    if (recorded.ok() && recorded->has_value()) opt.motion_prior.weight = **recorded;
   }
   for (const char* flag : {"field-lr-scale", "field-lr-decay-iterations", "field-time-resolution"}) {
     if (args->Has(flag) && opt.field.mode == train::FieldMode::kStatic) {

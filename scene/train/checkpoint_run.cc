@@ -8,6 +8,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "scene/common/checked_file.h"
+#include "scene/train/motion_prior.h"
 #include "scene/train/train_state.h"
 
 namespace streetsim::train {
@@ -37,6 +38,7 @@ absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run
     j["field_ext_lr_scale"] = run.field_ext_lr->scale;
     j["field_ext_lr_decay_iterations"] = run.field_ext_lr->decay_iterations;
   }
+  if (run.field_motion_prior) j["field_motion_prior"] = *run.field_motion_prior;
   return checked_file::WriteAtomically((std::filesystem::path(dir) / kCheckpointRunFile).string(), j.dump(2) + "\n");
 }
 
@@ -140,6 +142,19 @@ absl::StatusOr<std::optional<int>> ReadCheckpointPositionLrDecay(const std::stri
     }
     return std::optional<int>(n);
   });
+}
+
+absl::StatusOr<std::optional<double>> ReadCheckpointMotionPrior(const std::string& dir) {
+  const std::string path = RunFile(dir);
+  return ParseJsonFile<std::optional<double>>(
+      path, [&](const nlohmann::json& j) -> absl::StatusOr<std::optional<double>> {
+        if (!j.contains("field_motion_prior")) return std::nullopt;
+        const double w = j.at("field_motion_prior").get<double>();
+        if (!(w >= 0 && w <= kMaxMotionPriorWeight)) {
+          return absl::DataLossError(absl::StrCat(path, ": field_motion_prior out of range"));
+        }
+        return std::optional<double>(w);
+      });
 }
 
 absl::StatusOr<int64_t> ReadCheckpointExtensionFrom(const std::string& dir) {

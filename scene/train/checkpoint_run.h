@@ -50,6 +50,8 @@ struct CheckpointRun {
   int64_t field_extension_from = 0;
   // An extended run: the extension's network group (ExtHyper::lr_scale / lr_decay_steps).
   std::optional<FieldLrSchedule> field_ext_lr;
+  // A run with a field: the LiDAR motion prior's weight (MotionPriorOptions::weight; 0: off).
+  std::optional<double> field_motion_prior;
 };
 
 absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run);
@@ -90,6 +92,11 @@ absl::StatusOr<std::optional<int>> ReadCheckpointPositionLrDecay(const std::stri
 // record (such runs trained at ExtHyper's defaults); NotFound without the file; DataLoss where
 // damaged or out of range.
 absl::StatusOr<std::optional<FieldLrSchedule>> ReadCheckpointExtLr(const std::string& dir);
+
+// The LiDAR motion prior's weight the file records (`field_motion_prior`): nullopt where the run
+// is static or the file predates the record (such runs had no prior); NotFound without the file;
+// DataLoss where damaged or out of range.
+absl::StatusOr<std::optional<double>> ReadCheckpointMotionPrior(const std::string& dir);
 
 // The fine iteration an extended run's modules joined at (`field_extension_from`): 0 where the
 // file does not record one (they joined with the fine stage); NotFound without the file; DataLoss

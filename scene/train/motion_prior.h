@@ -29,6 +29,10 @@
 
 namespace streetsim::train {
 
+// The weight's bound (the CLI's, the server's and checkpoint.json's): far above any useful value
+// (0.3 on KITTI), low enough that the loss stays finite.
+inline constexpr double kMaxMotionPriorWeight = 1e4;
+
 struct MotionPriorOptions {
   double weight = 0;                // W; 0: off
   double radius_m = 0.25;           // a Gaussian within this of an object's points is on it

@@ -292,6 +292,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     if (dynamic) {
       run.static_iterations = static_its;
       run.field_lr = FieldLrSchedule{opt.field.hyper.lr_scale, opt.field.hyper.lr_decay_steps};
+      run.field_motion_prior = opt.motion_prior.weight;
     }
     run.low_res = opt.low_res;
     run.position_lr_decay_iterations = h.lr_decay_steps;

@@ -235,6 +235,13 @@ TEST_F(TrainStageTest, AJobContinuesAnotherJobsScene) {
   absl::StatusOr<v1::Job> anneal = client_->CreateTrainingJob(anneal_static);
   EXPECT_EQ(anneal.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(anneal.status().message().find("static scene"), std::string::npos) << anneal.status();
+  // Nor a motion prior.
+  v1::CreateTrainingJobRequest prior_static = JobFor("static_prior", 8);
+  prior_static.mutable_config()->set_continue_from_scene("static_src");
+  prior_static.mutable_config()->set_field_motion_prior(0.3);
+  absl::StatusOr<v1::Job> prior = client_->CreateTrainingJob(prior_static);
+  EXPECT_EQ(prior.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(prior.status().message().find("field_motion_prior need a field"), std::string::npos) << prior.status();
   absl::StatusOr<v1::Scene> scene = client_->LoadScene("longer", true);
   ASSERT_TRUE(scene.ok()) << scene.status();
   EXPECT_EQ(scene->rig().cameras(0).sensor_id(), "cam_logged");  // the source's manifest came along

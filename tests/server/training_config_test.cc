@@ -55,6 +55,7 @@ TEST(TrainingConfig, EveryOptionBecomesTheTrainersFlag) {
     c->set_pose_lr_scale(3);
     c->set_field_ext_lr_scale(0.4);
     c->set_field_ext_lr_decay_iterations(4500);
+    c->set_field_motion_prior(0.3);
   });
   ASSERT_TRUE(ValidateTrainingConfig(c).ok()) << ValidateTrainingConfig(c);
   EXPECT_EQ(TrainFlags(c), (std::vector<std::string>{
@@ -63,11 +64,16 @@ TEST(TrainingConfig, EveryOptionBecomesTheTrainersFlag) {
                                "--low-res-iterations", "3000", "--holdout-every", "0", "--clip-frames", "50",
                                "--clip-overlap", "0", "--field-lr-scale", "2.5", "--field-lr-decay-iterations", "6000",
                                "--field-ext-lr-scale", "0.4", "--field-ext-lr-decay-iterations", "4500",
-                               "--backend", "vulkan", "--pose-refinement", "--pose-lr-scale", "3"}));
+                               "--field-motion-prior", "0.3", "--backend", "vulkan", "--pose-refinement",
+                               "--pose-lr-scale", "3"}));
   // Numbers go to the trainer exactly (not rounded to 6 digits).
   const v1::TrainingConfig exact = Config(300, [](v1::TrainingConfig* c) { c->set_resolution_scale(0.1234567891); });
   EXPECT_EQ(TrainFlags(exact), (std::vector<std::string>{"--resolution-scale", "0.1234567891"}));
-  // Unset optional fields are the trainer's defaults, not 0.
+  // Unset optional fields are the trainer's defaults, not 0; a set 0 is passed on (a continuation
+  // that turns the scene's motion prior off).
+  const v1::TrainingConfig off = Config(9000, [](v1::TrainingConfig* c) { c->set_field_motion_prior(0); });
+  ASSERT_TRUE(ValidateTrainingConfig(off).ok()) << ValidateTrainingConfig(off);
+  EXPECT_EQ(TrainFlags(off), (std::vector<std::string>{"--field-motion-prior", "0"}));
   const v1::TrainingConfig d = Config(300, [](v1::TrainingConfig* c) { c->set_clip_frames(20); });
   EXPECT_EQ(TrainFlags(d), (std::vector<std::string>{"--clip-frames", "20"}));
 }
@@ -142,6 +148,13 @@ TEST(TrainingConfig, BadValuesAreRefusedNamingTheField) {
                 }),
                 "config.field_ext_lr_decay_iterations");
   ExpectRefused(Config(0, [](v1::TrainingConfig* c) { c->set_field_ext_lr_scale(0.5); }), "max_iterations > 0");
+  // The motion prior: a field's, in [0, 10000].
+  ExpectRefused(Config(3000, [](v1::TrainingConfig* c) { c->set_field_motion_prior(0.3); }), "needs a field");
+  ExpectRefused(Config(0, [](v1::TrainingConfig* c) { c->set_field_motion_prior(0.3); }), "max_iterations > 0");
+  for (double bad : {-0.1, 10001.0, double(NAN), double(INFINITY)}) {
+    ExpectRefused(Config(9000, [&](v1::TrainingConfig* c) { c->set_field_motion_prior(bad); }),
+                  "config.field_motion_prior");
+  }
   ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_resolution_scale(1.5); }), "resolution_scale");
   ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_resolution_scale(-0.5); }), "resolution_scale");
   ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_resolution_scale(INFINITY); }), "resolution_scale");

@@ -318,6 +318,7 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
   EXPECT_EQ(staged_run["static_iterations"], 6);
   EXPECT_DOUBLE_EQ(staged_run["field_lr_scale"].get<double>(), 2.5);  // for a resume that does not say
   EXPECT_EQ(staged_run["field_lr_decay_iterations"], 4000);
+  EXPECT_DOUBLE_EQ(staged_run["field_motion_prior"].get<double>(), 0.5);
 
   // A resume keeps the run's own learning-rate schedule: the one checkpoint.json records; for a
   // fine stage from before the file recorded it, the one train_meta.json records where a segment
@@ -342,6 +343,11 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
   r = resume_to(11);
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(meta_lr(), std::make_pair(2.5, 4000));
+  auto meta_prior = [&]() {
+    return nlohmann::json::parse(Slurp(staged_dir + "/train_meta.json"))["field_motion_prior"].get<double>();
+  };
+  EXPECT_DOUBLE_EQ(meta_prior(), 0.5);  // and its motion prior (a segment must not drop it)
+  EXPECT_NE(r.err.find("Gaussians on moving objects"), std::string::npos) << r.err;
   edit_json("checkpoint.json", drop_lr);  // a run from before the file recorded the schedule
   r = resume_to(12);
   ASSERT_EQ(r.code, 0) << r.err;
@@ -362,9 +368,15 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
   r = resume_to(16, " --field-lr-decay-iterations 700");  // annealing keeps the run's scale
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(meta_lr(), std::make_pair(4.0, 700));
+  edit_json("checkpoint.json", [](nlohmann::json& j) { j["field_motion_prior"] = -1; });
   r = resume_to(17);
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_NE(r.err.find("checkpoint.json: field_motion_prior out of range"), std::string::npos) << r.err;
+  r = resume_to(17, " --field-motion-prior 0");  // the flag wins, and turns it off
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(meta_lr(), std::make_pair(4.0, 700));
+  EXPECT_DOUBLE_EQ(meta_prior(), 0.0);
+  EXPECT_EQ(r.err.find("Gaussians on moving objects"), std::string::npos) << r.err;
   edit_json("checkpoint.json", [](nlohmann::json& j) { j["field_lr_scale"] = -1; });
   r = resume_to(18);
   EXPECT_EQ(r.code, 2) << r.err;
