@@ -256,10 +256,11 @@ absl::Status JobRunner::CheckContinuation(const v1::CreateTrainingJobRequest& re
   const v1::TrainingConfig& c = req.config();
   if (c.field().empty() && meta->field == "static" &&
       (c.has_static_iterations() || c.field_lr_scale() != 0 || c.field_lr_decay_iterations() != 0 ||
-       c.has_field_motion_prior())) {
-    return absl::InvalidArgumentError(absl::StrCat("config: scene '", from,
-                                                   "' is a static scene: static_iterations, "
-                                                   "field_lr_* and field_motion_prior need a field (config.field)"));
+       c.has_field_motion_prior() || !c.field_motion_prior_scans().empty())) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("config: scene '", from,
+                     "' is a static scene: static_iterations, field_lr_*, field_motion_prior and "
+                     "field_motion_prior_scans need a field (config.field)"));
   }
   if (meta->iterations >= c.max_iterations()) {
     return absl::InvalidArgumentError(absl::StrCat("config.max_iterations (", c.max_iterations(),

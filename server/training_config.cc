@@ -57,7 +57,7 @@ absl::Status ValidateTrainingConfig(const v1::TrainingConfig& c) {
       c.has_clip_overlap() || c.field_lr_scale() != 0 || c.field_lr_decay_iterations() != 0 || !c.backend().empty() ||
       !c.continue_from_scene().empty() || c.pose_refinement() || c.pose_lr_scale() != 0 ||
       c.position_lr_decay_iterations() != 0 || c.field_ext_lr_scale() != 0 || c.field_ext_lr_decay_iterations() != 0 ||
-      c.has_field_motion_prior();
+      c.has_field_motion_prior() || !c.field_motion_prior_scans().empty();
   if (c.max_iterations() == 0) {
     if (asks_training_options) return Bad("training options need max_iterations > 0 (0 is init only)");
     return absl::OkStatus();
@@ -86,6 +86,14 @@ absl::Status ValidateTrainingConfig(const v1::TrainingConfig& c) {
       return Bad("field_lr_scale / field_lr_decay_iterations need a field (this run is static)");
     }
     if (c.has_field_motion_prior()) return Bad("field_motion_prior needs a field (this run is static)");
+    if (!c.field_motion_prior_scans().empty()) {
+      return Bad("field_motion_prior_scans needs a field (this run is static)");
+    }
+  }
+  if (!c.field_motion_prior_scans().empty() && c.field_motion_prior_scans() != "last" &&
+      c.field_motion_prior_scans() != "all") {
+    return Bad(
+        absl::StrCat("field_motion_prior_scans must be last, all or empty, not '", c.field_motion_prior_scans(), "'"));
   }
   if (c.has_field_motion_prior() &&
       !(c.field_motion_prior() >= 0 && c.field_motion_prior() <= train::kMaxMotionPriorWeight)) {
@@ -177,6 +185,7 @@ std::vector<std::string> TrainFlags(const v1::TrainingConfig& c) {
     add("--field-ext-lr-decay-iterations", std::to_string(c.field_ext_lr_decay_iterations()));
   }
   if (c.has_field_motion_prior()) add("--field-motion-prior", Number(c.field_motion_prior()));
+  if (!c.field_motion_prior_scans().empty()) add("--field-motion-prior-scans", c.field_motion_prior_scans());
   if (!c.backend().empty()) add("--backend", c.backend());
   if (c.pose_refinement()) f.push_back("--pose-refinement");
   if (c.pose_lr_scale() != 0) add("--pose-lr-scale", Number(c.pose_lr_scale()));

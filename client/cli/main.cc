@@ -65,6 +65,7 @@ constexpr char kUsage[] =
                "               the modules' lr 1.6e-3 x S, decayed over N fine iterations (30000);\n"
                "               a resume keeps its own)\n"
                "              [--field-motion-prior W]   (LiDAR motion prior, 0: off; a resume keeps its own)\n"
+               "              [--field-motion-prior-scans last|all]   (the object scans that assign Gaussians)\n"
                "              [--position-lr-decay-iterations N]   (the Gaussian means' lr decay, over N\n"
                "               iterations of a stage; 3DGS's 30000; a resume keeps its own)\n"
                "              [--clip-frames N [--clip-overlap K (default N/10)]]\n"

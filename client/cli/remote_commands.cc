@@ -221,6 +221,7 @@ static absl::Status TrainingConfigFromFlags(const ParsedArgs& args, v1::Training
   if (auto v = args.Get("field-modules")) c->set_field_modules(*v);
   if (auto v = args.Get("backend")) c->set_backend(*v);
   if (auto v = args.Get("continue-from")) c->set_continue_from_scene(*v);
+  if (auto v = args.Get("field-motion-prior-scans")) c->set_field_motion_prior_scans(*v);
   if (args.Has("pose-refinement")) c->set_pose_refinement(true);
   for (absl::Status s : {
            integer("static-iterations", [&](int32_t n) { c->set_static_iterations(n); }),
@@ -252,7 +253,8 @@ int RunJobsCommand(const std::vector<std::string>& argv) {
                                               {"field-lr-decay-iterations"}, {"position-lr-decay-iterations"},
                                               {"field-ext-lr-scale"}, {"field-ext-lr-decay-iterations"},
                                               {"backend"}, {"continue-from"}, {"pose-refinement", false},
-                                              {"pose-lr-scale"}, {"field-motion-prior"}}));
+                                              {"pose-lr-scale"}, {"field-motion-prior"},
+                                              {"field-motion-prior-scans"}}));
   if (!args.ok()) return Fail("jobs", 2, args.status());
   const std::vector<std::string>& pos = args->positional();
   const std::string verb = pos.empty() ? "list" : pos[0];
@@ -299,8 +301,8 @@ int RunJobsCommand(const std::vector<std::string>& argv) {
       "[streetsim train's --seed --field --field-modules --static-iterations --resolution-scale --low-res-scale "
       "--low-res-iterations --holdout-every --clip-frames --clip-overlap --field-lr-scale --field-lr-decay-iterations "
       "--position-lr-decay-iterations --field-ext-lr-scale --field-ext-lr-decay-iterations --field-motion-prior "
-      "--backend --pose-refinement --pose-lr-scale] [--continue-from SCENE] [--watch] | watch ID | "
-      "get ID | cancel ID] [--server HOST:PORT]"));
+      "--field-motion-prior-scans --backend --pose-refinement --pose-lr-scale] [--continue-from SCENE] [--watch] | "
+      "watch ID | get ID | cancel ID] [--server HOST:PORT]"));
 }
 
 // render --server --lidar: one sweep from the scene's log pose at --time-us (docs/server.md).

@@ -132,7 +132,8 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
              {"field-init"}, {"field-lambda-dx"}, {"field-lambda-dsh"}, {"field-l1-time-planes"},
              {"field-lr-scale"}, {"field-lr-decay-iterations"}, {"field-time-resolution"},
              {"position-lr-decay-iterations"}, {"field-ext-lr-scale"}, {"field-ext-lr-decay-iterations"},
-             {"low-res-scale"}, {"low-res-iterations"}, {"field-motion-prior"}});
+             {"low-res-scale"}, {"low-res-iterations"}, {"field-motion-prior"},
+             {"field-motion-prior-scans"}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
@@ -303,6 +304,17 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     }
     opt.motion_prior.weight = w;
   }
+  // Which of an object's scans assign Gaussians to it (docs/training.md "Motion prior").
+  if (auto v = args->Get("field-motion-prior-scans")) {
+    if (*v != "last" && *v != "all") {
+      return Fail(2, absl::InvalidArgumentError(
+                         absl::StrCat("--field-motion-prior-scans must be 'last' or 'all', not '", *v, "'")));
+    }
+    if (opt.field.mode == train::FieldMode::kStatic) {
+      return Fail(2, absl::InvalidArgumentError("--field-motion-prior-scans needs a field (a static run has none)"));
+    }
+    opt.motion_prior.all_scans = *v == "all";
+  }
   // The field's learning rates (docs/training.md "Field learning rates"): a multiplier on both
   // groups and the length of their exponential decay (spec 30 000 fine iterations). streetsim's
   // default is 10x the spec's rates, which are set for a 50 000-iteration fine stage: on KITTI it
@@ -359,6 +371,11 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     absl::StatusOr<std::optional<double>> recorded = train::ReadCheckpointMotionPrior(*out);
     if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
     if (recorded.ok() && recorded->has_value()) opt.motion_prior.weight = **recorded;
+  }
+  if (resumes_checkpoint && opt.field.mode != train::FieldMode::kStatic && !args->Has("field-motion-prior-scans")) {
+    absl::StatusOr<std::optional<bool>> recorded = train::ReadCheckpointMotionPriorAllScans(*out);
+    if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
+    if (recorded.ok() && recorded->has_value()) opt.motion_prior.all_scans = **recorded;
   }
   for (const char* flag : {"field-lr-scale", "field-lr-decay-iterations", "field-time-resolution"}) {
     if (args->Has(flag) && opt.field.mode == train::FieldMode::kStatic) {

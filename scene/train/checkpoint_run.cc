@@ -39,6 +39,9 @@ absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run
     j["field_ext_lr_decay_iterations"] = run.field_ext_lr->decay_iterations;
   }
   if (run.field_motion_prior) j["field_motion_prior"] = *run.field_motion_prior;
+  if (run.field_motion_prior_all_scans) {
+    j["field_motion_prior_scans"] = *run.field_motion_prior_all_scans ? "all" : "last";
+  }
   return checked_file::WriteAtomically((std::filesystem::path(dir) / kCheckpointRunFile).string(), j.dump(2) + "\n");
 }
 
@@ -155,6 +158,18 @@ absl::StatusOr<std::optional<double>> ReadCheckpointMotionPrior(const std::strin
         }
         return std::optional<double>(w);
       });
+}
+
+absl::StatusOr<std::optional<bool>> ReadCheckpointMotionPriorAllScans(const std::string& dir) {
+  const std::string path = RunFile(dir);
+  return ParseJsonFile<std::optional<bool>>(path, [&](const nlohmann::json& j) -> absl::StatusOr<std::optional<bool>> {
+    if (!j.contains("field_motion_prior_scans")) return std::nullopt;
+    const std::string scans = j.at("field_motion_prior_scans").get<std::string>();
+    if (scans != "all" && scans != "last") {
+      return absl::DataLossError(absl::StrCat(path, ": field_motion_prior_scans is neither \"all\" nor \"last\""));
+    }
+    return std::optional<bool>(scans == "all");
+  });
 }
 
 absl::StatusOr<int64_t> ReadCheckpointExtensionFrom(const std::string& dir) {

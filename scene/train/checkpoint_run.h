@@ -52,6 +52,9 @@ struct CheckpointRun {
   std::optional<FieldLrSchedule> field_ext_lr;
   // A run with a field: the LiDAR motion prior's weight (MotionPriorOptions::weight; 0: off).
   std::optional<double> field_motion_prior;
+  // ... and which of an object's scans assign Gaussians (MotionPriorOptions::all_scans), written as
+  // `field_motion_prior_scans`: "last" or "all".
+  std::optional<bool> field_motion_prior_all_scans;
 };
 
 absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run);
@@ -97,6 +100,11 @@ absl::StatusOr<std::optional<FieldLrSchedule>> ReadCheckpointExtLr(const std::st
 // is static or the file predates the record (such runs had no prior); NotFound without the file;
 // DataLoss where damaged or out of range.
 absl::StatusOr<std::optional<double>> ReadCheckpointMotionPrior(const std::string& dir);
+
+// Whether the motion prior assigned from all of an object's scans (`field_motion_prior_scans`:
+// "all" or "last"): nullopt where the file predates the record (such runs used the last scan);
+// NotFound without the file; DataLoss where damaged.
+absl::StatusOr<std::optional<bool>> ReadCheckpointMotionPriorAllScans(const std::string& dir);
 
 // The fine iteration an extended run's modules joined at (`field_extension_from`): 0 where the
 // file does not record one (they joined with the fine stage); NotFound without the file; DataLoss

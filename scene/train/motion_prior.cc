@@ -2,10 +2,17 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 #include "scene/init/moving_objects.h"
 
 namespace streetsim::train {
+namespace {
+
+// Points searched per Gaussian with all_scans (KdTree3::KNearest's most).
+constexpr int kAllScansNeighbours = 32;
+
+}  // namespace
 
 Eigen::Isometry3d MotionPrior::Track::At(int64_t t) const {
   if (t <= time_us.front()) return motion.front();
@@ -63,9 +70,11 @@ std::unique_ptr<MotionPrior> MotionPrior::FromTracks(std::vector<Track> tracks, 
   auto p = std::unique_ptr<MotionPrior>(new MotionPrior());
   p->options_ = options;
   p->tracks_ = std::move(tracks);
-  // Only where each track ends is a Gaussian assigned (Assign), so only those points are searched.
+  // Without all_scans only where each track ends is a Gaussian assigned (Assign), so only those
+  // points are searched.
   for (size_t k = 0; k < points.size(); ++k) {
-    if (point_obs[k] + 1 != static_cast<int>(p->tracks_[point_track[k]].time_us.size())) continue;
+    const bool last = point_obs[k] + 1 == static_cast<int>(p->tracks_[point_track[k]].time_us.size());
+    if (!last && !options.all_scans) continue;
     p->points_.push_back(points[k]);
     p->point_track_.push_back(point_track[k]);
     p->point_obs_.push_back(point_obs[k]);
@@ -79,7 +88,27 @@ void MotionPrior::Assign(const float* means, size_t n, ThreadPool& pool) {
   obs_of_.assign(n, -1);
   const float r2 = static_cast<float>(options_.radius_m * options_.radius_m);
   pool.ParallelFor(static_cast<int64_t>(n), 4096, [&](int64_t begin, int64_t end, int) {
+    int near[kAllScansNeighbours];
+    float near_d2[kAllScansNeighbours];
     for (int64_t i = begin; i < end; ++i) {
+      if (options_.all_scans) {
+        // The latest scan among the nearest points within the radius: where an object stood for
+        // many scans their points coincide and any of them gives the same motion; where it passed,
+        // each scan leaves a few points here, all among the nearest.
+        const int found = tree_.KNearest(Eigen::Vector3f(means[i * 3], means[i * 3 + 1], means[i * 3 + 2]),
+                                         kAllScansNeighbours, r2, near, near_d2);
+        int64_t latest_us = std::numeric_limits<int64_t>::min();
+        for (int j = 0; j < found; ++j) {
+          const int k = near[j];
+          const int64_t t_us = tracks_[point_track_[k]].time_us[point_obs_[k]];
+          if (t_us > latest_us) {
+            latest_us = t_us;
+            track_of_[i] = point_track_[k];
+            obs_of_[i] = point_obs_[k];
+          }
+        }
+        continue;
+      }
       // On an object where its track ends (the nearest such point; the tree holds no other): a
       // static stage fits a vehicle where it stands at the end of the log, and the Gaussians it
       // left on the vehicle's earlier places are a smear that, carried along, would lie over it.

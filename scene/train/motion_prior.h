@@ -8,7 +8,8 @@
 // its scans (scene/init/moving_objects.h, training frames only), and a canonical Gaussian that
 // lies on an object's points (within radius_m) at the object's last scan is assigned to it (a
 // static stage fits a vehicle where it stands at the end of the log; Gaussians on its earlier
-// places are smear, and carried along they would lie over it: measured, docs/training.md). At a
+// places are smear, and carried along they would lie over it: measured, docs/training.md; with
+// all_scans they are carried all the same, from the latest scan that saw the object there). At a
 // view's time t its Δx is pulled towards the object's rigid motion from that scan to t:
 //   target_i(t) = M(t) M(t_ref)^-1 μ_i - μ_i,   L = W / N Σ_i huber(|Δx_i - target_i|, huber_m)
 // over the N assigned Gaussians. L depends on Δx only, so its gradient enters the field and the
@@ -43,6 +44,11 @@ struct MotionPriorOptions {
   // points) are left out: their registration is loose, and the sweep of a few points along a long
   // path reaches background that does not move.
   int min_object_points = 300;
+  // Which of an object's scans assign Gaussians (--field-motion-prior-scans): its last only (the
+  // smear on its earlier places is left to the photometric loss), or all of them, each Gaussian
+  // carried from the latest scan that saw the object where it lies (the smear moves with the
+  // object and lands on it where it stands).
+  bool all_scans = false;
 };
 
 class MotionPrior {
@@ -70,7 +76,8 @@ class MotionPrior {
     Eigen::Isometry3d At(int64_t t) const;
   };
   // For tests: a prior over given tracks and points (points[k] on track point_track[k] at its
-  // observation point_obs[k]; only the points of each track's last observation are kept).
+  // observation point_obs[k]; without all_scans only the points of each track's last observation
+  // are kept).
   static std::unique_ptr<MotionPrior> FromTracks(std::vector<Track> tracks, std::vector<Eigen::Vector3f> points,
                                                  std::vector<int> point_track, std::vector<int> point_obs,
                                                  const MotionPriorOptions& options);

@@ -221,6 +221,9 @@ class PythonClientTest(unittest.TestCase):
         with self.assertRaises(streetsim.StreetsimError) as e:  # the motion prior needs a field
             self.client.train("logs/fake", scene_name="py_bad", max_iterations=100, field_motion_prior=0.3)
         self.assertIn("config.field_motion_prior needs a field", e.exception.details)
+        with self.assertRaises(streetsim.StreetsimError) as e:  # which scans: last or all
+            self.client.train("logs/fake", scene_name="py_bad", max_iterations=9000, field_motion_prior_scans="first")
+        self.assertIn("config.field_motion_prior_scans must be", e.exception.details)
         job = self.client.train("logs/fake", scene_name="py_static", max_iterations=0, request_id="py-opt")
         self.assertEqual(job.config.scene_name, "py_static")
 

@@ -241,7 +241,12 @@ TEST_F(TrainStageTest, AJobContinuesAnotherJobsScene) {
   prior_static.mutable_config()->set_field_motion_prior(0.3);
   absl::StatusOr<v1::Job> prior = client_->CreateTrainingJob(prior_static);
   EXPECT_EQ(prior.status().code(), absl::StatusCode::kInvalidArgument);
-  EXPECT_NE(prior.status().message().find("field_motion_prior need a field"), std::string::npos) << prior.status();
+  EXPECT_NE(prior.status().message().find("field_motion_prior and"), std::string::npos) << prior.status();
+  prior_static.mutable_config()->clear_field_motion_prior();
+  prior_static.mutable_config()->set_field_motion_prior_scans("all");
+  prior = client_->CreateTrainingJob(prior_static);
+  EXPECT_EQ(prior.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(prior.status().message().find("static scene"), std::string::npos) << prior.status();
   absl::StatusOr<v1::Scene> scene = client_->LoadScene("longer", true);
   ASSERT_TRUE(scene.ok()) << scene.status();
   EXPECT_EQ(scene->rig().cameras(0).sensor_id(), "cam_logged");  // the source's manifest came along

@@ -56,6 +56,7 @@ TEST(TrainingConfig, EveryOptionBecomesTheTrainersFlag) {
     c->set_field_ext_lr_scale(0.4);
     c->set_field_ext_lr_decay_iterations(4500);
     c->set_field_motion_prior(0.3);
+    c->set_field_motion_prior_scans("all");
   });
   ASSERT_TRUE(ValidateTrainingConfig(c).ok()) << ValidateTrainingConfig(c);
   EXPECT_EQ(TrainFlags(c), (std::vector<std::string>{
@@ -64,7 +65,8 @@ TEST(TrainingConfig, EveryOptionBecomesTheTrainersFlag) {
                                "--low-res-iterations", "3000", "--holdout-every", "0", "--clip-frames", "50",
                                "--clip-overlap", "0", "--field-lr-scale", "2.5", "--field-lr-decay-iterations", "6000",
                                "--field-ext-lr-scale", "0.4", "--field-ext-lr-decay-iterations", "4500",
-                               "--field-motion-prior", "0.3", "--backend", "vulkan", "--pose-refinement",
+                               "--field-motion-prior", "0.3", "--field-motion-prior-scans", "all", "--backend",
+                               "vulkan", "--pose-refinement",
                                "--pose-lr-scale", "3"}));
   // Numbers go to the trainer exactly (not rounded to 6 digits).
   const v1::TrainingConfig exact = Config(300, [](v1::TrainingConfig* c) { c->set_resolution_scale(0.1234567891); });
@@ -155,6 +157,10 @@ TEST(TrainingConfig, BadValuesAreRefusedNamingTheField) {
     ExpectRefused(Config(9000, [&](v1::TrainingConfig* c) { c->set_field_motion_prior(bad); }),
                   "config.field_motion_prior");
   }
+  ExpectRefused(Config(9000, [](v1::TrainingConfig* c) { c->set_field_motion_prior_scans("some"); }),
+                "config.field_motion_prior_scans");
+  ExpectRefused(Config(3000, [](v1::TrainingConfig* c) { c->set_field_motion_prior_scans("all"); }), "needs a field");
+  ExpectRefused(Config(0, [](v1::TrainingConfig* c) { c->set_field_motion_prior_scans("all"); }), "max_iterations > 0");
   ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_resolution_scale(1.5); }), "resolution_scale");
   ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_resolution_scale(-0.5); }), "resolution_scale");
   ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_resolution_scale(INFINITY); }), "resolution_scale");

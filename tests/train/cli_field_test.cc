@@ -224,6 +224,8 @@ TEST(CliField, BadValuesExitTwoWithOneLine) {
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-motion-prior nan",
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-motion-prior 1e5",
            train + " --iterations 20 --field static --field-motion-prior 1",
+           train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-motion-prior-scans some",
+           train + " --iterations 20 --field static --field-motion-prior-scans all",
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-lr-scale 0",
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-lr-scale -3",
            train + " --iterations 20 --field s3gaussian --static-iterations 5 --field-lr-scale 1e4",
@@ -269,6 +271,47 @@ TEST(CliField, BadValuesExitTwoWithOneLine) {
     EXPECT_EQ(r.code, 2) << args << ": " << r.err;
     EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << args << ": " << r.err;
   }
+}
+
+// Which of an object's scans assign Gaussians to the motion prior (docs/training.md "Motion prior"):
+// the run's records, kept by a resume that does not say, a damaged record refused.
+TEST(CliField, MotionPriorScansAreRecordedAndKeptByAResume) {
+  const std::string common = " --field-size small --resolution-scale 0.12 --holdout-every 10 --voxel 0.5 --seed 3" +
+                             std::string(" --static-iterations 6 --field-motion-prior 0.5");
+  const std::string dir = streetsim::testing::ScratchDir("streetsim_cli_field_scans", "run");
+  const auto train = [&](int iterations, const std::string& extra) {
+    return RunCli("train --log " + kKitti + " --out " + dir + " --iterations " + std::to_string(iterations) + common +
+                  extra);
+  };
+  const auto recorded = [&](const std::string& file) {
+    return nlohmann::json::parse(Slurp(dir + "/" + file))["field_motion_prior_scans"].get<std::string>();
+  };
+  Result r = train(8, "");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("weight 0.5, last scans;"), std::string::npos) << r.err;  // the default
+  EXPECT_EQ(recorded("checkpoint.json"), "last");
+  EXPECT_EQ(recorded("train_meta.json"), "last");
+  r = train(9, " --resume --field-motion-prior-scans all");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("weight 0.5, all scans;"), std::string::npos) << r.err;
+  EXPECT_EQ(recorded("checkpoint.json"), "all");
+  EXPECT_EQ(recorded("train_meta.json"), "all");
+  r = train(10, " --resume");  // kept
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("weight 0.5, all scans;"), std::string::npos) << r.err;
+  EXPECT_EQ(recorded("checkpoint.json"), "all");
+  nlohmann::json j = nlohmann::json::parse(Slurp(dir + "/checkpoint.json"));
+  j["field_motion_prior_scans"] = "some";
+  std::ofstream(dir + "/checkpoint.json", std::ios::trunc) << j.dump();
+  r = train(11, " --resume");
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_NE(r.err.find("checkpoint.json: field_motion_prior_scans is neither"), std::string::npos) << r.err;
+  j.erase("field_motion_prior_scans");  // a run from before the record: its last scans
+  std::ofstream(dir + "/checkpoint.json", std::ios::trunc) << j.dump();
+  r = train(11, " --resume");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("weight 0.5, last scans;"), std::string::npos) << r.err;
+  EXPECT_EQ(recorded("train_meta.json"), "last");
 }
 
 // --field's default: S3Gaussian's field when the run has a fine stage, static otherwise; a resumed

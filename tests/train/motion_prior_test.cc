@@ -66,6 +66,28 @@ TEST(MotionPrior, AGaussianOnAnObjectWhereItsTrackEndsFollowsIt) {
   EXPECT_EQ(prior->n(), 1u);
 }
 
+TEST(MotionPrior, WithAllScansTheSmearIsCarriedFromTheLatestScanThatSawTheObjectThere) {
+  MotionPriorOptions o = Options();
+  o.all_scans = true;
+  std::unique_ptr<MotionPrior> prior = Prior(o);
+  ThreadPool pool(2);
+  // As above: on the object where it stands at the end, on its first place, and off it.
+  const std::vector<float> means = {10.1f, 0.0f, 1.0f, 0.05f, 0.2f, 1.0f, 5.0f, 0.0f, 1.0f, 10.0f, 3.0f, 1.0f};
+  prior->Assign(means.data(), 4, pool);
+  EXPECT_EQ(prior->assigned(), 2u);
+  const auto x = [&](size_t i, int64_t t) { return prior->TargetDx(i, t, means.data()); };
+  // Where it stands: from the last scan (the scan at 1 s saw it there too, with the same motion).
+  EXPECT_NEAR(x(0, 0).x(), -10.0, 1e-9);
+  EXPECT_NEAR(x(0, 2'000'000).norm(), 0.0, 1e-9);
+  // The smear on its first place (seen there at 0 s only) goes with it and ends on it.
+  EXPECT_NEAR(x(1, 0).norm(), 0.0, 1e-9);
+  EXPECT_NEAR(x(1, 500'000).x(), 5.0, 1e-9);
+  EXPECT_NEAR(x(1, 2'000'000).x(), 10.0, 1e-9);
+  EXPECT_NEAR(x(1, 2'000'000).y(), 0.0, 1e-9);
+  EXPECT_NEAR(x(2, 500'000).norm(), 0.0, 1e-12);  // off the object
+  EXPECT_NEAR(x(3, 500'000).norm(), 0.0, 1e-12);
+}
+
 TEST(MotionPrior, GradientMatchesFiniteDifferencesInBothHuberRegimes) {
   std::unique_ptr<MotionPrior> prior = Prior(Options());
   ThreadPool pool(2);
