@@ -90,8 +90,7 @@ absl::Status ValidateTrainingConfig(const v1::TrainingConfig& c) {
       return Bad("field_motion_prior_scans needs a field (this run is static)");
     }
   }
-  if (!c.field_motion_prior_scans().empty() && c.field_motion_prior_scans() != "last" &&
-      c.field_motion_prior_scans() != "all") {
+  if (!c.field_motion_prior_scans().empty() && !train::ParseMotionPriorScans(c.field_motion_prior_scans())) {
     return Bad(
         absl::StrCat("field_motion_prior_scans must be last, all or empty, not '", c.field_motion_prior_scans(), "'"));
   }

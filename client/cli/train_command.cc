@@ -306,14 +306,15 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   }
   // Which of an object's scans assign Gaussians to it (docs/training.md "Motion prior").
   if (auto v = args->Get("field-motion-prior-scans")) {
-    if (*v != "last" && *v != "all") {
+    const std::optional<bool> all_scans = train::ParseMotionPriorScans(*v);
+    if (!all_scans) {
       return Fail(2, absl::InvalidArgumentError(
                          absl::StrCat("--field-motion-prior-scans must be 'last' or 'all', not '", *v, "'")));
     }
     if (opt.field.mode == train::FieldMode::kStatic) {
       return Fail(2, absl::InvalidArgumentError("--field-motion-prior-scans needs a field (a static run has none)"));
     }
-    opt.motion_prior.all_scans = *v == "all";
+    opt.motion_prior.all_scans = *all_scans;
   }
   // The field's learning rates (docs/training.md "Field learning rates"): a multiplier on both
   // groups and the length of their exponential decay (spec 30 000 fine iterations). streetsim's

@@ -40,7 +40,7 @@ absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run
   }
   if (run.field_motion_prior) j["field_motion_prior"] = *run.field_motion_prior;
   if (run.field_motion_prior_all_scans) {
-    j["field_motion_prior_scans"] = *run.field_motion_prior_all_scans ? "all" : "last";
+    j["field_motion_prior_scans"] = MotionPriorScansName(*run.field_motion_prior_all_scans);
   }
   return checked_file::WriteAtomically((std::filesystem::path(dir) / kCheckpointRunFile).string(), j.dump(2) + "\n");
 }
@@ -164,11 +164,11 @@ absl::StatusOr<std::optional<bool>> ReadCheckpointMotionPriorAllScans(const std:
   const std::string path = RunFile(dir);
   return ParseJsonFile<std::optional<bool>>(path, [&](const nlohmann::json& j) -> absl::StatusOr<std::optional<bool>> {
     if (!j.contains("field_motion_prior_scans")) return std::nullopt;
-    const std::string scans = j.at("field_motion_prior_scans").get<std::string>();
-    if (scans != "all" && scans != "last") {
+    const std::optional<bool> all_scans = ParseMotionPriorScans(j.at("field_motion_prior_scans").get<std::string>());
+    if (!all_scans) {
       return absl::DataLossError(absl::StrCat(path, ": field_motion_prior_scans is neither \"all\" nor \"last\""));
     }
-    return std::optional<bool>(scans == "all");
+    return all_scans;
   });
 }
 

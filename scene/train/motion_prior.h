@@ -19,6 +19,8 @@
 
 #include <cstdint>
 #include <memory>
+#include <optional>
+#include <string_view>
 #include <vector>
 
 #include <Eigen/Geometry>
@@ -50,6 +52,15 @@ struct MotionPriorOptions {
   // object and lands on it where it stands).
   bool all_scans = false;
 };
+
+// MotionPriorOptions::all_scans by name, as the flag, checkpoint.json, train_meta.json and
+// TrainingConfig spell it: "last" or "all"; parsing anything else is nullopt.
+inline const char* MotionPriorScansName(bool all_scans) { return all_scans ? "all" : "last"; }
+inline std::optional<bool> ParseMotionPriorScans(std::string_view name) {
+  if (name == "all") return true;
+  if (name == "last") return false;
+  return std::nullopt;
+}
 
 class MotionPrior {
  public:

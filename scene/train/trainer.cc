@@ -448,7 +448,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       prior_rows_changed = false;
       LOG(INFO) << "motion prior: " << motion_prior->num_tracks() << " moving objects from " << train_log.frames.size()
                 << " training frames' LiDAR (" << std::chrono::duration<double>(Clock::now() - t0).count()
-                << " s), weight " << opt.motion_prior.weight << ", " << (opt.motion_prior.all_scans ? "all" : "last")
+                << " s), weight " << opt.motion_prior.weight << ", " << MotionPriorScansName(opt.motion_prior.all_scans)
                 << " scans; " << motion_prior->assigned() << " of " << st.size() << " Gaussians on moving objects";
     }
     if (fine && motion_prior) {
@@ -605,7 +605,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       meta["field_lambda_dsh"] = opt.field.hyper.lambda_dsh;
       meta["field_l1_time_planes"] = opt.field.hyper.l1_time_planes;
       meta["field_motion_prior"] = opt.motion_prior.weight;
-      meta["field_motion_prior_scans"] = opt.motion_prior.all_scans ? "all" : "last";
+      meta["field_motion_prior_scans"] = MotionPriorScansName(opt.motion_prior.all_scans);
       meta["field_lr_scale"] = opt.field.hyper.lr_scale;  // the field's learning-rate schedule
       meta["field_lr_decay_iterations"] = opt.field.hyper.lr_decay_steps;
       meta["field_time_resolution"] = stage->field().config().time_resolution;  // cells along time
