@@ -57,7 +57,7 @@ absl::Status ValidateTrainingConfig(const v1::TrainingConfig& c) {
       c.has_clip_overlap() || c.field_lr_scale() != 0 || c.field_lr_decay_iterations() != 0 || !c.backend().empty() ||
       !c.continue_from_scene().empty() || c.pose_refinement() || c.pose_lr_scale() != 0 ||
       c.position_lr_decay_iterations() != 0 || c.field_ext_lr_scale() != 0 || c.field_ext_lr_decay_iterations() != 0 ||
-      c.has_field_motion_prior() || !c.field_motion_prior_scans().empty();
+      c.has_field_motion_prior() || !c.field_motion_prior_scans().empty() || c.has_densify_until();
   if (c.max_iterations() == 0) {
     if (asks_training_options) return Bad("training options need max_iterations > 0 (0 is init only)");
     return absl::OkStatus();
@@ -115,6 +115,9 @@ absl::Status ValidateTrainingConfig(const v1::TrainingConfig& c) {
   }
   if (c.position_lr_decay_iterations() < 0 || c.position_lr_decay_iterations() > kMaxIterations) {
     return Bad(absl::StrCat("position_lr_decay_iterations must be in 1..", kMaxIterations, " (0: the default)"));
+  }
+  if (c.has_densify_until() && (c.densify_until() < 0 || c.densify_until() > kMaxIterations)) {
+    return Bad(absl::StrCat("densify_until must be in 0..", kMaxIterations));
   }
   if (!(std::isfinite(c.resolution_scale()) && c.resolution_scale() >= 0 && c.resolution_scale() <= 1)) {
     return Bad("resolution_scale must be in (0, 1] (0: 1)");
@@ -179,6 +182,7 @@ std::vector<std::string> TrainFlags(const v1::TrainingConfig& c) {
   if (c.position_lr_decay_iterations() != 0) {
     add("--position-lr-decay-iterations", std::to_string(c.position_lr_decay_iterations()));
   }
+  if (c.has_densify_until()) add("--densify-until", std::to_string(c.densify_until()));
   if (c.field_ext_lr_scale() != 0) add("--field-ext-lr-scale", Number(c.field_ext_lr_scale()));
   if (c.field_ext_lr_decay_iterations() != 0) {
     add("--field-ext-lr-decay-iterations", std::to_string(c.field_ext_lr_decay_iterations()));

@@ -68,6 +68,8 @@ constexpr char kUsage[] =
                "              [--field-motion-prior-scans last|all]   (the object scans that assign Gaussians)\n"
                "              [--position-lr-decay-iterations N]   (the Gaussian means' lr decay, over N\n"
                "               iterations of a stage; 3DGS's 30000; a resume keeps its own)\n"
+               "              [--densify-until N]   (densify and reset opacities until iteration N of a\n"
+               "               stage; 25000; a resume keeps its own)\n"
                "              [--clip-frames N [--clip-overlap K (default N/10)]]\n"
                "              (SIGINT / SIGTERM: stop with a checkpoint, exit 130 / 143)\n"
                "              (default field: s3gaussian when --iterations > the 5000-iteration warm-up, else static)\n"

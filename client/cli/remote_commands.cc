@@ -232,6 +232,7 @@ static absl::Status TrainingConfigFromFlags(const ParsedArgs& args, v1::Training
            integer("field-lr-decay-iterations", [&](int32_t n) { c->set_field_lr_decay_iterations(n); }),
            integer("position-lr-decay-iterations", [&](int32_t n) { c->set_position_lr_decay_iterations(n); }),
            integer("field-ext-lr-decay-iterations", [&](int32_t n) { c->set_field_ext_lr_decay_iterations(n); }),
+           integer("densify-until", [&](int32_t n) { c->set_densify_until(n); }),
            number("resolution-scale", [&](double x) { c->set_resolution_scale(x); }),
            number("low-res-scale", [&](double x) { c->set_low_res_scale(x); }),
            number("field-lr-scale", [&](double x) { c->set_field_lr_scale(x); }),
@@ -254,7 +255,7 @@ int RunJobsCommand(const std::vector<std::string>& argv) {
                                               {"field-ext-lr-scale"}, {"field-ext-lr-decay-iterations"},
                                               {"backend"}, {"continue-from"}, {"pose-refinement", false},
                                               {"pose-lr-scale"}, {"field-motion-prior"},
-                                              {"field-motion-prior-scans"}}));
+                                              {"field-motion-prior-scans"}, {"densify-until"}}));
   if (!args.ok()) return Fail("jobs", 2, args.status());
   const std::vector<std::string>& pos = args->positional();
   const std::string verb = pos.empty() ? "list" : pos[0];
@@ -301,7 +302,8 @@ int RunJobsCommand(const std::vector<std::string>& argv) {
       "[streetsim train's --seed --field --field-modules --static-iterations --resolution-scale --low-res-scale "
       "--low-res-iterations --holdout-every --clip-frames --clip-overlap --field-lr-scale --field-lr-decay-iterations "
       "--position-lr-decay-iterations --field-ext-lr-scale --field-ext-lr-decay-iterations --field-motion-prior "
-      "--field-motion-prior-scans --backend --pose-refinement --pose-lr-scale] [--continue-from SCENE] [--watch] | "
+      "--field-motion-prior-scans --densify-until "
+      "--backend --pose-refinement --pose-lr-scale] [--continue-from SCENE] [--watch] | "
       "watch ID | get ID | cancel ID] [--server HOST:PORT]"));
 }
 

@@ -133,7 +133,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
              {"field-lr-scale"}, {"field-lr-decay-iterations"}, {"field-time-resolution"},
              {"position-lr-decay-iterations"}, {"field-ext-lr-scale"}, {"field-ext-lr-decay-iterations"},
              {"low-res-scale"}, {"low-res-iterations"}, {"field-motion-prior"},
-             {"field-motion-prior-scans"}});
+             {"field-motion-prior-scans"}, {"densify-until"}});
   if (!args.ok()) return Fail(2, args.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
@@ -461,6 +461,20 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     absl::StatusOr<std::optional<int>> recorded = train::ReadCheckpointPositionLrDecay(*out);
     if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
     if (recorded.ok() && recorded->has_value()) opt.hyper.lr_decay_steps = **recorded;
+  }
+  // Densification (and the opacity reset with it) runs until this stage iteration: 3DGS stops at
+  // 15 000 of 30 000 and polishes a fixed set of Gaussians; `--resume --densify-until N` ends a
+  // trained run's. A resume keeps its recorded one unless told.
+  if (auto v = args->Get("densify-until")) {
+    if (!absl::SimpleAtoi(*v, &opt.hyper.densify_until) || opt.hyper.densify_until < 0 ||
+        opt.hyper.densify_until > train::kMaxDensifyUntil) {
+      return Fail(2, absl::InvalidArgumentError(absl::StrCat("--densify-until must be an integer in 0..",
+                                                             train::kMaxDensifyUntil, ", not '", *v, "'")));
+    }
+  } else if (resumes_checkpoint) {
+    absl::StatusOr<std::optional<int>> recorded = train::ReadCheckpointDensifyUntil(*out);
+    if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
+    if (recorded.ok() && recorded->has_value()) opt.hyper.densify_until = **recorded;
   }
   // The extension's network rate (ExtHyper: the paper's 1.6e-3 -> 1.6e-4 over 30 000 fine
   // iterations) has its own switches: the base field's flags leave it alone, so that modules

@@ -33,6 +33,7 @@ absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run
     j["pose_refine_until"] = run.pose_refinement->until;
   }
   j["position_lr_decay_iterations"] = run.position_lr_decay_iterations;
+  j["densify_until"] = run.densify_until;
   if (run.field_extension_from > 0) j["field_extension_from"] = run.field_extension_from;
   if (run.field_ext_lr) {
     j["field_ext_lr_scale"] = run.field_ext_lr->scale;
@@ -143,6 +144,16 @@ absl::StatusOr<std::optional<int>> ReadCheckpointPositionLrDecay(const std::stri
     if (n < 1 || n > 10'000'000) {
       return absl::DataLossError(absl::StrCat(path, ": position learning-rate decay out of range"));
     }
+    return std::optional<int>(n);
+  });
+}
+
+absl::StatusOr<std::optional<int>> ReadCheckpointDensifyUntil(const std::string& dir) {
+  const std::string path = RunFile(dir);
+  return ParseJsonFile<std::optional<int>>(path, [&](const nlohmann::json& j) -> absl::StatusOr<std::optional<int>> {
+    if (!j.contains("densify_until")) return std::nullopt;
+    const int n = j.at("densify_until").get<int>();
+    if (n < 0 || n > kMaxDensifyUntil) return absl::DataLossError(absl::StrCat(path, ": densify_until out of range"));
     return std::optional<int>(n);
   });
 }

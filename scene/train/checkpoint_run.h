@@ -45,6 +45,7 @@ struct CheckpointRun {
   std::optional<LowResStage> low_res;                     // a run's low-resolution stage
   std::optional<PoseRefinementSchedule> pose_refinement;  // a run that refines its camera poses
   int position_lr_decay_iterations = 30000;               // Hyper::lr_decay_steps
+  int densify_until = 25000;                              // Hyper::densify_until (a stage's iterations)
   // An extended run whose modules were grown on an S3Gaussian run's resume: the fine iteration
   // they joined at (FieldOptions::extension_from_fine_iteration; 0 is not written).
   int64_t field_extension_from = 0;
@@ -89,6 +90,11 @@ absl::StatusOr<std::optional<PoseRefinementSchedule>> ReadCheckpointPoseRefineme
 // nullopt where the file predates the record (such runs decayed over 3DGS's 30 000); NotFound
 // without the file; DataLoss where damaged or out of range.
 absl::StatusOr<std::optional<int>> ReadCheckpointPositionLrDecay(const std::string& dir);
+
+// The stage iteration densification runs until (`densify_until`); nullopt where the file predates
+// the record (such runs densified until 25 000); NotFound without the file; DataLoss where damaged
+// or out of range.
+absl::StatusOr<std::optional<int>> ReadCheckpointDensifyUntil(const std::string& dir);
 
 // The extension's network learning-rate schedule the file records (`field_ext_lr_scale`,
 // `field_ext_lr_decay_iterations`). nullopt where the run is not extended or the file predates the

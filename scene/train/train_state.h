@@ -17,6 +17,8 @@
 
 namespace streetsim::train {
 
+inline constexpr int kMaxDensifyUntil = 10'000'000;
+
 struct Hyper {
   // Adam (section 6): eps 1e-15, betas (0.9, 0.999).
   double xyz_lr_init = 1.6e-4, xyz_lr_final = 1.6e-6;  // times the scene extent E
@@ -34,7 +36,9 @@ struct Hyper {
   int64_t pose_refine_until = 0;
   // Losses (section 5).
   double lambda_dssim = 0.2, lambda_depth = 0.5;
-  // Densification (section 7).
+  // Densification (section 7), counted in iterations of the stage. densify_until also ends the
+  // opacity resets; a run can end it early (--densify-until) to polish a fixed set of Gaussians,
+  // as 3DGS's last 15 000 iterations do.
   int densify_from = 500, densify_until = 25000, densify_interval = 100, opacity_reset_interval = 3000;
   // streetsim's: no opacity reset within this many iterations of the run's written outputs. A reset
   // sets every opacity to at most 0.01 and the scene needs hundreds of iterations to recover (KITTI

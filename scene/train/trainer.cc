@@ -297,6 +297,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     }
     run.low_res = opt.low_res;
     run.position_lr_decay_iterations = h.lr_decay_steps;
+    run.densify_until = h.densify_until;
     if (stage && stage->extended()) {
       run.field_extension_from = stage->extension_from_fine_iteration();
       run.field_ext_lr = FieldLrSchedule{opt.field.ext_hyper.lr_scale, opt.field.ext_hyper.lr_decay_steps};
@@ -584,6 +585,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     meta["sky"] = opt.sky;
     meta["exposure"] = opt.exposure;
     meta["position_lr_decay_iterations"] = h.lr_decay_steps;  // the means' rate decay, per stage
+    meta["densify_until"] = h.densify_until;                  // densification's end, per stage
     meta["field"] = !stage ? "static" : opt.field.extended ? "extended" : "s3gaussian";
     if (stage && opt.field.extended) {
       meta["field_modules"] = opt.field.extended->ModulesString();

@@ -224,6 +224,9 @@ class PythonClientTest(unittest.TestCase):
         with self.assertRaises(streetsim.StreetsimError) as e:  # which scans: last or all
             self.client.train("logs/fake", scene_name="py_bad", max_iterations=9000, field_motion_prior_scans="first")
         self.assertIn("config.field_motion_prior_scans must be", e.exception.details)
+        with self.assertRaises(streetsim.StreetsimError) as e:  # densification's end: a stage iteration
+            self.client.train("logs/fake", scene_name="py_bad", max_iterations=9000, densify_until=-1)
+        self.assertIn("config.densify_until must be in 0..10000000", e.exception.details)
         job = self.client.train("logs/fake", scene_name="py_static", max_iterations=0, request_id="py-opt")
         self.assertEqual(job.config.scene_name, "py_static")
 

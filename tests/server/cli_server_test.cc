@@ -317,7 +317,8 @@ TEST_F(CliServerTest, JobsTrainPassesTheConfigToTheTrainer) {
       " --resolution-scale 0.5 --low-res-scale 0.25 --low-res-iterations 3000 --holdout-every 0 --clip-frames 50"
       " --clip-overlap 0 --field-lr-scale 2.5 --field-lr-decay-iterations 6000 --backend cpu --pose-refinement"
       " --pose-lr-scale 3 --position-lr-decay-iterations 7000 --field-ext-lr-scale 0.4"
-      " --field-ext-lr-decay-iterations 4500 --field-motion-prior 0.3 --field-motion-prior-scans all";
+      " --field-ext-lr-decay-iterations 4500 --field-motion-prior 0.3 --field-motion-prior-scans all"
+      " --densify-until 9000";
   Result r = Exec("jobs train logs/fake --scene-name all_options --watch" + options + Server());
   EXPECT_EQ(r.exit_code, 1) << r.out << r.err;
   EXPECT_TRUE(Contains(r.out, "train stage exited with code 2: ")) << r.out;

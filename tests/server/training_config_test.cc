@@ -125,6 +125,11 @@ TEST(TrainingConfig, BadValuesAreRefusedNamingTheField) {
                 "config.position_lr_decay_iterations");
   ExpectRefused(Config(0, [](v1::TrainingConfig* c) { c->set_position_lr_decay_iterations(500); }),
                 "max_iterations > 0");
+  for (int bad : {-1, 10'000'001}) {
+    ExpectRefused(Config(9000, [&](v1::TrainingConfig* c) { c->set_densify_until(bad); }),
+                  "config.densify_until must be in 0..10000000");
+  }
+  ExpectRefused(Config(0, [](v1::TrainingConfig* c) { c->set_densify_until(0); }), "max_iterations > 0");
   // The modules' rate: field "extended" only (a continuation must say so, as the trainer's resume does).
   ExpectRefused(Config(9000, [](v1::TrainingConfig* c) { c->set_field_ext_lr_scale(0.5); }), "need field \"extended\"");
   ExpectRefused(Config(9000, [](v1::TrainingConfig* c) {
@@ -203,10 +208,12 @@ TEST(TrainingConfig, BadValuesAreRefusedNamingTheField) {
     c->set_continue_from_scene("kitti_full");
     c->set_field_lr_decay_iterations(600);
     c->set_position_lr_decay_iterations(700);
+    c->set_densify_until(0);  // set, so 0 is a value: no more densification
   });
   EXPECT_TRUE(ValidateTrainingConfig(anneal).ok()) << ValidateTrainingConfig(anneal);
-  EXPECT_EQ(TrainFlags(anneal), (std::vector<std::string>{"--field-lr-decay-iterations", "600",
-                                                          "--position-lr-decay-iterations", "700"}));
+  EXPECT_EQ(TrainFlags(anneal),
+            (std::vector<std::string>{"--field-lr-decay-iterations", "600", "--position-lr-decay-iterations", "700",
+                                      "--densify-until", "0"}));
 }
 
 }  // namespace

@@ -301,6 +301,41 @@ TEST(CliTrain, PositionLrDecayIsTheRunsAndAResumeKeepsIt) {
       << r.err;
 }
 
+// --densify-until N: checkpoint.json and train_meta.json record it, a resume without the flag
+// keeps it and one with the flag replaces it; a damaged record or a bad value is exit 2. (What it
+// does to the Gaussians: tests/train/trainer_test.cc, Trainer.DensifyUntilEndsDensificationAndResets.)
+TEST(CliTrain, DensifyUntilIsRecordedAndKeptByAResume) {
+  const std::string a = streetsim::testing::ScratchDir("streetsim_cli_train_scene", "densify_until");
+  const std::string common =
+      " --log " + kKitti + " --out " + a + " --resolution-scale 0.08 --holdout-every 4 --no-lidar-loss --seed 1";
+  auto recorded = [&](const std::string& file) { return nlohmann::json::parse(std::ifstream(a + "/" + file)); };
+  Result r = RunCli("train" + common + " --iterations 4");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(recorded("checkpoint.json")["densify_until"], 25000);
+  r = RunCli("train" + common + " --iterations 6 --resume --densify-until 0");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(recorded("checkpoint.json")["densify_until"], 0);
+  EXPECT_EQ(recorded("train_meta.json")["densify_until"], 0);
+  r = RunCli("train" + common + " --iterations 8 --resume");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(recorded("checkpoint.json")["densify_until"], 0);
+  EXPECT_EQ(recorded("train_meta.json")["iterations"], 8);
+
+  nlohmann::json run = recorded("checkpoint.json");
+  run["densify_until"] = -3;
+  std::ofstream(a + "/checkpoint.json") << run.dump();
+  r = RunCli("train" + common + " --iterations 10 --resume");
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_NE(r.err.find("checkpoint.json: densify_until out of range"), std::string::npos) << r.err;
+  for (const char* bad : {"-1", "many", "10000001"}) {
+    r = RunCli("train" + common + " --iterations 10 --resume --densify-until " + bad);
+    EXPECT_EQ(r.code, 2) << r.err;
+    EXPECT_NE(r.err.find("--densify-until must be an integer in 0..10000000, not '" + std::string(bad) + "'"),
+              std::string::npos)
+        << r.err;
+  }
+}
+
 // Low resolution first (docs/training.md "Low resolution first"): the first iterations at the low
 // scale, fine stage included, then the rest resumed at the run's; the outputs are the run's
 // resolution; a resume keeps the stage checkpoint.json records unless told otherwise.

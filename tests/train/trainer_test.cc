@@ -240,13 +240,15 @@ TEST(Trainer, FieldOptionsAreChecked) {
 // A run's written scene is never one just after an opacity reset (Hyper::min_iterations_after_reset):
 // the reset that would fall within that many iterations of the end is skipped, while a stage that
 // writes no outputs keeps its schedule.
+float MaxOpacity(const TrainState& st) {
+  float m = -1e9f;
+  for (size_t i = 0; i < st.params.size(); ++i) m = std::max(m, st.params.opacity_logits[i]);
+  return 1.0f / (1.0f + std::exp(-m));
+}
+
 TEST(Trainer, NoOpacityResetJustBeforeTheOutputs) {
   const DriveLog log = ShortLog(8);
-  auto max_opacity = [](const TrainState& st) {
-    float m = -1e9f;
-    for (size_t i = 0; i < st.params.size(); ++i) m = std::max(m, st.params.opacity_logits[i]);
-    return 1.0f / (1.0f + std::exp(-m));
-  };
+  auto max_opacity = MaxOpacity;
   TrainOptions opt = ShortOptions();
   opt.iterations = 25;
   opt.hyper.min_iterations_after_reset = 10;
@@ -274,6 +276,37 @@ TEST(Trainer, NoOpacityResetJustBeforeTheOutputs) {
   absl::StatusOr<TrainState> d = LoadCheckpoint(room_no_outputs + "/checkpoint.bin");
   ASSERT_TRUE(d.ok()) << d.status();
   EXPECT_EQ(c->params.opacity_logits, d->params.opacity_logits);  // the same schedule, bit for bit (deterministic)
+}
+
+// Hyper::densify_until ends densification and the opacity resets: with it at 15 the run densifies
+// at 10 only, so the Gaussians after 10 (a checkpoint of a killed run) are the ones after 30 and
+// no reset at 20 pulls the opacities down; the spec's schedule densifies and resets at 20.
+TEST(Trainer, DensifyUntilEndsDensificationAndResets) {
+  const DriveLog log = ShortLog(8);
+  TrainOptions opt = ShortOptions();
+  const std::string full = TempDir("densify_full");
+  ASSERT_TRUE(Train(log, full, opt).ok());
+  absl::StatusOr<TrainState> spec = LoadCheckpoint(full + "/checkpoint.bin");
+  ASSERT_TRUE(spec.ok()) << spec.status();
+  EXPECT_EQ(spec->adam_step, 30 - 2);  // the densifications at 10 and 20 replace the tensors
+  EXPECT_LT(MaxOpacity(*spec), 0.05f);
+
+  opt.hyper.densify_until = 15;
+  const std::string ended = TempDir("densify_ended");
+  TrainOptions killed = opt;
+  killed.stop_after = 15;
+  ASSERT_TRUE(Train(log, ended, killed).ok());
+  absl::StatusOr<TrainState> at10 = LoadCheckpoint(ended + "/checkpoint.bin");
+  ASSERT_TRUE(at10.ok()) << at10.status();
+  ASSERT_EQ(at10->iteration, 10);
+  opt.resume = true;
+  ASSERT_TRUE(Train(log, ended, opt).ok());
+  absl::StatusOr<TrainState> at30 = LoadCheckpoint(ended + "/checkpoint.bin");
+  ASSERT_TRUE(at30.ok()) << at30.status();
+  EXPECT_EQ(at30->adam_step, 30 - 1);
+  EXPECT_EQ(at30->size(), at10->size());
+  EXPECT_NE(at30->size(), spec->size());  // the spec's densification at 20 changed the count
+  EXPECT_GT(MaxOpacity(*at30), 0.2f);
 }
 
 TEST(Trainer, LearnsAndWritesOutputs) {

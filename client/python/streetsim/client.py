@@ -358,8 +358,9 @@ class Client:
         ``resolution_scale``, ``low_res_scale``, ``low_res_iterations``, ``holdout_every``,
         ``clip_frames``, ``clip_overlap``, ``field_lr_scale``, ``field_lr_decay_iterations``,
         ``position_lr_decay_iterations``, ``field_ext_lr_scale``, ``field_ext_lr_decay_iterations``,
-        ``field_motion_prior``, ``field_motion_prior_scans``, ``backend``, ``pose_refinement``,
-        ``pose_lr_scale``, and ``continue_from_scene`` (train on from a scene an earlier job trained).
+        ``field_motion_prior``, ``field_motion_prior_scans``, ``densify_until``, ``backend``,
+        ``pose_refinement``, ``pose_lr_scale``, and ``continue_from_scene`` (train on from a scene an
+        earlier job trained).
         An unknown name raises ValueError here; a value the trainer would refuse is
         INVALID_ARGUMENT from the server.
         """
