@@ -79,6 +79,19 @@ absl::StatusOr<std::optional<FieldLrSchedule>> LrScheduleIn(const nlohmann::json
   return std::optional<FieldLrSchedule>(lr);
 }
 
+// The integer the file records under `key` (nullopt without it); DataLoss saying "`what` out of
+// range" outside [lo, hi].
+absl::StatusOr<std::optional<int>> ReadRecordedInt(const std::string& dir, const std::string& key, int lo, int hi,
+                                                   const std::string& what) {
+  const std::string path = RunFile(dir);
+  return ParseJsonFile<std::optional<int>>(path, [&](const nlohmann::json& j) -> absl::StatusOr<std::optional<int>> {
+    if (!j.contains(key)) return std::nullopt;
+    const int n = j.at(key).get<int>();
+    if (n < lo || n > hi) return absl::DataLossError(absl::StrCat(path, ": ", what, " out of range"));
+    return std::optional<int>(n);
+  });
+}
+
 }  // namespace
 
 absl::StatusOr<std::string> ReadCheckpointField(const std::string& dir) {
@@ -137,25 +150,11 @@ absl::StatusOr<std::optional<PoseRefinementSchedule>> ReadCheckpointPoseRefineme
 }
 
 absl::StatusOr<std::optional<int>> ReadCheckpointPositionLrDecay(const std::string& dir) {
-  const std::string path = RunFile(dir);
-  return ParseJsonFile<std::optional<int>>(path, [&](const nlohmann::json& j) -> absl::StatusOr<std::optional<int>> {
-    if (!j.contains("position_lr_decay_iterations")) return std::nullopt;
-    const int n = j.at("position_lr_decay_iterations").get<int>();
-    if (n < 1 || n > 10'000'000) {
-      return absl::DataLossError(absl::StrCat(path, ": position learning-rate decay out of range"));
-    }
-    return std::optional<int>(n);
-  });
+  return ReadRecordedInt(dir, "position_lr_decay_iterations", 1, 10'000'000, "position learning-rate decay");
 }
 
 absl::StatusOr<std::optional<int>> ReadCheckpointDensifyUntil(const std::string& dir) {
-  const std::string path = RunFile(dir);
-  return ParseJsonFile<std::optional<int>>(path, [&](const nlohmann::json& j) -> absl::StatusOr<std::optional<int>> {
-    if (!j.contains("densify_until")) return std::nullopt;
-    const int n = j.at("densify_until").get<int>();
-    if (n < 0 || n > kMaxDensifyUntil) return absl::DataLossError(absl::StrCat(path, ": densify_until out of range"));
-    return std::optional<int>(n);
-  });
+  return ReadRecordedInt(dir, "densify_until", 0, kMaxDensifyUntil, "densify_until");
 }
 
 absl::StatusOr<std::optional<double>> ReadCheckpointMotionPrior(const std::string& dir) {
