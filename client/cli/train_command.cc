@@ -6,6 +6,7 @@
 #include <csignal>
 #include <cstdio>
 #include <filesystem>
+#include <functional>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
@@ -117,6 +118,25 @@ void KeepRecordedLrSchedule(const ParsedArgs& args, const std::string& prefix, c
                             double* scale, int* decay_iterations) {
   if (!args.Has(prefix + "-scale")) *scale = recorded.scale;
   if (!args.Has(prefix + "-decay-iterations")) *decay_iterations = recorded.decay_iterations;
+}
+
+// An integer setting a checkpoint records (e.g. --position-lr-decay-iterations, --densify-until):
+// `--FLAG N` (lo..hi) when given, else on a resume the recorded value (`read_recorded`; absent
+// records and a directory without checkpoint.json leave *value as it is).
+absl::Status IntFlagOrRecorded(const ParsedArgs& args, const std::string& flag, int lo, int hi, bool resumes,
+                               const std::function<absl::StatusOr<std::optional<int>>()>& read_recorded, int* value) {
+  if (auto v = args.Get(flag)) {
+    if (!absl::SimpleAtoi(*v, value) || *value < lo || *value > hi) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("--", flag, " must be an integer in ", lo, "..", hi, ", not '", *v, "'"));
+    }
+    return absl::OkStatus();
+  }
+  if (!resumes) return absl::OkStatus();
+  absl::StatusOr<std::optional<int>> recorded = read_recorded();
+  if (!recorded.ok()) return absl::IsNotFound(recorded.status()) ? absl::OkStatus() : recorded.status();
+  if (recorded->has_value()) *value = **recorded;
+  return absl::OkStatus();
 }
 
 }  // namespace
@@ -451,30 +471,20 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   // The Gaussian means' rate decays over 30 000 iterations of a stage (3DGS's, set for a 30 000-
   // iteration run); a shorter decay anneals them, as --field-lr-decay-iterations does the field's.
   // A resume keeps its recorded one unless told.
-  if (auto v = args->Get("position-lr-decay-iterations")) {
-    if (!absl::SimpleAtoi(*v, &opt.hyper.lr_decay_steps) || opt.hyper.lr_decay_steps < 1 ||
-        opt.hyper.lr_decay_steps > 10'000'000) {
-      return Fail(2, absl::InvalidArgumentError(absl::StrCat(
-                         "--position-lr-decay-iterations must be an integer in 1..10000000, not '", *v, "'")));
-    }
-  } else if (resumes_checkpoint) {
-    absl::StatusOr<std::optional<int>> recorded = train::ReadCheckpointPositionLrDecay(*out);
-    if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
-    if (recorded.ok() && recorded->has_value()) opt.hyper.lr_decay_steps = **recorded;
+  if (absl::Status s = IntFlagOrRecorded(
+          *args, "position-lr-decay-iterations", 1, 10'000'000, resumes_checkpoint,
+          [&] { return train::ReadCheckpointPositionLrDecay(*out); }, &opt.hyper.lr_decay_steps);
+      !s.ok()) {
+    return Fail(2, s);
   }
   // Densification (and the opacity reset with it) runs until this stage iteration: 3DGS stops at
   // 15 000 of 30 000 and polishes a fixed set of Gaussians; `--resume --densify-until N` ends a
   // trained run's. A resume keeps its recorded one unless told.
-  if (auto v = args->Get("densify-until")) {
-    if (!absl::SimpleAtoi(*v, &opt.hyper.densify_until) || opt.hyper.densify_until < 0 ||
-        opt.hyper.densify_until > train::kMaxDensifyUntil) {
-      return Fail(2, absl::InvalidArgumentError(absl::StrCat("--densify-until must be an integer in 0..",
-                                                             train::kMaxDensifyUntil, ", not '", *v, "'")));
-    }
-  } else if (resumes_checkpoint) {
-    absl::StatusOr<std::optional<int>> recorded = train::ReadCheckpointDensifyUntil(*out);
-    if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return Fail(2, recorded.status());
-    if (recorded.ok() && recorded->has_value()) opt.hyper.densify_until = **recorded;
+  if (absl::Status s = IntFlagOrRecorded(
+          *args, "densify-until", 0, train::kMaxDensifyUntil, resumes_checkpoint,
+          [&] { return train::ReadCheckpointDensifyUntil(*out); }, &opt.hyper.densify_until);
+      !s.ok()) {
+    return Fail(2, s);
   }
   // The extension's network rate (ExtHyper: the paper's 1.6e-3 -> 1.6e-4 over 30 000 fine
   // iterations) has its own switches: the base field's flags leave it alone, so that modules
