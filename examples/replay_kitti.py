@@ -12,44 +12,15 @@ are novel views the log never recorded.
 import argparse
 import json
 import os
-import struct
+import sys
 import time
 
 import numpy as np
 
 import streetsim
 
-
-def write_mjpeg_avi(path, jpegs, width, height, fps):
-    """A minimal AVI (RIFF) with one MJPG video stream: no codec library needed, plays anywhere."""
-    def chunk(fourcc, data):
-        pad = b"\0" if len(data) % 2 else b""
-        return fourcc + struct.pack("<I", len(data)) + data + pad
-
-    def lst(kind, payload):
-        return b"LIST" + struct.pack("<I", len(payload) + 4) + kind + payload
-
-    n = len(jpegs)
-    max_size = max((len(j) for j in jpegs), default=0)
-    avih = struct.pack("<IIIIIIIIII4I", int(1e6 / fps), max_size * fps, 0, 0x10, n, 0, 1, max_size,
-                       width, height, 0, 0, 0, 0)
-    strh = struct.pack("<4s4sIHHIIIIIIIIhhhh", b"vids", b"MJPG", 0, 0, 0, 0, 1, fps, 0, n, max_size,
-                       0xFFFFFFFF, 0, 0, 0, width, height)
-    strf = struct.pack("<IiiHH4sIiiII", 40, width, height, 1, 24, b"MJPG", width * height * 3, 0, 0, 0, 0)
-    hdrl = lst(b"hdrl", chunk(b"avih", avih) + lst(b"strl", chunk(b"strh", strh) + chunk(b"strf", strf)))
-    movi_payload = b""
-    index = b""
-    offset = 4
-    for j in jpegs:
-        c = chunk(b"00dc", j)
-        index += b"00dc" + struct.pack("<III", 0x10, offset, len(j))
-        movi_payload += c
-        offset += len(c)
-    movi = lst(b"movi", movi_payload)
-    body = b"AVI " + hdrl + movi + chunk(b"idx1", index)
-    with open(path + ".tmp", "wb") as f:
-        f.write(b"RIFF" + struct.pack("<I", len(body)) + body)
-    os.replace(path + ".tmp", path)
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "demo"))
+from media import write_mjpeg_avi  # noqa: E402
 
 
 def main():
