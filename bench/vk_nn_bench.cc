@@ -1,7 +1,7 @@
 // The extended field's Vulkan kernels (scene/field/vulkan/nn/vk_nn_kernels.h) one at a time at
-// spec 14's sizes (docs/field.md "Sizes"): model dim 64 = 4 heads x 16, 7 tokens of 16 Fourier +
-// 128 features = 144, VAE latent 32, GRU hidden 32, for --rows Gaussians (token kernels on
-// rows x 7). Each kernel is recorded --repeats times into one command buffer (barriers between)
+// spec 14's sizes (docs/field.md "Composition"): model dim 64 = 4 heads x 16, 7 tokens of 16
+// Fourier + 128 features = 144, VAE latent 32, GRU hidden 32, for --rows Gaussians (token kernels
+// on rows x 7). Each kernel is recorded --repeats times into one command buffer (barriers between)
 // and submitted once; prints milliseconds per call (wall time of the submission / repeats: on
 // lavapipe that is device time, on a GPU it includes one submission's latency spread over the
 // repeats) and, for GEMMs, GMAC/s. Inputs are random normals; random data does not change these
