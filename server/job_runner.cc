@@ -9,6 +9,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cstring>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -40,6 +41,9 @@ std::string StreetsimNextToThisBinary() {
   const fs::path exe = fs::read_symlink("/proc/self/exe", ec);
   return (exe.parent_path() / "streetsim").string();
 }
+
+// How often one attempt of a job restarts a trainer that something outside the server killed.
+constexpr int kMaxTrainerRestarts = 3;
 
 // Runs `program --help` (10 s at most) and looks for a "  train" command line in its usage.
 bool HelpListsTrain(const std::string& program) {
@@ -360,8 +364,16 @@ absl::StatusOr<int> JobRunner::RunChild(const std::string& id, const std::vector
   std::vector<char*> args;
   for (const std::string& a : argv) args.push_back(const_cast<char*>(a.c_str()));
   args.push_back(nullptr);
+  // The child ends with this server, even with a `kill -9` of it (client/cli/parent_server.h).
+  std::vector<std::string> env_strings = {absl::StrCat("STREETSIM_PARENT_PID=", getpid())};
+  for (char** e = environ; *e != nullptr; ++e) {
+    if (std::strncmp(*e, "STREETSIM_PARENT_PID=", 21) != 0) env_strings.emplace_back(*e);
+  }
+  std::vector<char*> env;
+  for (std::string& e : env_strings) env.push_back(e.data());
+  env.push_back(nullptr);
   pid_t pid = 0;
-  const int rc = posix_spawn(&pid, args[0], &actions, &attr, args.data(), environ);
+  const int rc = posix_spawn(&pid, args[0], &actions, &attr, args.data(), env.data());
   posix_spawn_file_actions_destroy(&actions);
   posix_spawnattr_destroy(&attr);
   if (rc != 0) return absl::FailedPreconditionError(absl::StrCat("cannot start ", argv[0], ": ", strerror(rc)));
@@ -504,7 +516,6 @@ void JobRunner::RunJob(const std::string& id) {
     argv.insert(argv.end(), {"--log", *log, "--out", work, "--iterations", std::to_string(job.config().max_iterations())});
     const std::vector<std::string> flags = TrainFlags(job.config());
     argv.insert(argv.end(), flags.begin(), flags.end());
-    if (HasTrainerCheckpoint(work)) argv.push_back("--resume");
     std::string trainer_message;  // its last "streetsim train: ..." line: why it failed, if it does
     auto on_line = [&](const std::string& line) {
       if (line.rfind("streetsim train: ", 0) == 0) trainer_message = line.substr(17, 512);
@@ -521,7 +532,16 @@ void JobRunner::RunJob(const std::string& id) {
       p->set_fraction(InitDoneFraction(true) + (kTrainDoneFraction - InitDoneFraction(true)) * f);
       return true;
     };
-    absl::StatusOr<int> code = RunChild(id, argv, store_->JobDir(id) + "/train.log", &job, on_line);
+    // A trainer killed from outside (the OOM killer, an operator's kill -9) goes on from its last
+    // checkpoint, a bounded number of times: it loses at most one checkpoint interval.
+    absl::StatusOr<int> code;
+    for (int restart = 0;; ++restart) {
+      std::vector<std::string> run = argv;
+      if (HasTrainerCheckpoint(work)) run.push_back("--resume");
+      code = RunChild(id, run, store_->JobDir(id) + "/train.log", &job, on_line);
+      if (!code.ok() || *code != 128 + SIGKILL || restart == kMaxTrainerRestarts) break;
+      LOG(WARNING) << "job " << id << ": the trainer was killed (SIGKILL); resuming it from its last checkpoint";
+    }
     if (!code.ok()) return fail(code.status());
     if (*code != 0) {
       return fail(absl::InternalError(absl::StrCat("train stage exited with code ", *code,

@@ -6,6 +6,7 @@
 #include <vector>
 
 #include "client/cli/commands.h"
+#include "client/cli/parent_server.h"
 
 namespace {
 
@@ -107,6 +108,7 @@ std::string CommandUsage(const std::string& command) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  streetsim::DieWithParentServer();
   if (argc < 2 || !std::strcmp(argv[1], "--help") || !std::strcmp(argv[1], "-h") ||
       !std::strcmp(argv[1], "help")) {
     PrintUsage(argc < 2 ? stderr : stdout);

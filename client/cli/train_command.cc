@@ -12,12 +12,14 @@
 #include "absl/strings/str_cat.h"
 #include "client/cli/args.h"
 #include "client/cli/commands.h"
+#include "client/cli/parent_server.h"
 #include "render/engine.h"
 #include "scene/log/open_log.h"
 #include "scene/log/scene_manifest.h"
 #include "scene/train/clip_training.h"
 #include "scene/train/dynamic_stage.h"
 #include "scene/train/resolution_schedule.h"
+#include "scene/train/run_dir_lock.h"
 #include "scene/train/train_state.h"
 #include "scene/train/trainer.h"
 
@@ -88,12 +90,28 @@ void OnStopSignal(int sig) {
   [[maybe_unused]] const ssize_t n = write(STDERR_FILENO, kMsg, sizeof(kMsg) - 1);
 }
 
+// SIGHUP: the server that started this trainer is gone (client/cli/parent_server.h). The kernel
+// says so once for each of the server's threads as they end, so this one never escalates to a kill:
+// the run stops after its iteration with a checkpoint that the restarted server resumes.
+void OnParentGone(int sig) {
+  if (g_stop_signal == 0) {
+    g_stop_signal = sig;
+    static const char kMsg[] = "\nstreetsim train: the server that started this run is gone: stopping with a checkpoint\n";
+    [[maybe_unused]] const ssize_t n = write(STDERR_FILENO, kMsg, sizeof(kMsg) - 1);
+  }
+  g_stop_requested.store(true);
+}
+
 void InstallStopHandlers() {
   struct sigaction sa = {};
   sa.sa_handler = OnStopSignal;
   sigemptyset(&sa.sa_mask);
   sigaction(SIGINT, &sa, nullptr);
   sigaction(SIGTERM, &sa, nullptr);
+  struct sigaction hup = {};
+  hup.sa_handler = OnParentGone;
+  sigemptyset(&hup.sa_mask);
+  sigaction(SIGHUP, &hup, nullptr);
 }
 
 // A learning-rate schedule's pair of flags, `--PREFIX-scale S` ((0, 1000]) and
@@ -558,6 +576,10 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     clip_opt.overlap_frames = overlap;
   }
 
+  // One writer per directory, held to the end. A server's trainer waits for its predecessor: after
+  // a server restart the previous trainer of the same job may still be writing its last checkpoint.
+  absl::StatusOr<train::RunDirLock> lock = train::RunDirLock::Acquire(*out, StartedByServer() ? 180 : 0);
+  if (!lock.ok()) return Fail(2, lock.status());
   absl::StatusOr<DriveLog> log = OpenLog(*log_path);
   if (!log.ok()) return Fail(absl::IsInternal(log.status()) ? 1 : 2, log.status());
   if (default_field_notice) {

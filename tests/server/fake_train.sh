@@ -5,7 +5,9 @@
 # "checkpoint" (DIR/checkpoint.bin = last iteration, replaced by rename) and on --resume continues from it (noted in
 # DIR/resumed). LOG/train_sleep_s: pause per iteration; LOG/train_fail: exit 5; LOG/preview.png:
 # copied to DIR/preview/ (as the trainer's held-out previews). Leaves
-# DIR/scene.ply (from init) as it is and writes DIR/trained.
+# DIR/scene.ply (from init) as it is and writes DIR/trained. LOG/train_kill_at K: a run that did
+# not resume kills itself with SIGKILL after its K-th iteration's checkpoint (a trainer killed from
+# outside); with LOG/train_kill_every_run, every run kills itself after its first iteration.
 set -e
 log=""; out=""; n=0; resume=0; seed=""; flags=""; field=static
 while [ $# -gt 0 ]; do
@@ -41,6 +43,10 @@ while [ "$i" -lt "$n" ]; do
   # Atomic like the real trainer's: a stop between truncate and write must not lose the count.
   echo "$i" > "$out/checkpoint.bin.tmp"
   mv "$out/checkpoint.bin.tmp" "$out/checkpoint.bin"
+  if [ "$resume" = 0 ] && [ -f "$log/train_kill_at" ] && [ "$i" -eq "$(cat "$log/train_kill_at")" ]; then
+    kill -9 $$
+  fi
+  if [ -f "$log/train_kill_every_run" ]; then kill -9 $$; fi
 done
 if [ -f "$log/preview.png" ]; then
   mkdir -p "$out/preview"; cp "$log/preview.png" "$out/preview/heldout_frame0001_cam0.png"

@@ -373,6 +373,42 @@ TEST_F(TrainStageTest, RestartResumesTheTrainerFromItsCheckpoint) {
   EXPECT_EQ(runs, (std::vector<std::string>{want, want}));
 }
 
+TEST_F(TrainStageTest, AKilledTrainerGoesOnFromItsCheckpoint) {
+  // The fake trainer kills itself with SIGKILL after its 5th checkpoint, as the OOM killer or an
+  // operator would: the job resumes it within the same attempt and loses nothing checkpointed.
+  std::ofstream(data_root_ + "/logs/fake/train_kill_at") << "5";
+  StartServer(Options());
+  absl::StatusOr<v1::Job> job = client_->CreateTrainingJob(JobFor("killed", 12));
+  ASSERT_TRUE(job.ok()) << job.status();
+  absl::StatusOr<v1::Job> done = client_->WatchJob(job->job_id(), [](const v1::Job&) {}, 60);
+  ASSERT_TRUE(done.ok()) << done.status();
+  ASSERT_EQ(done->state(), v1::JOB_STATE_SUCCEEDED) << done->error();
+  EXPECT_EQ(done->attempts(), 1);
+  EXPECT_EQ(done->progress().iteration(), 12);
+  std::ifstream resumed(state_dir_ + "/scenes/killed/resumed");
+  int from = -1;
+  resumed >> from;
+  EXPECT_EQ(from, 5);
+}
+
+TEST_F(TrainStageTest, ATrainerKilledOverAndOverFailsTheJob) {
+  // Killed on every run (after its first iteration): the job gives up after a bounded number of
+  // restarts, with the exit code in its error.
+  std::ofstream(data_root_ + "/logs/fake/train_kill_at") << "1";
+  std::ofstream(data_root_ + "/logs/fake/train_kill_every_run") << "1";
+  StartServer(Options());
+  absl::StatusOr<v1::Job> job = client_->CreateTrainingJob(JobFor("doomed", 50));
+  ASSERT_TRUE(job.ok()) << job.status();
+  absl::StatusOr<v1::Job> done = client_->WatchJob(job->job_id(), [](const v1::Job&) {}, 60);
+  ASSERT_TRUE(done.ok()) << done.status();
+  EXPECT_EQ(done->state(), v1::JOB_STATE_FAILED);
+  EXPECT_NE(done->error().find("exited with code 137"), std::string::npos) << done->error();
+  std::ifstream flags(state_dir_ + "/jobs/" + job->job_id() + "/work/flags");
+  int runs = 0;
+  for (std::string line; std::getline(flags, line);) ++runs;
+  EXPECT_EQ(runs, 4);  // the first run and three restarts
+}
+
 TEST_F(TrainStageTest, BadTrainingOptionsAreRefusedAtCreation) {
   StartServer(Options());
   v1::CreateTrainingJobRequest req = JobFor("bad_options", 100);
