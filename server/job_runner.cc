@@ -19,9 +19,11 @@
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
 #include "server/path_confinement.h"
+#include "server/request_identity.h"
 #include "server/scene_manifest.h"
 #include "server/trained_outputs.h"
 #include "server/training_config.h"
+#include "server/echo.h"
 
 extern char** environ;
 
@@ -181,7 +183,12 @@ bool JobRunner::CancelRequested(const std::string& id) {
 absl::StatusOr<v1::Job> JobRunner::Create(const v1::CreateTrainingJobRequest& req) {
   if (deps_->draining) return absl::UnavailableError("server is shutting down");
   if (!req.request_id().empty()) {
-    if (std::optional<v1::Job> existing = store_->FindByRequestId(req.request_id())) return *existing;
+    if (std::optional<v1::Job> existing = store_->FindByRequestId(req.request_id())) {
+      if (existing->log_path() != req.log_path() || Fingerprint(existing->config()) != Fingerprint(req.config())) {
+        return RequestIdReused(req.request_id(), "training job");
+      }
+      return *existing;
+    }
   }
   absl::StatusOr<std::string> log = ResolveUnderRoot(options_.data_root, req.log_path());
   if (!log.ok()) return absl::Status(log.status().code(), absl::StrCat("log_path: ", log.status().message()));
@@ -196,12 +203,12 @@ absl::StatusOr<v1::Job> JobRunner::Create(const v1::CreateTrainingJobRequest& re
     return absl::InvalidArgumentError("config.scene_name: 1-64 of [A-Za-z0-9_.-], not starting with '.'");
   }
   if (deps_->scenes && deps_->scenes->Exists(name)) {
-    return absl::AlreadyExistsError(absl::StrCat("a scene named '", name, "' already exists"));
+    return absl::AlreadyExistsError(absl::StrCat("a scene named ", Echo(name), " already exists"));
   }
   for (const v1::Job& other : store_->List()) {
     if (other.scene_name() == name && other.state() != v1::JOB_STATE_FAILED &&
         other.state() != v1::JOB_STATE_CANCELLED) {
-      return absl::AlreadyExistsError(absl::StrCat("job ", other.job_id(), " already produces scene '", name, "'"));
+      return absl::AlreadyExistsError(absl::StrCat("job ", other.job_id(), " already produces scene ", Echo(name)));
     }
   }
   if (const std::string& from = req.config().continue_from_scene(); !from.empty()) {
@@ -245,13 +252,13 @@ absl::Status JobRunner::CheckContinuation(const v1::CreateTrainingJobRequest& re
   const absl::StatusOr<std::string> source_log = ResolveUnderRoot(options_.data_root, source->log_path());
   const absl::StatusOr<std::string> log = ResolveUnderRoot(options_.data_root, req.log_path());
   if (!source_log.ok() || !log.ok() || *source_log != *log) {
-    return absl::InvalidArgumentError(absl::StrCat("config.continue_from_scene: '", from, "' was trained from log_path '",
-                                                   source->log_path(), "', not '", req.log_path(), "'"));
+    return absl::InvalidArgumentError(absl::StrCat("config.continue_from_scene: ", Echo(from), " was trained from log_path '",
+                                                   source->log_path(), "', not ", Echo(req.log_path())));
   }
   const std::string dir = store_->scenes_dir() + "/" + from;
   if (!HasTrainerCheckpoint(dir)) {
     return absl::FailedPreconditionError(
-        absl::StrCat("config.continue_from_scene: scene '", from, "' has no checkpoint to continue from"));
+        absl::StrCat("config.continue_from_scene: scene ", Echo(from), " has no checkpoint to continue from"));
   }
   absl::StatusOr<train::SceneMeta> meta = TrainedSceneMeta(dir);
   if (!meta.ok()) {
@@ -276,7 +283,7 @@ absl::Status JobRunner::CheckContinuation(const v1::CreateTrainingJobRequest& re
 
 absl::StatusOr<v1::Job> JobRunner::Cancel(const std::string& id) {
   std::optional<v1::Job> job = store_->Get(id);
-  if (!job) return absl::NotFoundError(absl::StrCat("unknown job '", id, "'"));
+  if (!job) return absl::NotFoundError(absl::StrCat("unknown job ", Echo(id)));
   if (IsFinal(job->state())) return *job;
   bool is_running;
   {

@@ -7,6 +7,7 @@
 #include <cstring>
 
 #include "absl/strings/str_cat.h"
+#include "server/echo.h"
 
 namespace streetsim::server {
 namespace {
@@ -34,7 +35,7 @@ absl::StatusOr<std::string> ResolveUnderRoot(const std::string& root, const std:
   if (relative.empty()) return absl::InvalidArgumentError("empty path");
   if (relative[0] == '/') {
     return absl::InvalidArgumentError(
-        absl::StrCat("path '", relative, "' must be relative to the server's data root"));
+        absl::StrCat("path ", Echo(relative), " must be relative to the server's data root"));
   }
   if (relative.find('\0') != std::string::npos) return absl::InvalidArgumentError("NUL in path");
   absl::StatusOr<std::string> real_root = RealPath(root);
@@ -46,20 +47,20 @@ absl::StatusOr<std::string> ResolveUnderRoot(const std::string& root, const std:
     if (end == std::string::npos) end = relative.size();
     if (relative.compare(start, end - start, "..") == 0 && end - start == 2) {
       return absl::InvalidArgumentError(
-          absl::StrCat("path '", relative, "' leaves the server's data root"));
+          absl::StrCat("path ", Echo(relative), " leaves the server's data root"));
     }
     start = end + 1;
   }
   absl::StatusOr<std::string> real = RealPath(*real_root + "/" + relative);
   if (!real.ok()) {
     if (absl::IsNotFound(real.status())) {
-      return absl::NotFoundError(absl::StrCat("'", relative, "' not found under the data root"));
+      return absl::NotFoundError(absl::StrCat(Echo(relative), " not found under the data root"));
     }
     return real.status();
   }
   if (!IsInside(*real_root, *real)) {
     return absl::InvalidArgumentError(
-        absl::StrCat("path '", relative, "' leaves the server's data root"));
+        absl::StrCat("path ", Echo(relative), " leaves the server's data root"));
   }
   return *real;
 }

@@ -3,6 +3,7 @@
 #include "absl/strings/str_cat.h"
 #include "server/request_validation.h"
 #include "server/status_mapping.h"
+#include "server/time_arithmetic.h"
 
 namespace streetsim::server {
 namespace {
@@ -77,7 +78,9 @@ absl::Status PlaceLidarFor(const SceneManifest& manifest, const PosePlan& plan, 
         return absl::InvalidArgumentError(
             "no pose given (T_world_from_ego or T_world_from_sensor) and the scene has no ego trajectory");
       }
-      PlaceLidar(*start, *manifest.EgoPoseAt(time_us + job->model.sweep_duration_us), time_us, job);
+      absl::StatusOr<int64_t> sweep_end_us = OffsetTimeUs(time_us, 1, job->model.sweep_duration_us);
+      if (!sweep_end_us.ok()) return sweep_end_us.status();
+      PlaceLidar(*start, *manifest.EgoPoseAt(*sweep_end_us), time_us, job);
       return absl::OkStatus();
     }
   }

@@ -4,6 +4,7 @@
 #include <set>
 
 #include "absl/strings/str_cat.h"
+#include "server/echo.h"
 
 namespace streetsim::server {
 
@@ -46,7 +47,7 @@ absl::StatusOr<std::vector<RigCamera>> ResolveSensors(
       const std::string field = absl::StrCat("sensors[", i, "]");
       if (req.sensor_id().empty()) return absl::InvalidArgumentError(field + ".sensor_id is empty");
       if (!seen.insert(req.sensor_id()).second) {
-        return absl::InvalidArgumentError(absl::StrCat(field, ": duplicate sensor '", req.sensor_id(), "'"));
+        return absl::InvalidArgumentError(absl::StrCat(field, ": duplicate sensor ", Echo(req.sensor_id())));
       }
       RigCamera cam;
       const RigCamera* rig = manifest.FindCamera(req.sensor_id());
@@ -54,8 +55,8 @@ absl::StatusOr<std::vector<RigCamera>> ResolveSensors(
         cam = *rig;
       } else if (!req.has_intrinsics() || !req.has_t_ego_from_sensor()) {
         return absl::NotFoundError(absl::StrCat(
-            field, ": unknown sensor '", req.sensor_id(),
-            "' (a new sensor needs both intrinsics and T_ego_from_sensor)"));
+            field, ": unknown sensor ", Echo(req.sensor_id()),
+            " (a new sensor needs both intrinsics and T_ego_from_sensor)"));
       }
       cam.sensor_id = req.sensor_id();
       if (req.has_intrinsics()) {

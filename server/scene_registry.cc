@@ -9,6 +9,7 @@
 #include "scene/train/clips.h"
 #include "server/clip_set_scene_field.h"
 #include "server/path_confinement.h"
+#include "server/echo.h"
 
 namespace streetsim::server {
 namespace fs = std::filesystem;
@@ -196,7 +197,7 @@ std::vector<v1::Scene> SceneRegistry::List() {
 }
 
 static absl::Status UnknownScene(const std::string& name) {
-  return absl::NotFoundError(absl::StrCat("unknown scene '", name, "' (see ListScenes)"));
+  return absl::NotFoundError(absl::StrCat("unknown scene ", Echo(name), " (see ListScenes)"));
 }
 
 absl::StatusOr<v1::Scene> SceneRegistry::Get(const std::string& name) {
@@ -213,7 +214,7 @@ absl::StatusOr<std::shared_ptr<const SceneManifest>> SceneRegistry::Manifest(con
   Entry* e = FindLocked(name, true);
   if (!e) return UnknownScene(name);
   if (!e->manifest) {
-    return absl::FailedPreconditionError(absl::StrCat("scene '", name, "': ", e->manifest_error));
+    return absl::FailedPreconditionError(absl::StrCat("scene ", Echo(name), ": ", e->manifest_error));
   }
   return e->manifest;
 }
@@ -274,7 +275,7 @@ absl::Status SceneRegistry::WaitLoadedLocked(std::unique_lock<std::mutex>& lock,
     if (!e) return UnknownScene(name);
     if (e->state == v1::SCENE_STATE_READY) return absl::OkStatus();
     if (e->state == v1::SCENE_STATE_FAILED) {
-      return absl::FailedPreconditionError(absl::StrCat("scene '", name, "' failed to load: ", e->error));
+      return absl::FailedPreconditionError(absl::StrCat("scene ", Echo(name), " failed to load: ", e->error));
     }
     if (e->state != v1::SCENE_STATE_LOADING) StartLoadLocked(e);
     if (cancel) {
@@ -290,7 +291,7 @@ absl::StatusOr<v1::Scene> SceneRegistry::Load(const std::string& name, bool wait
   Entry* e = FindLocked(name, true);
   if (!e) return UnknownScene(name);
   if (!e->manifest) {
-    return absl::FailedPreconditionError(absl::StrCat("scene '", name, "': ", e->manifest_error));
+    return absl::FailedPreconditionError(absl::StrCat("scene ", Echo(name), ": ", e->manifest_error));
   }
   if (e->state != v1::SCENE_STATE_READY && e->state != v1::SCENE_STATE_LOADING) StartLoadLocked(e);
   if (wait) {
@@ -320,7 +321,7 @@ absl::StatusOr<SceneHandle> SceneRegistry::Acquire(const std::string& name, cons
   Entry* e = FindLocked(name, true);
   if (!e) return UnknownScene(name);
   if (!e->manifest) {
-    return absl::FailedPreconditionError(absl::StrCat("scene '", name, "': ", e->manifest_error));
+    return absl::FailedPreconditionError(absl::StrCat("scene ", Echo(name), ": ", e->manifest_error));
   }
   if (e->state == v1::SCENE_STATE_FAILED) StartLoadLocked(e);  // one more try
   if (absl::Status s = WaitLoadedLocked(lock, name, cancel); !s.ok()) return s;

@@ -6,7 +6,10 @@
 #include "absl/strings/str_format.h"
 #include "server/digest.h"
 #include "server/render_service.h"
+#include "server/request_identity.h"
 #include "server/request_validation.h"
+#include "server/time_arithmetic.h"
+#include "server/echo.h"
 
 namespace streetsim::server {
 
@@ -78,7 +81,7 @@ v1::Session SessionManager::Describe(Session& s) {
 }
 
 static absl::Status UnknownSession(const std::string& id) {
-  return absl::NotFoundError(absl::StrCat("unknown or expired session '", id, "'"));
+  return absl::NotFoundError(absl::StrCat("unknown or expired session ", Echo(id)));
 }
 
 absl::StatusOr<v1::Session> SessionManager::Create(const v1::CreateSessionRequest& req) {
@@ -111,7 +114,9 @@ absl::StatusOr<v1::Session> SessionManager::Create(const v1::CreateSessionReques
   if (!req.request_id().empty()) {
     auto it = by_request_id_.find(req.request_id());
     if (it != by_request_id_.end() && sessions_.count(it->second)) {
-      return Describe(*sessions_[it->second]);
+      Session& existing = *sessions_[it->second];
+      if (existing.request_fingerprint != RequestFingerprint(req)) return RequestIdReused(req.request_id(), "session");
+      return Describe(existing);
     }
   }
   if (static_cast<int>(sessions_.size()) >= deps_->limits.max_sessions) {
@@ -132,7 +137,10 @@ absl::StatusOr<v1::Session> SessionManager::Create(const v1::CreateSessionReques
   s->state.T_world_from_ego = ego;
   Renew(*s);
   sessions_[s->id] = s;
-  if (!req.request_id().empty()) by_request_id_[req.request_id()] = s->id;
+  if (!req.request_id().empty()) {
+    by_request_id_[req.request_id()] = s->id;
+    s->request_fingerprint = RequestFingerprint(req);
+  }
   return Describe(*s);
 }
 
@@ -225,7 +233,9 @@ absl::StatusOr<std::shared_ptr<const v1::StepResponse>> SessionManager::Step(con
                                                       state.last_step_index + 1, " (or ", state.last_step_index,
                                                       " to repeat the last step)"));
   }
-  const int64_t time_us = s->start_time_us + req.step_index() * s->step_dt_us;
+  absl::StatusOr<int64_t> step_time_us = OffsetTimeUs(s->start_time_us, req.step_index(), s->step_dt_us);
+  if (!step_time_us.ok()) return step_time_us.status();
+  const int64_t time_us = *step_time_us;
   if (absl::Status st = CheckTime(*s->manifest, time_us); !st.ok()) return st;
   v1::OutputSpec outputs = s->outputs;
   if (req.has_outputs()) {
@@ -262,7 +272,11 @@ absl::StatusOr<std::shared_ptr<const v1::StepResponse>> SessionManager::Step(con
       traj.push_back({poses[i].time_us(), *T});
     }
     ego = InterpolateTrajectory(traj, time_us);
-    if (lidar) ego_sweep_end = InterpolateTrajectory(traj, time_us + lidar->model.sweep_duration_us);
+    if (lidar) {
+      absl::StatusOr<int64_t> sweep_end_us = OffsetTimeUs(time_us, 1, lidar->model.sweep_duration_us);
+      if (!sweep_end_us.ok()) return sweep_end_us.status();
+      ego_sweep_end = InterpolateTrajectory(traj, *sweep_end_us);
+    }
   }
   if (!req.has_trajectory()) ego_sweep_end = ego;
   RenderExtras extras;

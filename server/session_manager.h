@@ -50,6 +50,7 @@ class SessionManager {
     int64_t step_dt_us = 0;
     uint64_t seed = 0;
     std::string forked_from;
+    std::string request_fingerprint;  // CreateSession's request without its request_id
     std::mutex step_mu;  // one step at a time
     std::mutex mu;       // guards state and lease
     Committed state;

@@ -11,6 +11,7 @@
 #include "scene/train/dynamic_stage.h"
 #include "scene/train/motion_prior.h"
 #include "scene/train/resolution_schedule.h"
+#include "server/echo.h"
 
 namespace streetsim::server {
 namespace {
@@ -63,7 +64,7 @@ absl::Status ValidateTrainingConfig(const v1::TrainingConfig& c) {
     return absl::OkStatus();
   }
   if (!c.field().empty() && c.field() != "static" && c.field() != "s3gaussian" && c.field() != "extended") {
-    return Bad(absl::StrCat("field must be static, s3gaussian, extended or empty, not '", c.field(), "'"));
+    return Bad(absl::StrCat("field must be static, s3gaussian, extended or empty, not ", Echo(c.field())));
   }
   const std::string field = EffectiveField(c);
   if (!c.field_modules().empty()) {
@@ -92,7 +93,7 @@ absl::Status ValidateTrainingConfig(const v1::TrainingConfig& c) {
   }
   if (!c.field_motion_prior_scans().empty() && !train::ParseMotionPriorScans(c.field_motion_prior_scans())) {
     return Bad(
-        absl::StrCat("field_motion_prior_scans must be last, all or empty, not '", c.field_motion_prior_scans(), "'"));
+        absl::StrCat("field_motion_prior_scans must be last, all or empty, not ", Echo(c.field_motion_prior_scans())));
   }
   if (c.has_field_motion_prior() &&
       !(c.field_motion_prior() >= 0 && c.field_motion_prior() <= train::kMaxMotionPriorWeight)) {

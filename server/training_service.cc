@@ -2,6 +2,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "server/status_mapping.h"
+#include "server/echo.h"
 
 namespace streetsim::server {
 
@@ -9,7 +10,7 @@ namespace streetsim::server {
   if (absl::Status _s = deps_->auth.Check(*(ctx)); !_s.ok()) return ToGrpcStatus(_s)
 
 static grpc::Status UnknownJob(const std::string& id) {
-  return grpc::Status(grpc::StatusCode::NOT_FOUND, absl::StrCat("unknown job '", id, "'"));
+  return grpc::Status(grpc::StatusCode::NOT_FOUND, absl::StrCat("unknown job ", Echo(id)));
 }
 
 grpc::Status TrainingServiceImpl::CreateTrainingJob(grpc::ServerContext* ctx, const v1::CreateTrainingJobRequest* req,

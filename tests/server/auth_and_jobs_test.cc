@@ -73,6 +73,16 @@ TEST_F(AuthJobsTest, JobRunsToALoadableScene) {
   absl::StatusOr<v1::Job> same = client_->CreateTrainingJob(req);
   ASSERT_TRUE(same.ok());
   EXPECT_EQ(same->job_id(), job->job_id());
+  // The same request_id for another log or another config is an error naming it.
+  v1::CreateTrainingJobRequest other = req;
+  other.mutable_config()->set_seed(7);
+  absl::StatusOr<v1::Job> reused = client_->CreateTrainingJob(other);
+  EXPECT_EQ(reused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(reused.status().message().find("request_id 'req-1' was already used for a different training job"),
+            std::string::npos) << reused.status();
+  other = req;
+  other.set_log_path("logs/other");
+  EXPECT_EQ(client_->CreateTrainingJob(other).status().code(), absl::StatusCode::kInvalidArgument);
   int updates = 0;
   absl::StatusOr<v1::Job> done = client_->WatchJob(job->job_id(), [&](const v1::Job&) { ++updates; }, 60);
   ASSERT_TRUE(done.ok()) << done.status();

@@ -1,5 +1,6 @@
 // SessionService: atomic steps, idempotent retry, deadline leaving the session unchanged, fork,
 // Drive, limits and leases.
+#include <limits>
 #include <thread>
 
 #include <grpcpp/client_context.h>
@@ -179,6 +180,13 @@ TEST_F(SessionTest, LimitsIdempotentCreateAndLeases) {
   absl::StatusOr<v1::Session> a2 = client_->CreateSession(req);
   ASSERT_TRUE(a.ok() && a2.ok());
   EXPECT_EQ(a->session_id(), a2->session_id());
+  // The same request_id for a different request is an error, not the earlier session.
+  v1::CreateSessionRequest other = req;
+  other.set_seed(req.seed() + 1);
+  absl::StatusOr<v1::Session> reused = client_->CreateSession(other);
+  EXPECT_EQ(reused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(reused.status().message().find("request_id 'r1' was already used for a different session"),
+            std::string::npos) << reused.status();
   req.set_request_id("r2");
   ASSERT_TRUE(client_->CreateSession(req).ok());
   req.set_request_id("r3");
@@ -195,12 +203,41 @@ TEST_F(SessionTest, LimitsIdempotentCreateAndLeases) {
   v1::CreateSessionRequest bad = TimedSession();
   bad.set_scene("nope");
   EXPECT_EQ(client_->CreateSession(bad).status().code(), absl::StatusCode::kNotFound);
+  // An absurd name is echoed shortened (a whole one would overflow the client's metadata limit).
+  bad.set_scene(std::string(200000, 'x') + "\n");
+  absl::Status huge = client_->CreateSession(bad).status();
+  EXPECT_EQ(huge.code(), absl::StatusCode::kNotFound) << huge;
+  EXPECT_LT(huge.message().size(), 300u) << huge.message().size();
+  EXPECT_NE(huge.message().find("(200001 bytes)"), std::string::npos) << huge.message();
+  EXPECT_EQ(client_->GetSession(std::string(100000, 's')).status().code(), absl::StatusCode::kNotFound);
+  EXPECT_LT(client_->GetSession(std::string(100000, 's')).status().message().size(), 300u);
   bad = TimedSession();
   bad.set_step_dt_us(-1);
   EXPECT_EQ(client_->CreateSession(bad).status().code(), absl::StatusCode::kInvalidArgument);
   bad = TimedSession();
   bad.add_sensors()->set_sensor_id("cam_nope");
   EXPECT_EQ(client_->CreateSession(bad).status().code(), absl::StatusCode::kNotFound);
+}
+
+TEST_F(SessionTest, StepTimesThatLeaveInt64AreOutOfRange) {
+  StartServer(TestOptions(data_root_, state_dir_));
+  // A static scene takes any time: the session starts 50 ms before the end of int64 microseconds.
+  v1::CreateSessionRequest req;
+  req.set_scene("street");
+  req.set_step_dt_us(100000);
+  req.set_start_time_us(std::numeric_limits<int64_t>::max() - 50000);
+  req.add_sensors()->set_sensor_id("cam_front");
+  req.mutable_sensors(0)->set_width(64);
+  req.mutable_sensors(0)->set_height(32);
+  absl::StatusOr<v1::Session> s = client_->CreateSession(req);
+  ASSERT_TRUE(s.ok()) << s.status();
+  ASSERT_TRUE(client_->Step(StepAt(s->session_id(), 0, 0.0)).ok());
+  absl::StatusOr<v1::StepResponse> next = client_->Step(StepAt(s->session_id(), 1, 1.0));
+  EXPECT_EQ(next.status().code(), absl::StatusCode::kOutOfRange) << next.status();
+  // The step did not happen: the session still expects step 1.
+  absl::StatusOr<v1::Session> info = client_->GetSession(s->session_id());
+  ASSERT_TRUE(info.ok());
+  EXPECT_EQ(info->last_step_index(), 0);
 }
 
 }  // namespace
