@@ -25,7 +25,7 @@ def colourise(values, lo, hi, invalid=None):
     return rgb
 
 
-def range_image_rgb(range_m, max_range_m=80.0):
+def range_image_rgb(range_m, max_range_m=50.0):
     """A LiDAR range image (beams x columns, 0 = no return) as colour, near warm, far cold."""
     r = np.asarray(range_m, dtype=np.float64)
     return colourise(max_range_m - np.minimum(r, max_range_m), 0.0, max_range_m, invalid=r <= 0)

@@ -40,7 +40,7 @@ import report  # noqa: E402
 # pipeline's test).
 PRESETS = {
     "preview": {
-        "train": ["--resolution-scale", "0.5", "--static-iterations", "1000", "--iterations", "1700",
+        "train": ["--resolution-scale", "0.5", "--static-iterations", "700", "--iterations", "1300",
                   "--holdout-every", "4", "--seed", "0"],
         "camera_scale": 0.5, "lidar_columns": 1024, "steps": 0, "report_frames": 12,
     },
@@ -274,6 +274,7 @@ def main():
             "eval_wall_s": heldout["wall_s"], "steps": drove["steps"], "step_p50_ms": drove["step_p50_ms"],
             "step_p99_ms": drove["step_p99_ms"], "camera": drove["camera"], "lidar": drove["lidar"],
             "dynamic": drove["dynamic"], "lane_changes": drove["lane_changes"],
+            "left_lane_free_steps": sum(1 for d in drove["decisions"] if d.left_lane_free),
             "min_gap_m": min((d.gap_m for d in drove["decisions"] if d.gap_m is not None), default=None),
             "total_wall_s": None, "outputs": outputs,
         }

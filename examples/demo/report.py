@@ -83,7 +83,7 @@ def _stem(view_name):
 
 
 def _heldout_views(heldout, decomposition_dir, log_dir, count=3):
-    """The worst, median and best held-out view: render | logged image, and the static / dynamic split."""
+    """The worst, median and best held-out view: render | logged image, and the moving-object mask."""
     frames = sorted(heldout["frames"], key=lambda f: f["psnr"])
     picks = [frames[0], frames[len(frames) // 2], frames[-1]][:count] if len(frames) >= 3 else frames
     rows = []
@@ -94,12 +94,15 @@ def _heldout_views(heldout, decomposition_dir, log_dir, count=3):
         rendered = media.load_rgb(stem + "_full.png")
         logged = media.load_rgb(os.path.join(log_dir, "image_02", "data", f"{f['frame']:010d}.png"))
         pair = media.side_by_side(rendered, logged)
-        parts = [media.load_rgb(stem + s) for s in ("_static.png", "_dynamic.png")]
-        split = media.side_by_side(parts[0], parts[1])
-        rows.append(f'<figure>{_img(media.encode(pair, "JPEG", 85), "image/jpeg", "held-out " + f["name"])}'
-                    f'{_img(media.encode(split, "JPEG", 80), "image/jpeg", "static and dynamic parts", "half")}'
-                    f'<figcaption>frame {f["frame"]}: PSNR {f["psnr"]:.2f} dB, SSIM {f["ssim"]:.3f}. Top: rendered '
-                    f'(left) and logged (right); below: the static Gaussians (left) and the moving ones (right).'
+        # The moving-object pixels that PSNR* is measured on, when the log gives a mask.
+        mask = ""
+        if os.path.isfile(stem + "_mask.png"):
+            mask = _img(media.encode(media.load_rgb(stem + "_mask.png"), "JPEG", 80), "image/jpeg",
+                        "moving-object pixels", "half")
+        dynamic = "" if f.get("psnr_dynamic") is None else f", PSNR* {f['psnr_dynamic']:.2f} dB"
+        rows.append(f'<figure>{_img(media.encode(pair, "JPEG", 85), "image/jpeg", "held-out " + f["name"])}{mask}'
+                    f'<figcaption>frame {f["frame"]}: PSNR {f["psnr"]:.2f} dB, SSIM {f["ssim"]:.3f}{dynamic}. '
+                    f'Rendered (left) and logged (right){"; below, the pixels of moving objects (PSNR*)" if mask else ""}.'
                     f'</figcaption></figure>')
     return "\n".join(rows)
 
@@ -207,7 +210,8 @@ through the Python client.</p>
 <h2>Closed loop</h2>
 <p>The planner follows the road of the log, keeps its distance to what the rendered LiDAR shows
 ahead in its lane (Intelligent Driver Model) and changes lane to the left when it is held up and
-the LiDAR sees the next lane free; lane changes: {summary['lane_changes']}. Camera
+the LiDAR sees the next lane free; lane changes: {summary['lane_changes']} (the next lane was free at
+{summary['left_lane_free_steps']} of {summary['steps']} steps). Camera
 {summary['camera'][0]}x{summary['camera'][1]} (RGB + depth), LiDAR {summary['lidar'][0]}x{summary['lidar'][1]}.</p>
 <input type="range" id="loop-slider" min="0" value="0" step="1" style="width: 100%">
 <p id="loop-label"></p>
