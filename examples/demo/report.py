@@ -146,7 +146,7 @@ VIEWER = """
 """
 
 STYLE = """
-body { font-family: sans-serif; margin: 24px auto; max-width: 1320px; color: #222; }
+body { font-family: sans-serif; margin: 24px auto; padding: 0 12px; max-width: 1260px; color: #222; }
 h1 { margin-bottom: 4px; } .sub { color: #666; margin-top: 0; }
 .cards { display: flex; flex-wrap: wrap; gap: 12px; }
 .card { border: 1px solid #ddd; border-radius: 6px; padding: 10px 14px; min-width: 150px; }
