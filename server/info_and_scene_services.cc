@@ -48,11 +48,14 @@ grpc::Status ServerInfoServiceImpl::GetServerInfo(grpc::ServerContext* ctx, cons
   load->set_scenes_loaded(deps_->scenes->num_loaded());
   load->set_jobs_running(deps_->jobs->running());
   load->set_server_rss_bytes(CurrentRssBytes());
-  for (const char* c : {"render", "render_trajectory", "sessions", "drive", "fork_session",
-                        "encodings:raw,png,jpeg", "depth:f32,png16", "camera:pinhole",
-                        "training:placeholder-init"}) {
+  // What this server does now, so a client can check before it asks.
+  for (const char* c : {"render", "render_trajectory", "sessions", "drive", "fork_session", "lidar",
+                        "dynamic_scenes", "extended_field", "clip_sets", "encodings:raw,png,jpeg", "depth:f32,png16",
+                        "camera:pinhole"}) {
     resp->add_capabilities(c);
   }
+  // Whether a training job trains (a `streetsim train` beside the server) or only initialises.
+  resp->add_capabilities(deps_->jobs != nullptr && deps_->jobs->TrainAvailable() ? "training:train" : "training:init-only");
   resp->set_auth_required(deps_->auth.enabled());
   resp->set_tls(deps_->tls);
   return grpc::Status::OK;

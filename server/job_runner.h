@@ -68,6 +68,9 @@ class JobRunner {
   absl::StatusOr<v1::Job> Cancel(const std::string& id);
   int running();
   JobStore* store() { return store_; }
+  // Whether jobs get a "train" stage: a trainer command was given, or `streetsim` beside this
+  // binary has the train command (probed once).
+  bool TrainAvailable();
 
  private:
   void WorkerLoop();
@@ -80,7 +83,6 @@ class JobRunner {
                                const std::function<bool(const std::string&)>& on_line = nullptr);
   // Whether the job gets a "train" stage (max_iterations > 0 and a trainer exists).
   bool WithTrain(const v1::Job& job);
-  bool TrainAvailable();
   bool CancelRequested(const std::string& id);
   absl::Status CheckContinuation(const v1::CreateTrainingJobRequest& req, const std::string& from);
 

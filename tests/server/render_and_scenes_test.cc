@@ -34,6 +34,13 @@ TEST_F(RenderTest, ServerInfoAndHealth) {
   EXPECT_GT(info->limits().max_message_bytes(), 4 << 20);
   EXPECT_GT(info->load().server_rss_bytes(), 0);
   EXPECT_FALSE(info->auth_required());
+  // Capabilities say what the server does now: LiDAR and fields yes; no placeholder left; this
+  // test binary has no `streetsim` beside it, so jobs only initialise.
+  const std::vector<std::string> caps(info->capabilities().begin(), info->capabilities().end());
+  for (const char* c : {"render", "sessions", "lidar", "dynamic_scenes", "training:init-only"}) {
+    EXPECT_NE(std::find(caps.begin(), caps.end(), c), caps.end()) << c;
+  }
+  for (const std::string& c : caps) EXPECT_EQ(c.find("placeholder"), std::string::npos) << c;
   absl::StatusOr<bool> serving = client_->IsServing();
   ASSERT_TRUE(serving.ok()) << serving.status();
   EXPECT_TRUE(*serving);

@@ -373,6 +373,15 @@ TEST_F(TrainStageTest, RestartResumesTheTrainerFromItsCheckpoint) {
   EXPECT_EQ(runs, (std::vector<std::string>{want, want}));
 }
 
+TEST_F(TrainStageTest, ServerInfoSaysJobsTrain) {
+  StartServer(Options());
+  absl::StatusOr<v1::ServerInfo> info = client_->GetServerInfo();
+  ASSERT_TRUE(info.ok()) << info.status();
+  const std::vector<std::string> caps(info->capabilities().begin(), info->capabilities().end());
+  EXPECT_NE(std::find(caps.begin(), caps.end(), "training:train"), caps.end());
+  EXPECT_EQ(std::find(caps.begin(), caps.end(), "training:init-only"), caps.end());
+}
+
 TEST_F(TrainStageTest, AKilledTrainerGoesOnFromItsCheckpoint) {
   // The fake trainer kills itself with SIGKILL after its 5th checkpoint, as the OOM killer or an
   // operator would: the job resumes it within the same attempt and loses nothing checkpointed.
