@@ -9,8 +9,8 @@
 
 #include <algorithm>
 #include <chrono>
-#include <cstring>
 #include <cmath>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <regex>
@@ -18,12 +18,12 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
+#include "server/echo.h"
 #include "server/path_confinement.h"
 #include "server/request_identity.h"
 #include "server/scene_manifest.h"
 #include "server/trained_outputs.h"
 #include "server/training_config.h"
-#include "server/echo.h"
 
 extern char** environ;
 

@@ -1,5 +1,8 @@
 #include "server/request_identity.h"
 
+#include <google/protobuf/io/coded_stream.h>
+#include <google/protobuf/io/zero_copy_stream_impl_lite.h>
+
 #include "absl/strings/str_cat.h"
 #include "server/echo.h"
 

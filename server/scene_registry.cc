@@ -8,8 +8,8 @@
 #include "render/common/log.h"
 #include "scene/train/clips.h"
 #include "server/clip_set_scene_field.h"
-#include "server/path_confinement.h"
 #include "server/echo.h"
+#include "server/path_confinement.h"
 
 namespace streetsim::server {
 namespace fs = std::filesystem;

@@ -5,11 +5,11 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "server/digest.h"
+#include "server/echo.h"
 #include "server/render_service.h"
 #include "server/request_identity.h"
 #include "server/request_validation.h"
 #include "server/time_arithmetic.h"
-#include "server/echo.h"
 
 namespace streetsim::server {
 

@@ -1,8 +1,8 @@
 #include "server/training_service.h"
 
 #include "absl/strings/str_cat.h"
-#include "server/status_mapping.h"
 #include "server/echo.h"
+#include "server/status_mapping.h"
 
 namespace streetsim::server {
 

@@ -164,8 +164,8 @@ def logged_image(log_dir, time_us, t0_us, dt_us, count):
 def drive(args, preset, address, scene_name, out):
     client = streetsim.Client(address)
     client.wait_for_ready(30)
-    scene = client.load_scene(scene_name, wait=True)
-    scene = client.get_scene(scene_name)
+    client.load_scene(scene_name, wait=True)
+    scene = client.get_scene(scene_name)  # with the ego trajectory, which LoadScene's answer lacks
     trajectory = [(tp.time_us, streetsim.matrix_from_pose(tp.T_world_from_ego)) for tp in scene.ego_trajectory]
     if len(trajectory) < 2:
         raise StepFailed("drive", f"scene {scene_name} has no ego trajectory")

@@ -71,7 +71,7 @@ class TrainerOwnershipTest(unittest.TestCase):
                 p.wait()
         for pid in trainer_pids(self.tmp):
             os.kill(pid, signal.SIGKILL)
-        if not os.environ.get("KEEP_TMP"): shutil.rmtree(self.tmp, ignore_errors=True)
+        shutil.rmtree(self.tmp, ignore_errors=True)
 
     def test_a_second_trainer_cannot_write_beside_a_running_one(self):
         out = os.path.join(self.tmp, "run")
