@@ -4,6 +4,7 @@
 // vulkan) and then rendered from any number of cameras without per-frame copies of the Gaussians.
 #pragma once
 
+#include <functional>
 #include <memory>
 #include <string>
 #include <vector>
@@ -39,6 +40,10 @@ struct RenderOptions {
   // Keep what Engine::RenderBackward needs (per-pixel contributor counts and the frame's splats)
   // until the next Render on this engine. Costs one store per pixel and splat in the blend.
   bool keep_for_backward = false;
+  // Asked between stages (and, on the cpu, between batches of tiles) whether the caller has given
+  // up (a client's deadline or cancel); when it returns true the render returns CANCELLED without
+  // finishing. Called from several threads at once: it must be thread-safe and cheap.
+  std::function<bool()> should_stop;
 };
 
 // Wall-clock milliseconds per stage of the last render (device time for vulkan when the device

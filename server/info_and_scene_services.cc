@@ -42,6 +42,9 @@ grpc::Status ServerInfoServiceImpl::GetServerInfo(grpc::ServerContext* ctx, cons
   lim->set_max_sensors_per_request(l.max_sensors_per_request);
   lim->set_session_lease_s(l.session_lease_ms / 1000);
   lim->set_max_concurrent_jobs(l.max_concurrent_jobs);
+  lim->set_max_request_pixels(l.max_request_pixels);
+  lim->set_max_lidar_rays(l.max_lidar_rays);
+  lim->set_max_queued_renders_per_client(l.max_queued_renders_per_client);
   v1::Load* load = resp->mutable_load();
   load->set_sessions(deps_->sessions->size());
   load->set_renders_in_flight(deps_->core->in_flight());

@@ -20,6 +20,7 @@
 #include "render/common/log.h"
 #include "server/echo.h"
 #include "server/path_confinement.h"
+#include "server/replica.h"
 #include "server/request_identity.h"
 #include "server/scene_manifest.h"
 #include "server/trained_outputs.h"
@@ -285,6 +286,11 @@ absl::StatusOr<v1::Job> JobRunner::Cancel(const std::string& id) {
   std::optional<v1::Job> job = store_->Get(id);
   if (!job) return absl::NotFoundError(absl::StrCat("unknown job ", Echo(id)));
   if (IsFinal(job->state())) return *job;
+  if (!store_->Owns(id)) {
+    return absl::FailedPreconditionError(absl::StrCat("job ", Echo(id), " is run by replica ",
+                                                      Echo(std::string(ReplicaOfId(id))),
+                                                      "; send CancelJob to that replica"));
+  }
   bool is_running;
   {
     std::lock_guard<std::mutex> lock(mu_);
@@ -558,6 +564,14 @@ void JobRunner::RunJob(const std::string& id) {
     if (!fs::exists(work + "/scene.ply")) return fail(absl::InternalError("train stage left no scene.ply"));
     p->set_stage_index(2);
     p->set_fraction(kTrainDoneFraction);
+    // The trainer prints progress every few iterations, so its last line can lag the end (or, for a
+    // short run, be its first iteration): a finished stage reports what the scene records.
+    if (absl::StatusOr<train::SceneMeta> meta = TrainedSceneMeta(work); meta.ok() && meta->iterations > 0) {
+      p->set_iteration(meta->iterations);
+      p->set_max_iterations(meta->iterations);
+    } else {
+      p->set_iteration(p->max_iterations());
+    }
     p->set_num_gaussians(TrainedGaussianCount(work));
     *job.mutable_heldout() = TrainedHeldoutMetrics(work);
     p->set_preview_png(FirstPreviewPng(work));

@@ -14,6 +14,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "render/common/log.h"
+#include "server/replica.h"
 
 namespace streetsim::server {
 namespace fs = std::filesystem;
@@ -48,8 +49,46 @@ absl::Status WriteFileAtomic(const std::string& path, const std::string& content
 
 }  // namespace
 
-JobStore::JobStore(std::string state_dir)
-    : state_dir_(std::move(state_dir)), jobs_dir_(state_dir_ + "/jobs"), scenes_dir_(state_dir_ + "/scenes") {}
+JobStore::JobStore(std::string state_dir, std::string replica)
+    : state_dir_(std::move(state_dir)),
+      replica_(std::move(replica)),
+      jobs_dir_(state_dir_ + "/jobs"),
+      scenes_dir_(state_dir_ + "/scenes") {}
+
+bool JobStore::Owns(const std::string& id) const { return ReplicaOfId(id) == replica_; }
+
+std::optional<v1::Job> JobStore::ReadRecord(const std::string& id) const {
+  // The id names a directory: only what this store's NewId could have made (no '/', no "..").
+  if (id.empty() || id.size() > 128 || id.front() == '.' ||
+      id.find_first_not_of("abcdefghijklmnopqrstuvwxyz0123456789-.") != std::string::npos ||
+      id.find("..") != std::string::npos) {
+    return std::nullopt;
+  }
+  const std::string path = JobDir(id) + "/job.json";
+  std::ifstream in(path);
+  if (!in) return std::nullopt;
+  std::stringstream ss;
+  ss << in.rdbuf();
+  v1::Job job;
+  google::protobuf::util::JsonParseOptions opts;
+  opts.ignore_unknown_fields = true;
+  if (!google::protobuf::util::JsonStringToMessage(ss.str(), &job, opts).ok() || job.job_id() != id) {
+    LOG(WARNING) << "skipping unreadable job record " << path;
+    return std::nullopt;
+  }
+  return job;
+}
+
+std::vector<v1::Job> JobStore::ReadForeignRecords() const {
+  std::vector<v1::Job> out;
+  std::error_code ec;
+  for (const fs::directory_entry& d : fs::directory_iterator(jobs_dir_, ec)) {
+    const std::string id = d.path().filename().string();
+    if (Owns(id)) continue;
+    if (std::optional<v1::Job> job = ReadRecord(id)) out.push_back(*std::move(job));
+  }
+  return out;
+}
 
 absl::Status JobStore::Init() {
   std::error_code ec;
@@ -59,27 +98,16 @@ absl::Status JobStore::Init() {
   if (ec) return absl::InvalidArgumentError(absl::StrCat("cannot create ", scenes_dir_, ": ", ec.message()));
   std::lock_guard<std::mutex> lock(mu_);
   for (const fs::directory_entry& d : fs::directory_iterator(jobs_dir_, ec)) {
-    const std::string path = (d.path() / "job.json").string();
-    std::ifstream in(path);
-    if (!in) continue;
-    std::stringstream ss;
-    ss << in.rdbuf();
-    v1::Job job;
-    google::protobuf::util::JsonParseOptions opts;
-    opts.ignore_unknown_fields = true;
-    if (!google::protobuf::util::JsonStringToMessage(ss.str(), &job, opts).ok() ||
-        job.job_id() != d.path().filename().string()) {
-      LOG(WARNING) << "skipping unreadable job record " << path;
-      continue;
-    }
-    jobs_[job.job_id()] = job;
+    const std::string id = d.path().filename().string();
+    if (!Owns(id)) continue;
+    if (std::optional<v1::Job> job = ReadRecord(id)) jobs_[id] = *std::move(job);
   }
   return absl::OkStatus();
 }
 
 std::vector<v1::Job> JobStore::List() {
+  std::vector<v1::Job> out = ReadForeignRecords();
   std::lock_guard<std::mutex> lock(mu_);
-  std::vector<v1::Job> out;
   for (const auto& [id, job] : jobs_) out.push_back(job);
   std::sort(out.begin(), out.end(), [](const v1::Job& a, const v1::Job& b) {
     return a.created_unix_ms() != b.created_unix_ms() ? a.created_unix_ms() < b.created_unix_ms()
@@ -89,6 +117,7 @@ std::vector<v1::Job> JobStore::List() {
 }
 
 std::optional<v1::Job> JobStore::Get(const std::string& id) {
+  if (!Owns(id)) return ReadRecord(id);
   std::lock_guard<std::mutex> lock(mu_);
   auto it = jobs_.find(id);
   if (it == jobs_.end()) return std::nullopt;
@@ -96,14 +125,23 @@ std::optional<v1::Job> JobStore::Get(const std::string& id) {
 }
 
 std::optional<v1::Job> JobStore::FindByRequestId(const std::string& request_id) {
-  std::lock_guard<std::mutex> lock(mu_);
-  for (const auto& [id, job] : jobs_) {
-    if (job.request_id() == request_id) return job;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    for (const auto& [id, job] : jobs_) {
+      if (job.request_id() == request_id) return job;
+    }
+  }
+  // A retry that reached another replica than the first attempt finds the job there.
+  for (v1::Job& job : ReadForeignRecords()) {
+    if (job.request_id() == request_id) return std::move(job);
   }
   return std::nullopt;
 }
 
 absl::Status JobStore::Put(v1::Job job) {
+  if (!Owns(job.job_id())) {
+    return absl::FailedPreconditionError(absl::StrCat("job ", job.job_id(), " belongs to another replica"));
+  }
   job.set_updated_unix_ms(NowUnixMs());
   std::string json;
   google::protobuf::util::JsonPrintOptions opts;
@@ -126,7 +164,7 @@ absl::Status JobStore::Put(v1::Job job) {
 std::string JobStore::NewId() {
   std::lock_guard<std::mutex> lock(mu_);
   while (true) {
-    std::string id = absl::StrFormat("j-%d-%d", NowUnixMs(), ++counter_);
+    std::string id = ReplicaScopedId(replica_, absl::StrFormat("j-%d-%d", NowUnixMs(), ++counter_));
     if (!jobs_.count(id) && !fs::exists(JobDir(id))) return id;
   }
 }

@@ -1,6 +1,7 @@
 // Durable training-job records: <state_dir>/jobs/<job_id>/job.json (the v1::Job message as
 // JSON), written atomically (temp file, fsync, rename). Loaded at start so that jobs survive
-// restarts.
+// restarts. Replicas sharing a state dir (server/replica.h) each keep their own jobs in memory and
+// write only those; another replica's records are read from disk when asked for.
 #pragma once
 
 #include <chrono>
@@ -18,13 +19,17 @@ namespace streetsim::server {
 
 class JobStore {
  public:
-  explicit JobStore(std::string state_dir);
-  // Creates the directories and loads every job.json (unreadable records are logged, skipped).
+  explicit JobStore(std::string state_dir, std::string replica = "");
+  // Creates the directories and loads this replica's job.json files (unreadable records are
+  // logged, skipped).
   absl::Status Init();
 
+  // This replica's jobs, then the other replicas' as their records on disk say now.
   std::vector<v1::Job> List();
   std::optional<v1::Job> Get(const std::string& id);
   std::optional<v1::Job> FindByRequestId(const std::string& request_id);
+  // Whether this replica runs (and writes) the job: its id names this replica.
+  bool Owns(const std::string& id) const;
   // Stamps updated_unix_ms, writes the record, then publishes it in memory.
   absl::Status Put(v1::Job job);
   std::string NewId();
@@ -38,7 +43,11 @@ class JobStore {
   uint64_t WaitForChange(uint64_t seen, std::chrono::milliseconds timeout);
 
  private:
+  std::optional<v1::Job> ReadRecord(const std::string& id) const;
+  std::vector<v1::Job> ReadForeignRecords() const;
+
   const std::string state_dir_;
+  const std::string replica_;
   const std::string jobs_dir_;
   const std::string scenes_dir_;
   std::mutex mu_;

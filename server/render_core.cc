@@ -6,6 +6,7 @@
 #include <grpcpp/server_context.h>
 
 #include "absl/strings/str_cat.h"
+#include "server/admission.h"
 #include "server/digest.h"
 #include "server/image_encoding.h"
 
@@ -30,18 +31,22 @@ CancelCheck ContextCancelCheck(const grpc::ServerContextBase* ctx) {
 
 RenderCore::RenderCore(std::unique_ptr<Engine> engine, const ServerLimits& limits, int debug_delay_ms,
                        LidarDevice lidar_device)
-    : engine_(std::move(engine)), lidar_device_(lidar_device), limits_(limits), debug_delay_ms_(debug_delay_ms) {}
+    : engine_(std::move(engine)),
+      lidar_device_(lidar_device),
+      limits_(limits),
+      debug_delay_ms_(debug_delay_ms),
+      gate_(limits.max_queued_renders, limits.max_queued_renders_per_client) {}
 
 std::string RenderCore::backend_name() const { return std::string(BackendName(engine_->backend())); }
 std::string RenderCore::device_name() const { return engine_->device_name(); }
 
 std::string RenderCore::lidar_device_name() {
-  std::lock_guard<std::timed_mutex> lock(engine_mu_);
+  std::lock_guard<std::mutex> lock(engine_mu_);
   return lidar_ ? lidar_->device_name() : std::string();
 }
 
 absl::StatusOr<std::unique_ptr<DeviceScene>> RenderCore::Upload(const GaussianStore& store) {
-  std::lock_guard<std::timed_mutex> lock(engine_mu_);
+  std::lock_guard<std::mutex> lock(engine_mu_);
   return engine_->Upload(store);
 }
 
@@ -75,21 +80,10 @@ absl::StatusOr<RenderResult> RenderCore::Render(const SceneField& field, int64_t
                                                 const v1::OutputSpec& outputs,
                                                 const CancelCheck& cancel, const RenderExtras& extras) {
   const auto t0 = std::chrono::steady_clock::now();
-  // Queue bound: one rendering + max_queued_renders waiting.
-  if (in_flight_.fetch_add(1) >= limits_.max_queued_renders + 1) {
-    in_flight_.fetch_sub(1);
-    return absl::ResourceExhaustedError(absl::StrCat(
-        "render queue full (", limits_.max_queued_renders, " waiting); retry later"));
-  }
-  struct Release {
-    std::atomic<int>* n;
-    ~Release() { n->fetch_sub(1); }
-  } release{&in_flight_};
-
-  std::unique_lock<std::timed_mutex> lock(engine_mu_, std::defer_lock);
-  while (!lock.try_lock_for(std::chrono::milliseconds(5))) {
-    if (absl::Status s = cancel(); !s.ok()) return s;
-  }
+  if (absl::Status s = AdmitRender(EstimateRenderCost(views, outputs, extras.lidar), limits_); !s.ok()) return s;
+  FairGate::Pass pass;
+  if (absl::Status s = gate_.Enter(extras.client, cancel, &pass); !s.ok()) return s;
+  std::unique_lock<std::mutex> lock(engine_mu_);
   RenderResult result;
   result.timings.set_queue_ms(MsSince(t0));
   if (absl::Status s = cancel(); !s.ok()) return s;
@@ -108,6 +102,7 @@ absl::StatusOr<RenderResult> RenderCore::Render(const SceneField& field, int64_t
   absl::StatusOr<const DeviceScene*> scene = field.At(time_us, *engine_);
   if (!scene.ok()) return scene.status();
   RenderOptions options;
+  options.should_stop = [&cancel] { return !cancel().ok(); };
   options.want_depth = outputs.depth();
   options.want_alpha = outputs.alpha();
   if (outputs.has_background_rgb()) {
@@ -133,6 +128,7 @@ absl::StatusOr<RenderResult> RenderCore::Render(const SceneField& field, int64_t
       return absl::InvalidArgumentError(absl::StrCat("sensor ", views[i].sensor_id, ": ", s.message()));
     }
     if (absl::Status s = engine_->Render(**scene, cam, options, &rendered[i]); !s.ok()) {
+      if (absl::Status c = cancel(); !c.ok()) return c;  // stopped part-way for the client
       return absl::InternalError(absl::StrCat("render failed: ", s.message()));
     }
   }
@@ -145,6 +141,7 @@ absl::StatusOr<RenderResult> RenderCore::Render(const SceneField& field, int64_t
   }
   result.timings.set_render_ms(MsSince(t_render));
   lock.unlock();
+  pass = FairGate::Pass();  // the next client renders while this one encodes
 
   if (absl::Status s = cancel(); !s.ok()) return s;
   const auto t_encode = std::chrono::steady_clock::now();

@@ -1,6 +1,6 @@
-// The one gate to the render engine: serialises engine calls, bounds the queue
-// (RESOURCE_EXHAUSTED beyond Limits.max_queued_renders), checks deadline/cancellation between
-// stages (waiting, each camera, encoding) and encodes outputs.
+// The one gate to the render engine: admits a request by its cost before anything else
+// (admission.h), queues renders fairly across clients (fair_gate.h), serialises engine calls,
+// stops on the client's deadline or cancel between stages and tiles, and encodes outputs.
 #pragma once
 
 #include <atomic>
@@ -16,6 +16,7 @@
 #include "absl/status/statusor.h"
 #include "render/engine.h"
 #include "server/lidar_request.h"
+#include "server/fair_gate.h"
 #include "server/lidar_sweeper.h"
 #include "server/limits.h"
 #include "server/proto_convert.h"
@@ -51,6 +52,8 @@ struct RenderResult {
 struct RenderExtras {
   std::optional<Eigen::Vector3f> default_background;
   const LidarJob* lidar = nullptr;
+  // Who asks, for fair queueing: a session's id for its steps, the caller's identity otherwise.
+  std::string client;
 };
 
 class RenderCore {
@@ -62,13 +65,14 @@ class RenderCore {
   absl::StatusOr<std::unique_ptr<DeviceScene>> Upload(const GaussianStore& store);
 
   // Renders every view of `field` at time_us (and the LiDAR sweep when extras.lidar is set); all
-  // or nothing. `outputs` already validated.
+  // or nothing. `outputs` already validated. Admission (admission.h) is checked first; callers
+  // that do expensive work before (loading a scene) check it themselves too.
   absl::StatusOr<RenderResult> Render(const SceneField& field, int64_t time_us,
                                       const std::vector<CameraView>& views,
                                       const v1::OutputSpec& outputs, const CancelCheck& cancel,
                                       const RenderExtras& extras = {});
 
-  int in_flight() const { return in_flight_.load(); }
+  int in_flight() const { return gate_.in_flight(); }
   std::string backend_name() const;
   std::string device_name() const;
   // Where sweeps run ("" until the first LiDAR request creates the renderer).
@@ -87,8 +91,8 @@ class RenderCore {
   std::shared_ptr<const HostScene> lidar_scene_;  // held so that its address is not reused
   ServerLimits limits_;
   int debug_delay_ms_;
-  std::timed_mutex engine_mu_;
-  std::atomic<int> in_flight_{0};
+  FairGate gate_;         // whose render is next
+  std::mutex engine_mu_;  // the engine itself (renders and uploads)
 };
 
 }  // namespace streetsim::server

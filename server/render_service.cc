@@ -1,6 +1,7 @@
 #include "server/render_service.h"
 
 #include "absl/strings/str_cat.h"
+#include "server/admission.h"
 #include "server/request_validation.h"
 #include "server/status_mapping.h"
 #include "server/time_arithmetic.h"
@@ -149,6 +150,10 @@ grpc::Status RenderServiceImpl::Render(grpc::ServerContext* ctx, const v1::Rende
       if (!placed.ok()) return placed;
       extras.lidar = &*lidar;
     }
+    extras.client = ctx->peer();
+    if (absl::Status s = AdmitRender(EstimateRenderCost(views, *outputs, extras.lidar), deps_->limits); !s.ok()) {
+      return s;
+    }
     const CancelCheck cancel = ContextCancelCheck(ctx);
     absl::StatusOr<SceneHandle> scene = deps_->scenes->Acquire(req->scene(), cancel);
     if (!scene.ok()) return scene.status();
@@ -206,12 +211,20 @@ grpc::Status RenderServiceImpl::RenderTrajectory(grpc::ServerContext* ctx, const
         }
       }
     }
+    // Every point renders the same sensors and outputs: one point's cost is every point's.
+    if (absl::Status s = AdmitRender(EstimateRenderCost(all_views[0], *outputs,
+                                                        lidar_jobs[0] ? &*lidar_jobs[0] : nullptr),
+                                     deps_->limits);
+        !s.ok()) {
+      return s;
+    }
     const CancelCheck cancel = ContextCancelCheck(ctx);
     absl::StatusOr<SceneHandle> scene = deps_->scenes->Acquire(req->scene(), cancel);
     if (!scene.ok()) return scene.status();
     for (int i = 0; i < req->points_size(); ++i) {
       RenderExtras extras;
       extras.default_background = (*manifest)->background;
+      extras.client = ctx->peer();
       if (lidar_jobs[i]) extras.lidar = &*lidar_jobs[i];
       absl::StatusOr<RenderResult> r =
           deps_->core->Render(*scene->scene->field, req->points(i).time_us(), all_views[i], *outputs, cancel, extras);

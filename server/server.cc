@@ -12,6 +12,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
+#include "server/replica.h"
 #include "server/info_and_scene_services.h"
 #include "server/job_runner.h"
 #include "server/job_store.h"
@@ -63,6 +64,10 @@ absl::StatusOr<std::unique_ptr<Server>> Server::Start(const ServerOptions& optio
   s->deps_ = std::make_unique<ServiceDeps>();
   ServiceDeps& deps = *s->deps_;
   deps.limits = options.limits;
+  if (!options.replica.empty()) {
+    if (absl::Status st = ValidateReplicaName(options.replica); !st.ok()) return st;
+  }
+  deps.replica = options.replica;
   if (!options.auth_token_file.empty()) {
     absl::StatusOr<Authenticator> auth = Authenticator::FromFile(options.auth_token_file);
     if (!auth.ok()) return auth.status();
@@ -87,7 +92,7 @@ absl::StatusOr<std::unique_ptr<Server>> Server::Start(const ServerOptions& optio
   load.static_skip = options.static_skip;
   s->core_ = std::make_unique<RenderCore>(std::move(*engine), deps.limits, options.debug_render_delay_ms);
   deps.core = s->core_.get();
-  s->job_store_ = std::make_unique<JobStore>(state_dir);
+  s->job_store_ = std::make_unique<JobStore>(state_dir, options.replica);
   if (absl::Status st = s->job_store_->Init(); !st.ok()) return st;
   s->scenes_ = std::make_unique<SceneRegistry>(data_root, s->job_store_->scenes_dir(), s->core_.get(), load);
   deps.scenes = s->scenes_.get();

@@ -35,6 +35,8 @@ struct ServerOptions {
   std::string tls_key_file;
   std::string auth_token_file;  // bearer token; empty: no auth
   ServerLimits limits;
+  // This server's name among replicas sharing state_dir (server/replica.h); "" when alone.
+  std::string replica;
   std::vector<std::string> init_command;   // training init stage argv prefix (tests override)
   std::vector<std::string> train_command;  // training train stage argv prefix (tests override;
                                            // empty: `streetsim train` next to this binary if any)

@@ -17,6 +17,7 @@ struct ServiceDeps {
   ServerLimits limits;
   Authenticator auth;
   bool tls = false;
+  std::string replica;  // server/replica.h
   RenderCore* core = nullptr;
   SceneRegistry* scenes = nullptr;
   SessionManager* sessions = nullptr;

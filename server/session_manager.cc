@@ -4,9 +4,11 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "server/admission.h"
 #include "server/digest.h"
 #include "server/echo.h"
 #include "server/render_service.h"
+#include "server/replica.h"
 #include "server/request_identity.h"
 #include "server/request_validation.h"
 #include "server/time_arithmetic.h"
@@ -48,7 +50,7 @@ std::shared_ptr<SessionManager::Session> SessionManager::FindLocked(const std::s
 
 std::string SessionManager::NewIdLocked() {
   static thread_local std::mt19937_64 rng(std::random_device{}());
-  return absl::StrFormat("s-%d-%08x", next_id_++, static_cast<uint32_t>(rng()));
+  return ReplicaScopedId(deps_->replica, absl::StrFormat("s-%d-%08x", next_id_++, static_cast<uint32_t>(rng())));
 }
 
 int SessionManager::size() {
@@ -80,7 +82,13 @@ v1::Session SessionManager::Describe(Session& s) {
   return out;
 }
 
-static absl::Status UnknownSession(const std::string& id) {
+absl::Status SessionManager::UnknownSession(const std::string& id) const {
+  const std::string_view owner = ReplicaOfId(id);
+  if (!owner.empty() && owner != deps_->replica) {
+    return absl::NotFoundError(absl::StrCat("session ", Echo(id), " belongs to replica ", Echo(std::string(owner)),
+                                            ", not this one (", Echo(deps_->replica),
+                                            "): send a session's calls to the replica that created it"));
+  }
   return absl::NotFoundError(absl::StrCat("unknown or expired session ", Echo(id)));
 }
 
@@ -94,8 +102,18 @@ absl::StatusOr<v1::Session> SessionManager::Create(const v1::CreateSessionReques
   if (!manifest.ok()) return manifest.status();
   absl::StatusOr<std::vector<RigCamera>> cams = ResolveSensors(**manifest, req.sensors(), deps_->limits);
   if (!cams.ok()) return cams.status();
+  std::optional<LidarJob> lidar;
   if (req.has_lidar()) {
-    if (absl::StatusOr<LidarJob> job = ResolveLidar(req.lidar(), **manifest); !job.ok()) return job.status();
+    absl::StatusOr<LidarJob> job = ResolveLidar(req.lidar(), **manifest);
+    if (!job.ok()) return job.status();
+    lidar = std::move(*job);
+  }
+  // A session whose every step would be refused for its size is refused now.
+  if (absl::Status s = AdmitRender(EstimateRenderCost(ViewsAt(*cams, Eigen::Isometry3d::Identity()), *outputs,
+                                                      lidar ? &*lidar : nullptr),
+                                   deps_->limits);
+      !s.ok()) {
+    return s;
   }
   int64_t start = req.start_time_us();
   if (start == 0 && (*manifest)->has_time_range) start = (*manifest)->start_us;
@@ -281,14 +299,18 @@ absl::StatusOr<std::shared_ptr<const v1::StepResponse>> SessionManager::Step(con
   if (!req.has_trajectory()) ego_sweep_end = ego;
   RenderExtras extras;
   extras.default_background = s->manifest->background;
+  extras.client = s->id;
   if (lidar) {
     PlaceLidar(ego, ego_sweep_end, time_us, &*lidar);
     extras.lidar = &*lidar;
   }
+  const std::vector<CameraView> views = ViewsAt(s->cameras, ego);
+  if (absl::Status st = AdmitRender(EstimateRenderCost(views, outputs, extras.lidar), deps_->limits); !st.ok()) {
+    return st;
+  }
   absl::StatusOr<SceneHandle> scene = deps_->scenes->Acquire(s->scene, cancel);
   if (!scene.ok()) return scene.status();
-  absl::StatusOr<RenderResult> r =
-      deps_->core->Render(*scene->scene->field, time_us, ViewsAt(s->cameras, ego), outputs, cancel, extras);
+  absl::StatusOr<RenderResult> r = deps_->core->Render(*scene->scene->field, time_us, views, outputs, cancel, extras);
   if (!r.ok()) return r.status();
   auto resp = std::make_shared<v1::StepResponse>();
   resp->set_session_id(s->id);

@@ -60,6 +60,7 @@ class SessionManager {
   std::shared_ptr<Session> FindLocked(const std::string& id);
   void PurgeExpiredLocked();
   std::string NewIdLocked();
+  absl::Status UnknownSession(const std::string& id) const;
   v1::Session Describe(Session& s);
   void Renew(Session& s);
 

@@ -1,6 +1,7 @@
 // streetsim serve: run the gRPC server (docs/server.md) until SIGTERM / SIGINT.
 #include <algorithm>
 #include <cstdio>
+#include <cstdlib>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
@@ -34,7 +35,8 @@ int RunServeCommand(const std::vector<std::string>& argv) {
   std::vector<FlagSpec> flags = {{"listen"},       {"data-root"},        {"state-dir"},      {"backend"},
                                  {"tls-cert"},     {"tls-key"},          {"auth-token-file"}, {"max-sessions"},
                                  {"max-queued-renders"}, {"max-image-side"}, {"session-lease-s"},
-                                 {"max-message-mb"}, {"init-command"},   {"field-device"}};
+                                 {"max-message-mb"}, {"init-command"},   {"field-device"},
+                                 {"max-request-pixels"}, {"max-queued-renders-per-client"}, {"replica"}};
   flags.insert(flags.end(), StaticSkipFlags().begin(), StaticSkipFlags().end());
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(argv, flags);
   if (!args.ok()) return Fail(2, args.status());
@@ -59,10 +61,16 @@ int RunServeCommand(const std::vector<std::string>& argv) {
   o.tls_cert_file = args->Get("tls-cert").value_or("");
   o.tls_key_file = args->Get("tls-key").value_or("");
   o.auth_token_file = args->Get("auth-token-file").value_or("");
+  // A StatefulSet pod passes its own name through the environment (docs/deploy.md).
+  const char* replica_env = std::getenv("STREETSIM_REPLICA");
+  o.replica = args->Get("replica").value_or(replica_env ? replica_env : "");
   int side = 0;
   int64_t lease_s = 0, message_mb = 0;
   for (const absl::Status& s : {ParseInt(*args, "max-sessions", 1, &o.limits.max_sessions),
                                 ParseInt(*args, "max-queued-renders", 0, &o.limits.max_queued_renders),
+                                ParseInt(*args, "max-queued-renders-per-client", 1,
+                                         &o.limits.max_queued_renders_per_client),
+                                ParseInt<int64_t>(*args, "max-request-pixels", 1, &o.limits.max_request_pixels),
                                 ParseInt(*args, "max-image-side", 1, &side),
                                 ParseInt<int64_t>(*args, "session-lease-s", 1, &lease_s),
                                 ParseInt<int64_t>(*args, "max-message-mb", 1, &message_mb)}) {

@@ -2,6 +2,7 @@
 #include "render/cpu/simd_dispatch.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 
 namespace streetsim::cpu {
@@ -33,6 +34,24 @@ const SimdChoice& Simd() {
 // tiles full of parked cars (thousands of splats), large enough to amortise the atomic.
 constexpr int64_t kTileGrain = 4;
 
+// Runs body(begin, end) over the tile batches until args.should_stop says stop.
+template <typename Args, typename Body>
+void ForTileBatches(ThreadPool& pool, int64_t tiles, const Args& args, const Body& body) {
+  if (args.should_stop == nullptr) {
+    pool.ParallelFor(tiles, kTileGrain, [&](int64_t begin, int64_t end, int) { body(begin, end); });
+    return;
+  }
+  std::atomic<bool> stopped{false};
+  pool.ParallelFor(tiles, kTileGrain, [&](int64_t begin, int64_t end, int) {
+    if (stopped.load(std::memory_order_relaxed)) return;
+    if ((*args.should_stop)()) {
+      stopped.store(true, std::memory_order_relaxed);
+      return;
+    }
+    body(begin, end);
+  });
+}
+
 }  // namespace
 
 const char* BlendSimdIsa() { return Simd().isa; }
@@ -40,8 +59,7 @@ const char* BlendSimdIsa() { return Simd().isa; }
 void BlendSimd(ThreadPool& pool, const BlendArgs<float>& args) {
   const BlendFn fn = Simd().fn;
   const int64_t tiles = static_cast<int64_t>(args.frame->tiles_x) * args.frame->tiles_y;
-  pool.ParallelFor(tiles, kTileGrain,
-                   [&](int64_t begin, int64_t end, int) { fn(args, begin, end); });
+  ForTileBatches(pool, tiles, args, [&](int64_t begin, int64_t end) { fn(args, begin, end); });
 }
 
 template <typename Real>
@@ -49,7 +67,7 @@ void BlendScalar(ThreadPool& pool, const BlendArgs<Real>& args) {
   const Frame<Real>& f = *args.frame;
   const int64_t tiles = static_cast<int64_t>(f.tiles_x) * f.tiles_y;
   const Real min_alpha = Real(1) / Real(255);
-  pool.ParallelFor(tiles, kTileGrain, [&](int64_t t0, int64_t t1, int) {
+  ForTileBatches(pool, tiles, args, [&](int64_t t0, int64_t t1) {
     for (int64_t tile = t0; tile < t1; ++tile) {
       const int tx = static_cast<int>(tile % f.tiles_x), ty = static_cast<int>(tile / f.tiles_x);
       const uint32_t begin = f.tile_offsets[tile], end = f.tile_offsets[tile + 1];

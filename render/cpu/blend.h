@@ -8,6 +8,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <vector>
 
 #include "render/common/thread_pool.h"
@@ -24,6 +25,9 @@ struct BlendArgs {
   Real* alpha = nullptr;  // [H*W] or null
   Real* final_T = nullptr;          // [H*W] or null
   uint32_t* n_contrib = nullptr;    // [H*W] or null: only the backward pass needs it
+  // Polled before each batch of tiles (from the pool's threads); once it returns true the
+  // remaining batches are skipped and the image is left incomplete (the caller gives up on it).
+  const std::function<bool()>* should_stop = nullptr;
 };
 
 void BlendSimd(ThreadPool& pool, const BlendArgs<float>& args);

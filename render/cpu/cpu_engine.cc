@@ -19,6 +19,9 @@ double MsSince(Clock::time_point t0) {
   return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
 }
 
+bool Stopped(const RenderOptions& options) { return options.should_stop && options.should_stop(); }
+absl::Status StoppedError() { return absl::CancelledError("render stopped by its caller"); }
+
 // The cpu backend's "device memory": a host copy of the scene, so the caller may free or change
 // its own store after Upload. The vectorised path keeps it as one array per parameter
 // (SceneSoa); the scalar reference paths keep the store layout they index directly.
@@ -188,11 +191,13 @@ class CpuEngine final : public Engine {
       cpu::ProjectGaussians<Real>(pool_, scene.store(), cam, frame);
     }
     out->timings.projection_ms = MsSince(t0);
+    if (Stopped(options)) return StoppedError();
 
     t0 = Clock::now();
     cpu::SortByDepth(frame);
     cpu::BinTiles(pool_, frame);
     out->timings.sort_ms = MsSince(t0);
+    if (Stopped(options)) return StoppedError();
 
     const size_t pixels = static_cast<size_t>(camera.width) * camera.height;
     out->width = camera.width;
@@ -215,6 +220,7 @@ class CpuEngine final : public Engine {
       // The backward pass (training) needs the per-pixel contributor counts; plain rendering
       // skips them (one store less per pixel and splat in the blend).
       args.n_contrib = options.keep_for_backward ? frame->n_contrib.data() : nullptr;
+      args.should_stop = options.should_stop ? &options.should_stop : nullptr;
       if (options_.precision == CpuPrecision::kFloatSimd) {
         cpu::BlendSimd(pool_, args);
       } else {
@@ -230,12 +236,14 @@ class CpuEngine final : public Engine {
       args.alpha = alpha.data();
       args.final_T = frame->final_T.data();
       args.n_contrib = frame->n_contrib.data();
+      args.should_stop = options.should_stop ? &options.should_stop : nullptr;
       cpu::BlendScalar<double>(pool_, args);
       out->rgb.assign(rgb.begin(), rgb.end());
       if (options.want_depth) out->depth.assign(depth.begin(), depth.end()); else out->depth.clear();
       if (options.want_alpha) out->alpha.assign(alpha.begin(), alpha.end()); else out->alpha.clear();
     }
     out->timings.blend_ms = MsSince(t0);
+    if (Stopped(options)) return StoppedError();  // batches were skipped: the image is incomplete
 
     if (options.keep_for_backward) {
       kept_scene_ = &scene;
@@ -250,8 +258,20 @@ class CpuEngine final : public Engine {
     out->stats.num_visible = frame->visible_ids.size();
     out->stats.num_tile_instances = frame->tile_ids.size();
     out->timings.total_ms = MsSince(t_start);
+    // The per-pixel and per-tile scratch is kept for the next frame of the same size (training,
+    // a closed loop), but not after an outsized one: a served 4096x4096 frame would otherwise hold
+    // ~130 MB of it for the life of the process.
+    if (!options.keep_for_backward && pixels > kKeepScratchPixels) {
+      std::vector<Real>().swap(frame->final_T);
+      std::vector<uint32_t>().swap(frame->n_contrib);
+      std::vector<uint32_t>().swap(frame->tile_ids);
+      std::vector<uint32_t>().swap(frame->tile_offsets);
+    }
     return absl::OkStatus();
   }
+
+  // Above this a frame's scratch is released after it (a 1920x1080 frame is 2.1 M pixels).
+  static constexpr size_t kKeepScratchPixels = size_t{4} << 20;
 
   CpuEngineOptions options_;
   ThreadPool pool_;

@@ -317,7 +317,10 @@ absl::Status VulkanEngine::Render(const DeviceScene& scene, const PinholeCamera&
       max_instances, std::max<uint64_t>({uint64_t{4} * n, last_instances_ + last_instances_ / 4,
                                          kMinInstanceCapacity, instance_capacity_}));
   uint32_t counts[kNumCounts] = {};
+  // The frame is one submission: a caller who gave up is heard before it and before the readback.
+  const auto stopped = [&] { return options.should_stop && options.should_stop(); };
   for (int attempt = 0;; ++attempt) {
+    if (stopped()) return absl::CancelledError("vulkan: render stopped by its caller");
     if (absl::Status s = EnsureFrameResources(n, camera.width, camera.height, capacity); !s.ok()) {
       return s;
     }
@@ -346,6 +349,7 @@ absl::Status VulkanEngine::Render(const DeviceScene& scene, const PinholeCamera&
     kept_.instances = counts[kCountI];
   }
 
+  if (stopped()) return absl::CancelledError("vulkan: render stopped by its caller");
   if (absl::Status s = Readback(camera, options, out); !s.ok()) return s;
   out->stats.num_gaussians = n;
   out->stats.num_visible = counts[kCountV];

@@ -8,6 +8,8 @@
 # DIR/scene.ply (from init) as it is and writes DIR/trained. LOG/train_kill_at K: a run that did
 # not resume kills itself with SIGKILL after its K-th iteration's checkpoint (a trainer killed from
 # outside); with LOG/train_kill_every_run, every run kills itself after its first iteration.
+# LOG/train_progress_once: only the first iteration's progress line is printed (a real trainer
+# prints every few iterations, so its last line can lag the end).
 set -e
 log=""; out=""; n=0; resume=0; seed=""; flags=""; field=static
 while [ $# -gt 0 ]; do
@@ -38,8 +40,10 @@ while [ "$i" -lt "$n" ]; do
   i=$((i + 1))
   sleep "$pause"
   echo "I1122 12:00:00.000 trainer.cc:1] a log line that is not progress" >&2
+  if [ ! -f "$log/train_progress_once" ] || [ "$i" -eq 1 ]; then
   printf '[####..........] %d/%d  loss %d.%04d  psnr %d.50 dB  4000 Gaussians  12.50 it/s  ETA 0:00:%02d\n' \
     "$i" "$n" 0 "$((1000 - i))" "$((20 + i))" "$((n - i))" >&2
+  fi
   # Atomic like the real trainer's: a stop between truncate and write must not lose the count.
   echo "$i" > "$out/checkpoint.bin.tmp"
   mv "$out/checkpoint.bin.tmp" "$out/checkpoint.bin"

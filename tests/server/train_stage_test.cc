@@ -136,6 +136,19 @@ TEST_F(TrainStageTest, TrainStageReportsProgressAndKeepsTheInitManifest) {
   EXPECT_EQ(scene->num_gaussians(), 4000u);
 }
 
+TEST_F(TrainStageTest, AFinishedJobShowsItsLastIterationNotItsLastProgressLine) {
+  // The trainer's last progress line was its first iteration; the finished job says 6 of 6.
+  std::ofstream(data_root_ + "/logs/fake/train_progress_once") << "";
+  StartServer(Options());
+  absl::StatusOr<v1::Job> job = client_->CreateTrainingJob(JobFor("quiet", 6));
+  ASSERT_TRUE(job.ok()) << job.status();
+  absl::StatusOr<v1::Job> done = client_->WatchJob(job->job_id(), [](const v1::Job&) {}, 60);
+  ASSERT_TRUE(done.ok()) << done.status();
+  ASSERT_EQ(done->state(), v1::JOB_STATE_SUCCEEDED) << done->error();
+  EXPECT_EQ(done->progress().iteration(), 6);
+  EXPECT_EQ(done->progress().max_iterations(), 6);
+}
+
 TEST_F(TrainStageTest, AClipSetReportsItsClipsTogether) {
   // What `streetsim train --clip-frames` leaves: DIR/clips.json and a scene per clip, each with
   // its held-out metrics; the job reports their union and the Gaussians of every clip.
@@ -433,6 +446,81 @@ TEST_F(TrainStageTest, BadTrainingOptionsAreRefusedAtCreation) {
   absl::StatusOr<std::vector<v1::Job>> jobs = client_->ListJobs();
   ASSERT_TRUE(jobs.ok());
   EXPECT_TRUE(jobs->empty());
+}
+
+}  // namespace
+}  // namespace streetsim::testing
+
+namespace streetsim::testing {
+namespace {
+
+// Replicas sharing one state dir (server/replica.h): ids name their replica, each replica runs
+// only its own jobs, another replica reports them and sends cancels to their owner.
+class ReplicaTest : public TrainStageTest {
+ protected:
+  server::ServerOptions Named(const std::string& name) {
+    server::ServerOptions o = Options();
+    o.replica = name;
+    return o;
+  }
+};
+
+TEST_F(ReplicaTest, IdsNameTheReplicaAndJobsStayWithTheirOwner) {
+  std::ofstream(data_root_ + "/logs/fake/train_sleep_s") << "0.1";
+  StartServer(Named("r0"));
+  absl::StatusOr<std::unique_ptr<server::Server>> other = server::Server::Start(Named("r1"));
+  ASSERT_TRUE(other.ok()) << other.status();
+  client::ClientOptions co;
+  co.target = (*other)->address();
+  absl::StatusOr<std::unique_ptr<client::Client>> r1 = client::Client::Connect(co);
+  ASSERT_TRUE(r1.ok());
+
+  v1::CreateSessionRequest sreq;
+  sreq.set_scene("timed");
+  absl::StatusOr<v1::Session> session = client_->CreateSession(sreq);
+  ASSERT_TRUE(session.ok()) << session.status();
+  EXPECT_EQ(session->session_id().rfind("r0.s-", 0), 0u) << session->session_id();
+  v1::StepRequest step;
+  step.set_session_id(session->session_id());
+  step.set_step_index(0);
+  absl::StatusOr<v1::StepResponse> elsewhere = (*r1)->Step(step);
+  ASSERT_FALSE(elsewhere.ok());
+  EXPECT_EQ(elsewhere.status().code(), absl::StatusCode::kNotFound);
+  EXPECT_NE(elsewhere.status().message().find("belongs to replica 'r0'"), std::string::npos)
+      << elsewhere.status();
+
+  absl::StatusOr<v1::Job> job = client_->CreateTrainingJob(JobFor("shared", 200));
+  ASSERT_TRUE(job.ok()) << job.status();
+  EXPECT_EQ(job->job_id().rfind("r0.j-", 0), 0u) << job->job_id();
+  WaitForStage(job->job_id(), "train");
+  // r1 reports r0's job from the shared records, lists it, and sends its cancel to r0.
+  absl::StatusOr<v1::Job> seen = (*r1)->GetJob(job->job_id());
+  ASSERT_TRUE(seen.ok()) << seen.status();
+  EXPECT_EQ(seen->config().scene_name(), "shared");
+  absl::StatusOr<v1::Job> refused = (*r1)->CancelJob(job->job_id());
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition) << refused.status();
+  // A restart of r1 does not adopt r0's running job (only r0 runs and writes it).
+  r1->reset();
+  other->reset();
+  other = server::Server::Start(Named("r1"));
+  ASSERT_TRUE(other.ok()) << other.status();
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  std::ifstream flags(state_dir_ + "/jobs/" + job->job_id() + "/work/flags");
+  int trainer_runs = 0;
+  for (std::string line; std::getline(flags, line);) ++trainer_runs;
+  EXPECT_EQ(trainer_runs, 1);  // r0's trainer only (each run of the fake trainer adds a line)
+  absl::StatusOr<v1::Job> cancelled = client_->CancelJob(job->job_id());
+  ASSERT_TRUE(cancelled.ok()) << cancelled.status();
+  EXPECT_EQ(cancelled->state(), v1::JOB_STATE_CANCELLED);
+}
+
+TEST_F(ReplicaTest, ABadReplicaNameIsRefused) {
+  for (const char* bad : {"R0", "-r", "r.0", "a/b"}) {
+    absl::StatusOr<std::unique_ptr<server::Server>> s = server::Server::Start(Named(bad));
+    ASSERT_FALSE(s.ok()) << bad;
+    EXPECT_EQ(s.status().code(), absl::StatusCode::kInvalidArgument) << s.status();
+  }
 }
 
 }  // namespace

@@ -18,5 +18,7 @@ from streetsim.client import (  # noqa: E402,F401
     pose_from_matrix,
     matrix_from_pose,
 )
+from streetsim.replicas import ReplicaClient, replica_of  # noqa: E402,F401
 
-__all__ = ["Client", "Frame", "Lidar", "LidarOptions", "Session", "StreetsimError", "pose_from_matrix", "matrix_from_pose"]
+__all__ = ["Client", "Frame", "Lidar", "LidarOptions", "ReplicaClient", "Session", "StreetsimError",
+           "pose_from_matrix", "matrix_from_pose", "replica_of"]
