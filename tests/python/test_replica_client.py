@@ -13,7 +13,7 @@ import numpy as np
 import streetsim
 from test_python_client import ServerProcess, write_ply
 
-LOOK_DOWN_X = np.array([[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1]], dtype=float)
+EGO = np.eye(4)  # x forward: cam_front sees the wall 10 m ahead
 
 
 class ReplicaClientTest(unittest.TestCase):
@@ -34,12 +34,12 @@ class ReplicaClientTest(unittest.TestCase):
 
     def test_sessions_are_routed_and_renders_fail_over(self):
         rc = streetsim.ReplicaClient({n: s.address for n, s in self.servers.items()}, timeout_s=30)
-        sessions = [rc.session("wall", sensors=["cam_front"], width=96, height=32, initial_ego_pose=LOOK_DOWN_X)
+        sessions = [rc.session("wall", sensors=["cam_front"], width=96, height=32, initial_ego_pose=EGO)
                     for _ in range(4)]
         owners = sorted(streetsim.replica_of(s.id) for s in sessions)
         self.assertEqual(owners, ["r0", "r0", "r1", "r1"])  # created in turn
         for s in sessions:
-            frames = s.step(ego_pose=LOOK_DOWN_X)
+            frames = s.step(ego_pose=EGO)
             self.assertGreater(frames["cam_front"].rgb.mean(), 0.0)
             self.assertIs(s.client, rc.session_client(s.id))
         # A session's id sent to the other replica: NOT_FOUND naming the owner.
@@ -52,11 +52,11 @@ class ReplicaClientTest(unittest.TestCase):
         self.servers["r1"].proc.kill()
         self.servers["r1"].proc.wait()
         for _ in range(4):
-            frames = rc.render("wall", ego_pose=LOOK_DOWN_X, sensors=["cam_front"], width=96, height=32)
+            frames = rc.render("wall", ego_pose=EGO, sensors=["cam_front"], width=96, height=32)
             self.assertIn("cam_front", frames)
         for s in sessions:
             if streetsim.replica_of(s.id) == "r0":
-                s.step(ego_pose=LOOK_DOWN_X)
+                s.step(ego_pose=EGO)
         rc.close()
 
     def test_a_replica_client_needs_replicas(self):

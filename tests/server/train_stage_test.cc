@@ -2,11 +2,14 @@
 // (tests/server/fake_train.sh): progress parsed from its stderr, init's scene.json kept, failure,
 // cancel, resume with --resume after a restart, and no train stage when none is asked for or the
 // binary has none.
+#include <algorithm>
+#include <map>
 #include <thread>
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 
+#include "client/cpp/replica_set.h"
 #include "scene/train/clips.h"
 #include "server/job_runner.h"
 #include "tests/server/server_fixture.h"
@@ -513,6 +516,43 @@ TEST_F(ReplicaTest, IdsNameTheReplicaAndJobsStayWithTheirOwner) {
   absl::StatusOr<v1::Job> cancelled = client_->CancelJob(job->job_id());
   ASSERT_TRUE(cancelled.ok()) << cancelled.status();
   EXPECT_EQ(cancelled->state(), v1::JOB_STATE_CANCELLED);
+}
+
+TEST_F(ReplicaTest, TheCppReplicaSetRoutesSessionsAndFailsOver) {
+  StartServer(Named("r0"));
+  absl::StatusOr<std::unique_ptr<server::Server>> r1 = server::Server::Start(Named("r1"));
+  ASSERT_TRUE(r1.ok()) << r1.status();
+  client::ClientOptions co;
+  co.timeout_s = 30;
+  absl::StatusOr<std::unique_ptr<client::ReplicaSet>> set =
+      client::ReplicaSet::Connect({{"r0", server_->address()}, {"r1", (*r1)->address()}}, co);
+  ASSERT_TRUE(set.ok()) << set.status();
+  v1::CreateSessionRequest sreq;
+  sreq.set_scene("timed");
+  std::vector<std::string> owners;
+  for (int i = 0; i < 4; ++i) {
+    absl::StatusOr<v1::Session> s = (*set)->CreateSession(sreq);
+    ASSERT_TRUE(s.ok()) << s.status();
+    owners.emplace_back(client::ReplicaOfId(s->session_id()));
+    v1::StepRequest step;
+    step.set_session_id(s->session_id());
+    step.set_step_index(0);
+    absl::StatusOr<v1::StepResponse> r = (*set)->Step(step);  // reaches the session's own replica
+    ASSERT_TRUE(r.ok()) << r.status();
+  }
+  std::sort(owners.begin(), owners.end());
+  EXPECT_EQ(owners, (std::vector<std::string>{"r0", "r0", "r1", "r1"}));
+  // r1 goes away: stateless renders fail over to r0, every time.
+  r1->reset();
+  v1::RenderRequest render;
+  render.set_scene("timed");
+  render.set_time_us(100000);
+  for (int i = 0; i < 4; ++i) {
+    absl::StatusOr<v1::RenderResponse> r = (*set)->Render(render);
+    ASSERT_TRUE(r.ok()) << r.status();
+  }
+  EXPECT_FALSE(client::ReplicaSet::Connect(std::map<std::string, std::string>{}, co).ok());
+  EXPECT_FALSE(client::ReplicaSet::Connect({"a"}, "no-placeholder:1", co).ok());
 }
 
 TEST_F(ReplicaTest, ABadReplicaNameIsRefused) {
