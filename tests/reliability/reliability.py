@@ -38,6 +38,7 @@ from streetsim import ReplicaClient, StreetsimError
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "python"))
 from test_python_client import write_ply  # noqa: E402  (a wall of Gaussians 10 m ahead along +x)
+from test_trainer_ownership import alive, trainer_pids  # noqa: E402
 from streetsim.v1 import (common_pb2, render_pb2, render_pb2_grpc, scene_pb2, scene_pb2_grpc, server_info_pb2,
                           server_info_pb2_grpc, session_pb2, session_pb2_grpc, training_pb2,
                           training_pb2_grpc)
@@ -52,14 +53,6 @@ TINY_JOB = dict(resolution_scale=0.05, field="static", holdout_every=0)
 
 
 # -- processes -------------------------------------------------------------------------------------
-def alive(pid):
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except FileNotFoundError:
-        return False
-
-
 def rss_mib(pid, field="VmRSS"):
     try:
         with open(f"/proc/{pid}/status") as f:
@@ -69,21 +62,6 @@ def rss_mib(pid, field="VmRSS"):
     except FileNotFoundError:
         pass
     return float("nan")
-
-
-def trainer_pids(out_dir):
-    pids = []
-    for d in os.listdir("/proc"):
-        if not d.isdigit():
-            continue
-        try:
-            with open(f"/proc/{d}/cmdline", "rb") as f:
-                args = f.read().split(b"\0")
-        except OSError:
-            continue
-        if b"train" in args and out_dir.encode() in args and alive(int(d)):
-            pids.append(int(d))
-    return pids
 
 
 def wait_for(predicate, timeout_s, what):
