@@ -78,7 +78,20 @@ absl::StatusOr<const DeviceScene*> DynamicSceneField::At(int64_t time_us, Engine
   absl::StatusOr<const GaussianStore*> store = EvaluateLocked(time_us);
   if (!store.ok()) return store.status();
   if (serving_->field_evaluations() != device_evaluation_) {
-    if (absl::Status s = engine.UpdateScene(**store, &device_); !s.ok()) {
+    // In place: the backend keeps its buffers and copies in parallel, checking only what rendering
+    // needs (UpdateScene would validate the whole store again and, on the cpu, rebuild every array:
+    // most of a 500k-Gaussian step went to allocating, zeroing and copying).
+    const GaussianStore& g = **store;
+    GaussianParamsView view;
+    view.n = g.size();
+    view.sh_degree = g.sh_degree;
+    view.sh_stride = g.sh_coeffs();
+    view.means = g.means.data();
+    view.log_scales = g.log_scales.data();
+    view.rotations = g.rotations.data();
+    view.opacity_logits = g.opacity_logits.data();
+    view.sh = g.sh.data();
+    if (absl::Status s = engine.UpdateSceneParams(view, &device_); !s.ok()) {
       device_evaluation_ = -1;  // the device copy is in an unknown state: update on the next call
       return absl::InternalError(absl::StrCat("uploading the deformed scene failed: ", s.message()));
     }
@@ -92,14 +105,17 @@ absl::StatusOr<std::shared_ptr<const HostScene>> DynamicSceneField::HostAt(int64
   absl::StatusOr<const GaussianStore*> store = EvaluateLocked(time_us);
   if (!store.ok()) return store.status();
   if (serving_->field_evaluations() != host_evaluation_) {
-    // A new object per timestamp: the LiDAR renderer re-uploads when the pointer changes.
-    auto host = std::make_shared<HostScene>();
-    host->store = **store;
-    host->reflectance = reflectance_;
-    host_ = std::move(host);
+    // Copied into the same vectors (no allocation, no page faults); a new generation tells the
+    // LiDAR renderer to upload again.
+    if (!host_) {
+      host_ = std::make_shared<HostScene>();
+      host_->reflectance = reflectance_;
+    }
+    host_->store = **store;
+    host_->generation = HostScene::NewHostSceneGeneration();
     host_evaluation_ = serving_->field_evaluations();
   }
-  return host_;
+  return std::shared_ptr<const HostScene>(host_);
 }
 
 FieldStats DynamicSceneField::stats() const {

@@ -59,12 +59,12 @@ absl::Status RenderCore::RenderLidar(const std::shared_ptr<const HostScene>& hos
     }
     lidar_ = *std::move(created);
   }
-  if (lidar_scene_ != host) {
-    lidar_scene_.reset();
+  if (lidar_generation_ != host->generation) {
+    lidar_generation_ = 0;
     if (absl::Status s = lidar_->Upload(host->store); !s.ok()) {
       return absl::InternalError(absl::StrCat("LiDAR upload failed: ", s.message()));
     }
-    lidar_scene_ = host;
+    lidar_generation_ = host->generation;
   }
   LidarRenderOptions options = job.options;
   options.reflectance = host->reflectance ? &*host->reflectance : nullptr;

@@ -88,7 +88,7 @@ class RenderCore {
   // first use (lidar_sweeper.h: on the engine's GPU when it has one, else the cpu).
   std::unique_ptr<LidarSweeper> lidar_;
   LidarDevice lidar_device_;
-  std::shared_ptr<const HostScene> lidar_scene_;  // held so that its address is not reused
+  uint64_t lidar_generation_ = 0;  // HostScene::generation of what the LiDAR renderer holds
   ServerLimits limits_;
   int debug_delay_ms_;
   FairGate gate_;         // whose render is next

@@ -3,6 +3,7 @@
 // (DynamicSceneField, dynamic_scene_field.h).
 #pragma once
 
+#include <atomic>
 #include <cstdint>
 #include <functional>
 #include <memory>
@@ -19,9 +20,18 @@ namespace streetsim::server {
 
 // The host-side Gaussians at one time, for renderers outside the engine (the LiDAR renderer
 // takes a GaussianStore), with the per-Gaussian LiDAR reflectance when the scene has one.
+// A dynamic scene rewrites its one HostScene in place at each new time (under the engine lock, as
+// every reader is); `generation` changes with every content and is unique across scenes, so a
+// renderer that keeps an upload knows when it is stale.
 struct HostScene {
   GaussianStore store;
   std::optional<std::vector<float>> reflectance;  // [N] in [0, 1]; none: 0.5
+  uint64_t generation = NewHostSceneGeneration();
+
+  static uint64_t NewHostSceneGeneration() {
+    static std::atomic<uint64_t> next{1};
+    return next.fetch_add(1);
+  }
 };
 
 // Engine::Upload for a scene's first upload (RenderCore::Upload: under the engine lock).
