@@ -1,6 +1,7 @@
 #include "server/dynamic_scene_field.h"
 
 #include "absl/strings/str_cat.h"
+#include "render/params_view.h"
 #include "scene/field/extended/extended_serving.h"
 #include "scene/field/vulkan/vulkan_serving.h"
 
@@ -81,17 +82,7 @@ absl::StatusOr<const DeviceScene*> DynamicSceneField::At(int64_t time_us, Engine
     // In place: the backend keeps its buffers and copies in parallel, checking only what rendering
     // needs (UpdateScene would validate the whole store again and, on the cpu, rebuild every array:
     // most of a 500k-Gaussian step went to allocating, zeroing and copying).
-    const GaussianStore& g = **store;
-    GaussianParamsView view;
-    view.n = g.size();
-    view.sh_degree = g.sh_degree;
-    view.sh_stride = g.sh_coeffs();
-    view.means = g.means.data();
-    view.log_scales = g.log_scales.data();
-    view.rotations = g.rotations.data();
-    view.opacity_logits = g.opacity_logits.data();
-    view.sh = g.sh.data();
-    if (absl::Status s = engine.UpdateSceneParams(view, &device_); !s.ok()) {
+    if (absl::Status s = engine.UpdateSceneParams(ParamsViewOf(**store), &device_); !s.ok()) {
       device_evaluation_ = -1;  // the device copy is in an unknown state: update on the next call
       return absl::InternalError(absl::StrCat("uploading the deformed scene failed: ", s.message()));
     }

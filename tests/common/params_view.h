@@ -6,23 +6,13 @@
 #include <cstddef>
 
 #include "render/engine.h"
+#include "render/params_view.h"
 #include "scene/gaussians/gaussian_store.h"
 
 namespace streetsim::testing {
 
 // A store as UpdateSceneParams takes it, at its own degree.
-inline GaussianParamsView StoreParamsView(const GaussianStore& s) {
-  GaussianParamsView v;
-  v.n = s.size();
-  v.sh_degree = s.sh_degree;
-  v.sh_stride = s.sh_coeffs();
-  v.means = s.means.data();
-  v.log_scales = s.log_scales.data();
-  v.rotations = s.rotations.data();
-  v.opacity_logits = s.opacity_logits.data();
-  v.sh = s.sh.data();
-  return v;
-}
+inline GaussianParamsView StoreParamsView(const GaussianStore& s) { return ParamsViewOf(s); }
 
 // `full` (sh_degree 3) as UpdateSceneParams takes it, uploading `degree`.
 inline GaussianParamsView FullDegreeParamsView(const GaussianStore& full, int degree) {
