@@ -96,13 +96,13 @@ absl::StatusOr<std::shared_ptr<const HostScene>> DynamicSceneField::HostAt(int64
   absl::StatusOr<const GaussianStore*> store = EvaluateLocked(time_us);
   if (!store.ok()) return store.status();
   if (serving_->field_evaluations() != host_evaluation_) {
-    // Copied into the same vectors (no allocation, no page faults); a new generation tells the
-    // LiDAR renderer to upload again.
+    // A view of the serving field's Gaussians (no copy of 500k Gaussians per time); a new
+    // generation tells the LiDAR renderer to upload again.
     if (!host_) {
       host_ = std::make_shared<HostScene>();
       host_->reflectance = reflectance_;
     }
-    host_->store = **store;
+    host_->view = *store;
     host_->generation = HostScene::NewHostSceneGeneration();
     host_evaluation_ = serving_->field_evaluations();
   }

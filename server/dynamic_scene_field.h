@@ -56,7 +56,7 @@ class DynamicSceneField : public SceneField {
   mutable std::unique_ptr<field::ServedScene> serving_;
   mutable std::unique_ptr<DeviceScene> device_;
   mutable int64_t device_evaluation_ = 0;  // serving_'s evaluation count the device copy holds (0: baked)
-  mutable std::shared_ptr<HostScene> host_;  // rewritten in place per time (HostScene)
+  mutable std::shared_ptr<HostScene> host_;  // views the serving field's current Gaussians (HostScene)
   mutable int64_t host_evaluation_ = -1;
   std::optional<std::vector<float>> reflectance_;
   size_t num_gaussians_ = 0;

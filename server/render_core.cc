@@ -61,7 +61,7 @@ absl::Status RenderCore::RenderLidar(const std::shared_ptr<const HostScene>& hos
   }
   if (lidar_generation_ != host->generation) {
     lidar_generation_ = 0;
-    if (absl::Status s = lidar_->Upload(host->store); !s.ok()) {
+    if (absl::Status s = lidar_->Upload(host->gaussians()); !s.ok()) {
       return absl::InternalError(absl::StrCat("LiDAR upload failed: ", s.message()));
     }
     lidar_generation_ = host->generation;

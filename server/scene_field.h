@@ -20,13 +20,17 @@ namespace streetsim::server {
 
 // The host-side Gaussians at one time, for renderers outside the engine (the LiDAR renderer
 // takes a GaussianStore), with the per-Gaussian LiDAR reflectance when the scene has one.
-// A dynamic scene rewrites its one HostScene in place at each new time (under the engine lock, as
-// every reader is); `generation` changes with every content and is unique across scenes, so a
-// renderer that keeps an upload knows when it is stale.
+// A dynamic scene's HostScene views its field's deformed Gaussians of the last time (no copy),
+// valid until the next evaluation, which happens under the engine lock as every read does;
+// `generation` changes with every content and is unique across scenes, so a renderer that keeps
+// an upload knows when it is stale.
 struct HostScene {
-  GaussianStore store;
+  GaussianStore store;                       // owned (a static scene)
+  const GaussianStore* view = nullptr;       // or viewed (a dynamic scene's current time)
   std::optional<std::vector<float>> reflectance;  // [N] in [0, 1]; none: 0.5
   uint64_t generation = NewHostSceneGeneration();
+
+  const GaussianStore& gaussians() const { return view ? *view : store; }
 
   static uint64_t NewHostSceneGeneration() {
     static std::atomic<uint64_t> next{1};
