@@ -6,14 +6,13 @@ namespace streetsim::server {
 namespace {
 
 // Wire bytes per pixel (image_encoding.cc): RGB8 raw, depth and alpha raw float32. A compressed
-// image has no useful lower bound; its upper bound is taken as raw.
+// image has no useful lower bound (it counts 0).
 constexpr int64_t kRgbRawBytes = 3;
 constexpr int64_t kDepthRawBytes = 4;
 constexpr int64_t kAlphaRawBytes = 4;
-// Per ray (lidar_request.cc): range, intensity and alpha float32 arrays always; a returned point
-// adds xyz (12), intensity (4), time (8), beam (2) and column (2); 32 leaves room.
+// Per ray (lidar_request.cc): range, intensity and alpha float32 arrays always (points only where
+// a ray returns: no lower bound).
 constexpr int64_t kLidarRayBytes = 12;
-constexpr int64_t kLidarPointBytes = 32;
 
 bool IsRaw(v1::ImageEncoding e) { return e == v1::IMAGE_ENCODING_UNSPECIFIED || e == v1::IMAGE_ENCODING_RAW; }
 bool IsRaw(v1::DepthEncoding e) { return e == v1::DEPTH_ENCODING_UNSPECIFIED || e == v1::DEPTH_ENCODING_F32; }
@@ -26,24 +25,13 @@ RenderCost EstimateRenderCost(const std::vector<CameraView>& views, const v1::Ou
   for (const CameraView& v : views) {
     const int64_t px = int64_t{v.intrinsics.width} * v.intrinsics.height;
     cost.pixels += px;
-    if (outputs.rgb()) {
-      cost.max_response_bytes += px * kRgbRawBytes;
-      if (IsRaw(outputs.rgb_encoding())) cost.min_response_bytes += px * kRgbRawBytes;
-    }
-    if (outputs.depth()) {
-      cost.max_response_bytes += px * kDepthRawBytes;
-      if (IsRaw(outputs.depth_encoding())) cost.min_response_bytes += px * kDepthRawBytes;
-    }
-    if (outputs.alpha()) {
-      cost.max_response_bytes += px * kAlphaRawBytes;
-      if (IsRaw(outputs.alpha_encoding())) cost.min_response_bytes += px * kAlphaRawBytes;
-    }
+    if (outputs.rgb() && IsRaw(outputs.rgb_encoding())) cost.min_response_bytes += px * kRgbRawBytes;
+    if (outputs.depth() && IsRaw(outputs.depth_encoding())) cost.min_response_bytes += px * kDepthRawBytes;
+    if (outputs.alpha() && IsRaw(outputs.alpha_encoding())) cost.min_response_bytes += px * kAlphaRawBytes;
   }
   if (lidar) {
     cost.lidar_rays = int64_t{lidar->model.beams()} * lidar->model.columns;
     cost.min_response_bytes += cost.lidar_rays * kLidarRayBytes;
-    cost.max_response_bytes +=
-        cost.lidar_rays * (kLidarRayBytes + (lidar->options.want_points ? kLidarPointBytes : 0));
   }
   return cost;
 }

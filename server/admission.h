@@ -20,7 +20,6 @@ struct RenderCost {
   int64_t pixels = 0;               // summed over the request's cameras
   int64_t lidar_rays = 0;           // beams x columns
   int64_t min_response_bytes = 0;   // raw outputs exactly, compressed ones as 0, LiDAR arrays
-  int64_t max_response_bytes = 0;   // every output raw, every LiDAR ray a point
 };
 
 // The cost of one render (one Render call, one step, one trajectory point). `outputs` validated.

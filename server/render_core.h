@@ -3,7 +3,6 @@
 // stops on the client's deadline or cancel between stages and tiles, and encodes outputs.
 #pragma once
 
-#include <atomic>
 #include <functional>
 #include <memory>
 #include <mutex>

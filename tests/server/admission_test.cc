@@ -131,7 +131,6 @@ TEST(Admission, CountsPixelsRaysAndRawBytes) {
   EXPECT_EQ(cost.pixels, 10000);
   EXPECT_EQ(cost.lidar_rays, 64 * 1024);
   EXPECT_EQ(cost.min_response_bytes, 10000 * (3 + 4) + 64 * 1024 * 12);
-  EXPECT_EQ(cost.max_response_bytes, 10000 * (3 + 4 + 4) + 64 * 1024 * 12);
 
   server::ServerLimits limits;
   EXPECT_TRUE(server::AdmitRender(cost, limits).ok());

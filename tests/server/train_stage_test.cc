@@ -500,6 +500,13 @@ TEST_F(ReplicaTest, IdsNameTheReplicaAndJobsStayWithTheirOwner) {
   absl::StatusOr<v1::Job> seen = (*r1)->GetJob(job->job_id());
   ASSERT_TRUE(seen.ok()) << seen.status();
   EXPECT_EQ(seen->config().scene_name(), "shared");
+  // Another replica's records are read from disk by id: an id that is not a job's name reads nothing.
+  for (const std::string& bad : std::vector<std::string>{"r0/../../jobs", "../r0.j-1", "r0.j-1/../../x", ".hidden",
+                                                         std::string(300, 'r')}) {
+    absl::StatusOr<v1::Job> none = (*r1)->GetJob(bad);
+    ASSERT_FALSE(none.ok()) << bad;
+    EXPECT_EQ(none.status().code(), absl::StatusCode::kNotFound) << none.status();
+  }
   absl::StatusOr<v1::Job> refused = (*r1)->CancelJob(job->job_id());
   ASSERT_FALSE(refused.ok());
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition) << refused.status();
