@@ -3,14 +3,15 @@
 // time, camera (RGB + depth) and LiDAR per step. Prints a table and, as its last line, one JSON
 // object (p50_ms, p99_ms, steps_per_s, rss_mib ...). Figures: docs/benchmarks.md "Server step latency".
 //
-//   step_bench [--field none|exact] [--gaussians N | --scene DIR] [--camera WxH] [--lidar BEAMSxCOLUMNS]
+//   step_bench [--field none|exact|served] [--gaussians N | --scene DIR] [--camera WxH] [--lidar BEAMSxCOLUMNS]
 //              [--steps K] [--sessions S]
 //
 // --gaussians N: a synthetic street whose field moves every Gaussian (its time planes vary over
 // the whole scene, as a trained KITTI field does: docs/benchmarks.md "On trained KITTI scenes").
 // --scene DIR: a trained scene directory (scene.ply, field.bin, scene.json); --field none serves
-// its Gaussians without the field. --lidar 0x0: no LiDAR. `served` (a precomputed serving form of
-// the field) does not exist yet and is refused.
+// its Gaussians without the field. --field exact: the field's network per step (serve
+// --field-serving exact); served: its serving form (scene/field/serving_form.h), built at the first
+// load (load_s includes it) and cached beside the scene. --lidar 0x0: no LiDAR.
 #include <unistd.h>
 
 #include <algorithm>
@@ -50,7 +51,7 @@ struct Args {
 
 int Usage(const char* why) {
   std::fprintf(stderr,
-               "step_bench: %s\nusage: step_bench [--field none|exact] [--gaussians N | --scene DIR] "
+               "step_bench: %s\nusage: step_bench [--field none|exact|served] [--gaussians N | --scene DIR] "
                "[--camera WxH] [--lidar BEAMSxCOLUMNS] [--steps K] [--sessions S]\n",
                why);
   return 2;
@@ -91,9 +92,9 @@ double RssMib() {
 // --field none.
 bool LinkScene(const std::string& from, const std::string& to, bool with_field) {
   fs::create_directories(to);
-  for (const char* name : {"scene.ply", "scene.json", "field.bin", "train_meta.json"}) {
+  for (const char* name : {"scene.ply", "scene.json", "field.bin", "field_ext.bin", "field.serving", "train_meta.json"}) {
     const fs::path src = fs::path(from) / name;
-    if (!fs::exists(src) || (!with_field && std::string(name) == "field.bin")) continue;
+    if (!fs::exists(src) || (!with_field && std::string(name).rfind("field", 0) == 0)) continue;
     std::error_code ec;
     fs::create_hard_link(src, fs::path(to) / name, ec);
     if (ec) fs::copy_file(src, fs::path(to) / name, ec);
@@ -119,8 +120,8 @@ int main(int argc, char** argv) {
     else if (flag == "--sessions") a.sessions = std::atoi(v);
     else return Usage(("unknown flag " + flag).c_str());
   }
-  if (a.field == "served") return Usage("--field served: the serving form of the field is not implemented yet");
-  if (a.field != "none" && a.field != "exact") return Usage("--field takes none or exact");
+  if (a.field != "none" && a.field != "exact" && a.field != "served") return Usage("--field takes none, exact or served");
+  const bool with_field = a.field != "none";
   if (a.beams != 0 && a.beams != 64) return Usage("--lidar: the served LiDAR is the HDL-64E table (64 beams)");
   if (a.gaussians < 1 || a.steps < 1 || a.sessions < 1 || a.width < 1 || a.height < 1) {
     return Usage("--gaussians, --steps, --sessions and --camera must be positive");
@@ -137,8 +138,8 @@ int main(int argc, char** argv) {
     fs::create_directories(scene_path);
     if (!WriteGaussianPly(g, scene_path + "/scene.ply").ok()) return 1;
     std::ofstream(scene_path + "/scene.json") << "{\"time_range_us\": [0, " << end_us << "]}";
-    if (a.field == "exact" && !field::SaveField(MovingEverywhere(g, end_us), scene_path + "/field.bin").ok()) return 1;
-  } else if (!LinkScene(a.scene_dir, scene_path, a.field == "exact")) {
+    if (with_field && !field::SaveField(MovingEverywhere(g, end_us), scene_path + "/field.bin").ok()) return 1;
+  } else if (!LinkScene(a.scene_dir, scene_path, with_field)) {
     return Usage(("--scene " + a.scene_dir + ": no scene.ply there").c_str());
   }
 
@@ -147,6 +148,7 @@ int main(int argc, char** argv) {
   o.data_root = root;
   o.state_dir = state;
   o.backend = Backend::kCpu;
+  o.exact_field = a.field == "exact";
   o.limits.max_sessions = std::max(16, a.sessions);
   o.limits.max_queued_renders = std::max(8, a.sessions);
   absl::StatusOr<std::unique_ptr<server::Server>> srv = server::Server::Start(o);

@@ -64,6 +64,8 @@ FieldStats ClipSetSceneField::stats() const {
     sum.num_dynamic += s.num_dynamic;
     sum.field_evaluations += s.field_evaluations;
     if (!s.device.empty()) sum.device = sum.device.empty() || sum.device == s.device ? s.device : "mixed";
+    if (!s.serving.empty()) sum.serving = sum.serving.empty() || sum.serving == s.serving ? s.serving : "mixed";
+    sum.form_error_m = std::max(sum.form_error_m, s.form_error_m);
   }
   return sum;
 }

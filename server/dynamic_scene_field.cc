@@ -3,6 +3,7 @@
 #include "absl/strings/str_cat.h"
 #include "render/params_view.h"
 #include "scene/field/extended/extended_serving.h"
+#include "scene/field/serving_form.h"
 #include "scene/field/vulkan/vulkan_serving.h"
 
 namespace streetsim::server {
@@ -50,11 +51,23 @@ absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
   return Finish(std::move(*f), upload);
 }
 
+absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
+    std::unique_ptr<field::ServedScene> served, std::optional<std::vector<float>> reflectance,
+    const SceneUploader& upload) {
+  if (!served) return absl::InvalidArgumentError("no served scene");
+  std::unique_ptr<DynamicSceneField> f(new DynamicSceneField());
+  f->num_gaussians_ = served->size();
+  f->reflectance_ = std::move(reflectance);
+  f->pool_ = std::make_unique<ThreadPool>(0);
+  f->serving_ = std::move(served);
+  return Finish(std::move(f), upload);
+}
+
 absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Finish(std::unique_ptr<DynamicSceneField> f,
                                                                             const SceneUploader& upload) {
   f->num_dynamic_ = f->serving_->num_dynamic();
   // The first upload allocates the device copy (and checks the Gaussians); later timestamps update it.
-  absl::StatusOr<const GaussianStore*> first = f->serving_->At(f->serving_->field().time_range().start_us, *f->pool_);
+  absl::StatusOr<const GaussianStore*> first = f->serving_->At(f->serving_->time_range().start_us, *f->pool_);
   if (!first.ok()) return first.status();
   absl::StatusOr<std::unique_ptr<DeviceScene>> device = upload(**first);
   if (!device.ok()) return device.status();
@@ -110,7 +123,13 @@ absl::StatusOr<std::shared_ptr<const HostScene>> DynamicSceneField::HostAt(int64
 }
 
 FieldStats DynamicSceneField::stats() const {
-  return {true, num_dynamic_, evaluations_.load(), on_device_.load() ? device_name_ : std::string("cpu")};
+  const auto* form = dynamic_cast<const field::ServingForm*>(serving_.get());
+  return {true,
+          num_dynamic_,
+          evaluations_.load(),
+          on_device_.load() ? device_name_ : std::string("cpu"),
+          form ? "form" : "exact",
+          form ? form->error().max[0] : 0.0};
 }
 
 }  // namespace streetsim::server

@@ -34,6 +34,11 @@ class DynamicSceneField : public SceneField {
   static absl::StatusOr<std::unique_ptr<DynamicSceneField>> Create(
       field::ExtendedField field, GaussianStore canonical, std::optional<std::vector<float>> reflectance,
       const field::StaticSkipOptions& options, const SceneUploader& upload, bool on_vulkan = false);
+  // A served scene made elsewhere: the serving form (field::ServingForm, scene_loading.cc) or an
+  // exact field made with `pool` (null: a pool of its own).
+  static absl::StatusOr<std::unique_ptr<DynamicSceneField>> Create(std::unique_ptr<field::ServedScene> served,
+                                                                   std::optional<std::vector<float>> reflectance,
+                                                                   const SceneUploader& upload);
 
   absl::StatusOr<const DeviceScene*> At(int64_t time_us, Engine& engine) const override;
   absl::StatusOr<std::shared_ptr<const HostScene>> HostAt(int64_t time_us) const override;

@@ -47,6 +47,8 @@ struct FieldStats {
   size_t num_dynamic = 0;         // Gaussians evaluated per timestamp
   int64_t field_evaluations = 0;  // how often the field ran
   std::string device;             // where the field runs now: "cpu" or "vulkan" (empty: no field)
+  std::string serving;            // "form" or "exact" (empty: no field); v1::Scene::field_serving
+  double form_error_m = 0;        // the serving form's largest position error at its check samples
 };
 
 class SceneField {

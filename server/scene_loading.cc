@@ -5,11 +5,16 @@
 #include <system_error>
 #include <vector>
 
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
+#include "render/common/thread_pool.h"
+#include "scene/field/extended/extended_serving.h"
+#include "scene/field/vulkan/vulkan_serving.h"
 #include "scene/field/extended/extended_io.h"
 #include "scene/field/field_io.h"
 #include "scene/gaussians/ply_io.h"
 #include "scene/train/lidar_eval.h"
+#include "scene/train/served_scene.h"
 #include "scene/train/trainer.h"
 #include "server/dynamic_scene_field.h"
 
@@ -35,6 +40,51 @@ absl::StatusOr<SceneManifest> ReadSceneDirManifest(const std::string& manifest_p
   return m;
 }
 
+namespace {
+
+// The field exactly as trained (field.bin, with `ext_path` the extended field), its static
+// Gaussians baked (load.static_skip), on load.field_device.
+absl::StatusOr<std::unique_ptr<field::ServedScene>> ExactServedScene(const fs::path& field_path,
+                                                                     const fs::path* ext_path, GaussianStore canonical,
+                                                                     const SceneLoadOptions& load) {
+  if (canonical.sh_degree != 3) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("a field needs SH degree 3 Gaussians, scene.ply has degree ", canonical.sh_degree));
+  }
+  absl::StatusOr<field::DeformationField> f = field::LoadField(field_path.string());
+  if (!f.ok()) return f.status();  // DATA_LOSS naming the file
+  const bool on_vulkan = load.field_device == train::FieldDevice::kVulkan;
+  ThreadPool pool(0);
+  if (ext_path) {
+    absl::StatusOr<field::ExtendedField> ext = field::LoadExtendedField(ext_path->string(), std::move(*f));
+    if (!ext.ok()) return ext.status();
+    const field::ExtServingField::Device vk =
+        on_vulkan ? field::VulkanExtFieldForward() : field::ExtServingField::Device{};
+    absl::StatusOr<std::unique_ptr<field::ExtServingField>> s = field::ExtServingField::Create(
+        std::move(*ext), std::move(canonical), load.static_skip, pool, on_vulkan ? &vk : nullptr);
+    if (!s.ok()) return s.status();
+    return std::unique_ptr<field::ServedScene>(std::move(*s));
+  }
+  const field::ServingField::Device vk = on_vulkan ? field::VulkanFieldForward() : field::ServingField::Device{};
+  absl::StatusOr<field::ServingField> s =
+      field::ServingField::Create(std::move(*f), std::move(canonical), load.static_skip, pool, on_vulkan ? &vk : nullptr);
+  if (!s.ok()) return s.status();
+  return std::unique_ptr<field::ServedScene>(std::make_unique<field::ServingField>(std::move(*s)));
+}
+
+// The serving form of the scene's field from DIR/field.serving, or built from the exact field
+// (once; then cached there) when that cache is missing, stale or damaged; the exact field when
+// the form misses its error bound.
+absl::StatusOr<std::unique_ptr<field::ServedScene>> ServingFormOf(const fs::path& field_path, const fs::path* ext_path,
+                                                                  GaussianStore canonical,
+                                                                  const SceneLoadOptions& load) {
+  // Called at most once (LoadServedScene), so the Gaussians move in.
+  auto make_exact = [&]() { return ExactServedScene(field_path, ext_path, std::move(canonical), load); };
+  return train::LoadServedScene(field_path.parent_path().string(), make_exact, load.serving_form, load.static_skip);
+}
+
+}  // namespace
+
 absl::StatusOr<std::shared_ptr<LoadedScene>> LoadSceneFile(const std::string& path, const SceneUploader& upload,
                                                            const SceneLoadOptions& load) {
   absl::StatusOr<GaussianStore> store = ReadGaussianPly(path);
@@ -52,25 +102,23 @@ absl::StatusOr<std::shared_ptr<LoadedScene>> LoadSceneFile(const std::string& pa
   const fs::path field_path = fs::path(path).parent_path() / field::kFieldFileName;
   std::error_code ec;
   if (fs::path(path).filename() == "scene.ply" && fs::exists(field_path, ec)) {
-    absl::StatusOr<field::DeformationField> f = field::LoadField(field_path.string());
-    if (!f.ok()) return f.status();  // DATA_LOSS naming the file
     // --field extended: DIR/field_ext.bin, checked against this field.bin as the CLI's
     // train::LoadSceneField does (damage, another run's file: DATA_LOSS naming field_ext.bin).
     const fs::path ext_path = fs::path(path).parent_path() / field::kExtendedFieldFileName;
     const bool extended = fs::exists(ext_path, ec);
-    absl::StatusOr<std::unique_ptr<DynamicSceneField>> dynamic;
-    const bool on_vulkan = load.field_device == train::FieldDevice::kVulkan;
-    if (extended) {
-      absl::StatusOr<field::ExtendedField> ext = field::LoadExtendedField(ext_path.string(), std::move(*f));
-      if (!ext.ok()) return ext.status();
-      dynamic = DynamicSceneField::Create(std::move(*ext), std::move(*store), std::move(*reflectance),
-                                          load.static_skip, upload, on_vulkan);
-    } else {
-      dynamic = DynamicSceneField::Create(std::move(*f), std::move(*store), std::move(*reflectance),
-                                          load.static_skip, upload, on_vulkan);
-    }
+    const fs::path& named = extended ? ext_path : field_path;
+    absl::StatusOr<std::unique_ptr<field::ServedScene>> served =
+        load.exact_field ? ExactServedScene(field_path, extended ? &ext_path : nullptr, std::move(*store), load)
+                         : ServingFormOf(field_path, extended ? &ext_path : nullptr, std::move(*store), load);
+    absl::StatusOr<std::unique_ptr<DynamicSceneField>> dynamic =
+        served.ok() ? DynamicSceneField::Create(std::move(*served), std::move(*reflectance), upload)
+                    : absl::StatusOr<std::unique_ptr<DynamicSceneField>>(served.status());
     if (!dynamic.ok()) {
-      const fs::path& named = extended ? ext_path : field_path;
+      // Errors of the field files name their file already.
+      if (absl::StrContains(dynamic.status().message(), named.string()) ||
+          absl::StrContains(dynamic.status().message(), field_path.string())) {
+        return dynamic.status();
+      }
       return absl::Status(dynamic.status().code(), absl::StrCat(named.string(), ": ", dynamic.status().message()));
     }
     loaded->field = std::move(*dynamic);

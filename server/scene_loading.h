@@ -9,6 +9,7 @@
 #include <Eigen/Core>
 
 #include "absl/status/statusor.h"
+#include "scene/field/serving_form.h"
 #include "scene/field/static_skip.h"
 #include "scene/train/dynamic_stage.h"
 #include "server/scene_field.h"
@@ -29,6 +30,10 @@ struct SceneLoadOptions {
   // the cpu with a warning when the device fails (scene/field/vulkan/vulkan_serving.h).
   train::FieldDevice field_device = train::FieldDevice::kCpu;
   field::StaticSkipOptions static_skip;  // ServerOptions::static_skip
+  // false (the default): a dynamic scene is served through its serving form (cached in
+  // DIR/field.serving, scene/field/serving_form.h); true: the field's network per timestamp.
+  bool exact_field = false;
+  field::ServingFormOptions serving_form;
 };
 
 // The manifest of a scene: `manifest_path` (DIR/scene.json; absent: the default rig; empty: a bare

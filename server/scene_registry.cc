@@ -182,6 +182,8 @@ void SceneRegistry::FillScene(const Entry& e, bool with_trajectory, v1::Scene* o
     out->set_num_dynamic_gaussians(field_stats.num_dynamic);
     out->set_field_evaluations(field_stats.field_evaluations);
     out->set_field_device(field_stats.device);
+    out->set_field_serving(field_stats.serving);
+    out->set_field_form_error_m(field_stats.form_error_m);
   }
 }
 

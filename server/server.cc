@@ -90,6 +90,8 @@ absl::StatusOr<std::unique_ptr<Server>> Server::Start(const ServerOptions& optio
   SceneLoadOptions load;
   load.field_device = train::ResolveFieldDevice(options.field_device, (*engine)->backend());
   load.static_skip = options.static_skip;
+  load.exact_field = options.exact_field;
+  load.serving_form = options.serving_form;
   s->core_ = std::make_unique<RenderCore>(std::move(*engine), deps.limits, options.debug_render_delay_ms);
   deps.core = s->core_.get();
   s->job_store_ = std::make_unique<JobStore>(state_dir, options.replica);

@@ -9,6 +9,7 @@
 
 #include "absl/status/statusor.h"
 #include "render/engine.h"
+#include "scene/field/serving_form.h"
 #include "scene/field/static_skip.h"
 #include "scene/train/dynamic_stage.h"
 #include "server/limits.h"
@@ -31,6 +32,10 @@ struct ServerOptions {
   // Dynamic scenes' static skip (docs/field.md "Serving": thresholds below which a Gaussian's
   // deformation over the log is baked in; `streetsim serve --static-motion-m / --static-sh`).
   field::StaticSkipOptions static_skip;
+  // true (`--field-serving exact`): dynamic scenes evaluate the field's network per timestamp
+  // instead of its serving form (docs/field.md "Serving form").
+  bool exact_field = false;
+  field::ServingFormOptions serving_form;  // its fit (no flag: tests and benchmarks)
   std::string tls_cert_file;   // both or neither
   std::string tls_key_file;
   std::string auth_token_file;  // bearer token; empty: no auth

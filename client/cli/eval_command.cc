@@ -2,6 +2,7 @@
 // training) frames, and LiDAR metrics of the scene's rendered sweeps against the real scans
 // (scene/train/lidar_eval.h; --no-lidar skips them). JSON on stdout (a contract other tools read),
 // a table on stderr.
+#include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
@@ -96,8 +97,8 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
   // --served: render a field scene as `streetsim serve` does (the static skip's Gaussians baked),
   // with the server's thresholds or --static-motion-m / --static-sh.
   const bool served = args->Has("served");
-  if (!served && (args->Has("static-motion-m") || args->Has("static-sh"))) {
-    return Fail(2, absl::InvalidArgumentError("--static-motion-m / --static-sh need --served"));
+  if (!served && (args->Has("static-motion-m") || args->Has("static-sh") || args->Has("field-serving"))) {
+    return Fail(2, absl::InvalidArgumentError("--static-motion-m / --static-sh / --field-serving need --served"));
   }
   if (served && (args->Has("decomposition") || args->Has("video"))) {
     // Their static/dynamic split is the server's default analysis, not the thresholds served here.
@@ -105,6 +106,8 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
   }
   absl::StatusOr<field::StaticSkipOptions> skip = StaticSkipFromFlags(*args);
   if (!skip.ok()) return Fail(2, skip.status());
+  absl::StatusOr<bool> exact_field = ExactFieldFromFlags(*args);
+  if (!exact_field.ok()) return Fail(2, exact_field.status());
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
   }
@@ -184,6 +187,8 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
   std::vector<train::EvalResult> parts;
   size_t served_static = 0, served_dynamic = 0;
   double served_analysis_s = 0;
+  float served_form_position_max_m = 0;
+  int served_by_form = 0;  // scenes (clips) served through their serving form
   std::vector<train::LidarEvalResult> lidar_parts;
   int scenes_with_reflectance = 0, scenes_evaluated = 0, scenes_with_pose_corrections = 0;
   // A clip set: how far the image jumps where a consumer crosses from one clip to the next,
@@ -223,7 +228,23 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
     std::shared_ptr<field::ServedScene> served_scene;
     if (served && *f) {
       const auto t0 = std::chrono::steady_clock::now();
-      absl::StatusOr<std::shared_ptr<field::ServedScene>> ss = train::MakeServedScene(*f, *store, *skip);
+      absl::StatusOr<std::shared_ptr<field::ServedScene>> ss = absl::UnknownError("unset");
+      if (*exact_field) {
+        ss = train::MakeServedScene(*f, *store, *skip);
+      } else {  // the serving form, as `streetsim serve` serves it (cached in DIR/field.serving)
+        auto make_exact = [&]() { return train::MakeExactServedScene(*f, *store, *skip); };
+        absl::StatusOr<std::unique_ptr<field::ServedScene>> scene =
+            train::LoadServedScene(dir, make_exact, field::ServingFormOptions{}, *skip);
+        if (scene.ok()) {
+          if (const auto* form = dynamic_cast<const field::ServingForm*>(scene->get())) {
+            served_form_position_max_m = std::max(served_form_position_max_m, form->error().max[0]);
+            ++served_by_form;
+          }
+          ss = std::shared_ptr<field::ServedScene>(std::move(*scene));
+        } else {
+          ss = scene.status();
+        }
+      }
       if (!ss.ok()) return Fail(1, ss.status());
       served_analysis_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
       served_scene = *ss;
@@ -304,7 +325,12 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
   if (served) {
     j["served"] = {{"motion_threshold_m", skip->motion_threshold_m}, {"sh_threshold", skip->sh_threshold},
                    {"static_gaussians", served_static}, {"dynamic_gaussians", served_dynamic},
-                   {"analysis_s", served_analysis_s}};
+                   {"analysis_s", served_analysis_s},
+                   {"field_serving", *exact_field ? "exact" : "served"}};
+    if (!*exact_field) {
+      j["served"]["form_position_error_max_m"] = served_form_position_max_m;
+      j["served"]["scenes_served_by_form"] = served_by_form;
+    }
     std::fprintf(stderr, "served as by streetsim serve: %zu static / %zu dynamic Gaussians (skip below %g m, ΔSH %g)\n",
                  served_static, served_dynamic, skip->motion_threshold_m, skip->sh_threshold);
   }

@@ -58,6 +58,9 @@ int RunServeCommand(const std::vector<std::string>& argv) {
   absl::StatusOr<field::StaticSkipOptions> skip = StaticSkipFromFlags(*args);
   if (!skip.ok()) return Fail(2, skip.status());
   o.static_skip = *skip;
+  absl::StatusOr<bool> exact_field = ExactFieldFromFlags(*args);
+  if (!exact_field.ok()) return Fail(2, exact_field.status());
+  o.exact_field = *exact_field;
   o.tls_cert_file = args->Get("tls-cert").value_or("");
   o.tls_key_file = args->Get("tls-key").value_or("");
   o.auth_token_file = args->Get("auth-token-file").value_or("");

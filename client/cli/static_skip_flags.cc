@@ -32,4 +32,12 @@ absl::StatusOr<field::StaticSkipOptions> StaticSkipFromFlags(const ParsedArgs& a
   return o;
 }
 
+absl::StatusOr<bool> ExactFieldFromFlags(const ParsedArgs& args) {
+  const std::string v = args.Get("field-serving").value_or("served");
+  if (v != "served" && v != "exact") {
+    return absl::InvalidArgumentError(absl::StrCat("--field-serving takes served or exact, got '", v, "'"));
+  }
+  return v == "exact";
+}
+
 }  // namespace streetsim

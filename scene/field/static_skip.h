@@ -103,7 +103,8 @@ class ServedScene {
   virtual size_t size() const = 0;
   virtual size_t num_dynamic() const = 0;           // Gaussians evaluated per timestamp
   virtual int64_t field_evaluations() const = 0;    // how often the field ran
-  virtual const DeformationField& field() const = 0;  // S3Gaussian's (an extended field's base)
+  virtual FieldTimeRange time_range() const = 0;    // the log's, which At clamps to
+  virtual std::vector<uint32_t> dynamic_rows() const = 0;  // the Gaussians At changes
   // Where At evaluates the field: "cpu", or the device of SetDevice (the subclasses'), until that
   // device fails.
   const std::string& device() const { return device_; }
@@ -136,8 +137,10 @@ class ServingField : public ServedScene {
 
   size_t size() const override { return baked_.size(); }
   size_t num_dynamic() const override { return dynamic_rows_.size(); }
-  const DeformationField& field() const override { return field_; }
+  const DeformationField& field() const { return field_; }
   int64_t field_evaluations() const override { return evaluations_; }
+  FieldTimeRange time_range() const override { return field_.time_range(); }
+  std::vector<uint32_t> dynamic_rows() const override { return dynamic_rows_; }
 
   // Evaluates the dynamic Gaussians with `forward` on `device` from the next At on (the static
   // ones keep their baked values); a failing call falls back to the cpu for good (DeviceFailed).

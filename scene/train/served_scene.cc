@@ -1,16 +1,30 @@
 #include "scene/train/served_scene.h"
 
+#include <filesystem>
 #include <memory>
 #include <utility>
 
 #include "absl/strings/str_cat.h"
+#include "render/common/log.h"
 #include "render/common/thread_pool.h"
 #include "scene/field/extended/extended_deform.h"
+#include "scene/field/extended/extended_io.h"
 #include "scene/field/extended/extended_serving.h"
+#include "scene/field/field_io.h"
+#include "scene/field/serving_form_io.h"
 
 namespace streetsim::train {
 
 absl::StatusOr<std::shared_ptr<field::ServedScene>> MakeServedScene(
+    std::shared_ptr<const field::DeformationField> f, const GaussianStore& canonical,
+    const field::StaticSkipOptions& options, ThreadPool* analysis_pool) {
+  absl::StatusOr<std::unique_ptr<field::ServedScene>> s = MakeExactServedScene(std::move(f), canonical, options,
+                                                                               analysis_pool);
+  if (!s.ok()) return s.status();
+  return std::shared_ptr<field::ServedScene>(std::move(*s));
+}
+
+absl::StatusOr<std::unique_ptr<field::ServedScene>> MakeExactServedScene(
     std::shared_ptr<const field::DeformationField> f, const GaussianStore& canonical,
     const field::StaticSkipOptions& options, ThreadPool* analysis_pool) {
   if (!f) return absl::InvalidArgumentError("a served scene needs a field (the scene has no field.bin)");
@@ -25,11 +39,33 @@ absl::StatusOr<std::shared_ptr<field::ServedScene>> MakeServedScene(
     absl::StatusOr<std::unique_ptr<field::ExtServingField>> s =
         field::ExtServingField::Create(*ext, canonical, options, pool);
     if (!s.ok()) return s.status();
-    return std::shared_ptr<field::ServedScene>(std::move(*s));
+    return std::unique_ptr<field::ServedScene>(std::move(*s));
   }
   absl::StatusOr<field::ServingField> s = field::ServingField::Create(*f, canonical, options, pool);
   if (!s.ok()) return s.status();
-  return std::shared_ptr<field::ServedScene>(std::make_shared<field::ServingField>(std::move(*s)));
+  return std::unique_ptr<field::ServedScene>(std::make_unique<field::ServingField>(std::move(*s)));
+}
+
+absl::StatusOr<std::unique_ptr<field::ServedScene>> LoadServedScene(
+    const std::string& dir, const std::function<absl::StatusOr<std::unique_ptr<field::ServedScene>>()>& make_exact,
+    const field::ServingFormOptions& form, const field::StaticSkipOptions& skip, ThreadPool* pool) {
+  const std::filesystem::path d(dir);
+  const std::vector<std::string> sources = {(d / "scene.ply").string(), (d / field::kFieldFileName).string(),
+                                            (d / field::kExtendedFieldFileName).string()};
+  absl::StatusOr<uint64_t> key = field::ServingFormSourceKey(sources, form, skip);
+  if (!key.ok()) return key.status();
+  std::unique_ptr<ThreadPool> own;
+  if (!pool) own = std::make_unique<ThreadPool>(0);
+  absl::StatusOr<field::CachedServingForm> cached = field::LoadOrBuildServingForm(
+      (d / field::kServingFormFileName).string(), *key, make_exact, form, pool ? *pool : *own);
+  if (!cached.ok()) return cached.status();
+  if (cached->within_bound(form)) return std::unique_ptr<field::ServedScene>(std::move(cached->form));
+  LOG(WARNING) << dir << ": the serving form's p99 position error, "
+               << cached->form->error().position_p99_m * 1000 << " mm at " << cached->form->control_points()
+               << " control points, is above " << form.max_position_error_m * 1000
+               << " mm: serving the exact field";
+  if (cached->exact) return std::move(cached->exact);
+  return make_exact();
 }
 
 absl::StatusOr<SceneForView> MakeServedSceneForView(Engine& engine, std::shared_ptr<field::ServedScene> served) {

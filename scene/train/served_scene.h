@@ -6,12 +6,15 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <memory>
+#include <string>
 
 #include "absl/status/statusor.h"
 #include "render/common/thread_pool.h"
 #include "render/engine.h"
 #include "scene/field/deformation_field.h"
+#include "scene/field/serving_form.h"
 #include "scene/field/static_skip.h"
 #include "scene/gaussians/gaussian_store.h"
 #include "scene/train/dynamic_stage.h"
@@ -22,9 +25,22 @@ namespace streetsim::train {
 // The served scene of `canonical` under `field` (an extended field when LoadSceneField attached
 // one), after the static analysis with `options` (run on `pool`; null: every core). `field` must
 // not be null.
+absl::StatusOr<std::unique_ptr<field::ServedScene>> MakeExactServedScene(
+    std::shared_ptr<const field::DeformationField> field, const GaussianStore& canonical,
+    const field::StaticSkipOptions& options, ThreadPool* pool = nullptr);
 absl::StatusOr<std::shared_ptr<field::ServedScene>> MakeServedScene(
     std::shared_ptr<const field::DeformationField> field, const GaussianStore& canonical,
     const field::StaticSkipOptions& options, ThreadPool* pool = nullptr);
+
+// The trained scene in `dir` as `streetsim serve` serves it by default: its serving form
+// (scene/field/serving_form.h), read from DIR/field.serving when that was built from DIR's
+// scene.ply, field.bin and field_ext.bin with these options, else built from make_exact()'s exact
+// served scene and written there (a stale, damaged or unwritable cache: a warning, never served).
+// A form whose measured error misses form.max_position_error_m is not served: the exact scene is,
+// with a warning (a field with more motion in time than the spline follows).
+absl::StatusOr<std::unique_ptr<field::ServedScene>> LoadServedScene(
+    const std::string& dir, const std::function<absl::StatusOr<std::unique_ptr<field::ServedScene>>()>& make_exact,
+    const field::ServingFormOptions& form, const field::StaticSkipOptions& skip, ThreadPool* pool = nullptr);
 
 // Views and LiDAR sweeps rendered from `served` at their times (one served scene, evaluated once
 // per distinct timestamp; not thread-safe, as eval is sequential). Valid while the engine is.

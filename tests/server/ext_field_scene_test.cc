@@ -14,6 +14,7 @@
 #include "scene/field/extended/extended_io.h"
 #include "scene/field/extended/extended_serving.h"
 #include "scene/field/field_io.h"
+#include "scene/field/serving_form.h"
 #include "scene/field/static_skip.h"
 #include "scene/train/clips.h"
 #include "scene/train/dynamic_stage.h"
@@ -135,6 +136,39 @@ TEST_F(ExtFieldSceneTest, ServedRenderEqualsTheServingPathAndTheCliPath) {
   absl::StatusOr<GaussianStore> base_only = train::DeformedStore(ext_->base(), store_, t, pool);
   ASSERT_TRUE(base_only.ok());
   EXPECT_GT(MaxByteDiff(LocalRgb(*base_only, 8), served), 10);
+}
+
+// This test field moves in time faster than the serving form's spline can follow (a p99 position
+// error of ~9 mm at 128 control points): the server says so and serves the exact field, which is
+// what the test above compared bit for bit. With a looser bound it serves the form, which then
+// models the decoder's log-scale, rotation and opacity too, and renders as the form built here.
+TEST_F(ExtFieldSceneTest, AFormOutsideItsBoundIsNotServedAndOneInsideServesTheDecoderHeads) {
+  absl::StatusOr<v1::Scene> loaded = client_->LoadScene("ext", true);
+  ASSERT_TRUE(loaded.ok()) << loaded.status();
+  EXPECT_EQ(loaded->field_serving(), "exact");
+  EXPECT_EQ(loaded->field_form_error_m(), 0.0);
+
+  client_.reset();
+  server_.reset();
+  server::ServerOptions o = TestOptions(data_root_, state_dir_);
+  o.serving_form.max_position_error_m = 1.0;
+  StartServer(o);
+  loaded = client_->LoadScene("ext", true);
+  ASSERT_TRUE(loaded.ok()) << loaded.status();
+  EXPECT_EQ(loaded->field_serving(), "form");
+  EXPECT_GT(loaded->field_form_error_m(), 0.0);
+  ThreadPool pool(0);
+  absl::StatusOr<std::unique_ptr<field::ExtServingField>> sf =
+      field::ExtServingField::Create(*ext_, store_, field::StaticSkipOptions{}, pool);
+  ASSERT_TRUE(sf.ok()) << sf.status();
+  absl::StatusOr<std::unique_ptr<field::ServingForm>> form = field::ServingForm::Build(**sf, o.serving_form, pool);
+  ASSERT_TRUE(form.ok()) << form.status();
+  EXPECT_TRUE((*form)->models(field::FormGroup::kLogScale));
+  EXPECT_TRUE((*form)->models(field::FormGroup::kRotation));
+  EXPECT_TRUE((*form)->models(field::FormGroup::kOpacity));
+  EXPECT_NEAR(loaded->field_form_error_m(), (*form)->error().max[0], 1e-7);
+  const int64_t t = 700'000;
+  EXPECT_TRUE(LocalRgb(**(*form)->At(t, pool), 8) == ServedRgb("ext", t));
 }
 
 TEST_F(ExtFieldSceneTest, DifferentTimesDifferAndOneTimeIsOneEvaluation) {

@@ -269,7 +269,11 @@ class FieldDeviceServerTest : public ServerTest {
     WriteScene("dyn", g, f, nullptr);
     const field::ExtendedField ext = MovingExtension(PartlyStaticField(g), 6, NoFourierTime());
     WriteScene("ext", g, ext.base(), &ext);
-    StartServer();  // the cpu one: client_
+    // The exact field on both servers: these tests hold the device's evaluation against the cpu's
+    // (the serving form evaluates on the cpu wherever it was built).
+    server::ServerOptions o = TestOptions(data_root_, state_dir_);
+    o.exact_field = true;
+    StartServer(o);  // the cpu one: client_
   }
 
   void WriteScene(const std::string& name, const GaussianStore& g, const field::DeformationField& f,
@@ -288,6 +292,7 @@ class FieldDeviceServerTest : public ServerTest {
   void StartOther(train::FieldDevice device) {
     server::ServerOptions o = TestOptions(data_root_, state_dir_ + "/other");
     o.field_device = device;
+    o.exact_field = true;
     absl::StatusOr<std::unique_ptr<server::Server>> s = server::Server::Start(o);
     ASSERT_TRUE(s.ok()) << s.status();
     other_server_ = std::move(*s);

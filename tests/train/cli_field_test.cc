@@ -91,8 +91,11 @@ TEST(CliField, TrainWritesAFieldThatRenderAndEvalUse) {
     EXPECT_NE(rs.err.find("served as by streetsim serve"), std::string::npos) << rs.err;
     return nlohmann::json::parse(rs.out);
   };
-  const nlohmann::json none = served(" --static-motion-m 0 --static-sh 0");
+  // --field-serving exact: the field's network per view, as the plain eval (the default serving
+  // form is compared below).
+  const nlohmann::json none = served(" --static-motion-m 0 --static-sh 0 --field-serving exact");
   ASSERT_EQ(none["frames"].size(), n);
+  EXPECT_EQ(none["served"]["field_serving"], "exact");
   EXPECT_EQ(none["served"]["static_gaussians"], 0);
   const int64_t total = none["served"]["dynamic_gaussians"];
   EXPECT_GT(total, 0);
@@ -104,6 +107,13 @@ TEST(CliField, TrainWritesAFieldThatRenderAndEvalUse) {
   EXPECT_EQ(all["served"]["static_gaussians"], total);
   EXPECT_EQ(all["served"]["motion_threshold_m"], 1000.0);
   const nlohmann::json by_default = served("");
+  // The serving form (built here into DIR/field.serving): within 0.05 dB of the exact field per view.
+  EXPECT_EQ(by_default["served"]["field_serving"], "served");
+  EXPECT_TRUE(std::filesystem::exists(dir + "/field.serving"));
+  ASSERT_EQ(by_default["frames"].size(), n);
+  for (size_t i = 0; i < n; ++i) {
+    EXPECT_NEAR(by_default["frames"][i]["psnr"].get<double>(), j["frames"][i]["psnr"].get<double>(), 0.05) << i;
+  }
   EXPECT_EQ(by_default["served"]["motion_threshold_m"], 0.01);
   EXPECT_EQ(by_default["served"]["static_gaussians"].get<int64_t>() + by_default["served"]["dynamic_gaussians"].get<int64_t>(),
             total);

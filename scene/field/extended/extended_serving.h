@@ -56,7 +56,9 @@ class ExtServingField : public ServedScene {
   size_t size() const override { return baked_.size(); }
   size_t num_dynamic() const override { return rows_.size(); }
   int64_t field_evaluations() const override { return evaluations_; }
-  const DeformationField& field() const override { return field_.base(); }
+  const DeformationField& field() const { return field_.base(); }
+  FieldTimeRange time_range() const override { return field_.base().time_range(); }
+  std::vector<uint32_t> dynamic_rows() const override { return rows_; }
   const ExtendedField& extended() const { return field_; }
 
   // Evaluates the dynamic Gaussians with `forward` on `device` from the next At on (the static

@@ -1,0 +1,334 @@
+#include "scene/field/serving_form.h"
+
+#include <Eigen/Dense>
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <mutex>
+#include <type_traits>
+
+#include "absl/strings/str_cat.h"
+#include "render/common/log.h"
+
+namespace streetsim::field {
+
+namespace {
+
+constexpr int kRestShValues = (kShCoeffs - 1) * 3;  // SH bands 1-3: kept at their time-mean
+
+// Where channel `c` of group `g` lives in a store: array, stride per Gaussian, offset.
+template <typename F>
+struct TargetOf {
+  F* data;
+  int stride, offset;
+};
+using Target = TargetOf<float>;
+using Source = TargetOf<const float>;
+
+// The modelled channels of `groups` in table order (a const store gives read-only Sources).
+template <typename Store, typename F = std::conditional_t<std::is_const_v<Store>, const float, float>>
+std::vector<TargetOf<F>> Targets(uint32_t groups, Store* s) {
+  std::vector<TargetOf<F>> t;
+  const int K3 = s->sh_coeffs() * 3;
+  for (int g = 0; g < kFormGroups; ++g) {
+    if (!(groups & (1u << g))) continue;
+    for (int c = 0; c < kFormGroupChannels[g]; ++c) {
+      switch (static_cast<FormGroup>(g)) {
+        case FormGroup::kPosition: t.push_back({s->means.data(), 3, c}); break;
+        case FormGroup::kColour: t.push_back({s->sh.data(), K3, c}); break;
+        case FormGroup::kLogScale: t.push_back({s->log_scales.data(), 3, c}); break;
+        case FormGroup::kRotation: t.push_back({s->rotations.data(), 4, c}); break;
+        case FormGroup::kOpacity: t.push_back({s->opacity_logits.data(), 1, c}); break;
+      }
+    }
+  }
+  return t;
+}
+
+// Whether group g of row i differs between two stores.
+bool GroupDiffers(int g, const GaussianStore& a, const GaussianStore& b, size_t i) {
+  auto differ = [&](const std::vector<float>& x, const std::vector<float>& y, int stride, int count) {
+    for (int c = 0; c < count; ++c) {
+      if (x[i * stride + c] != y[i * stride + c]) return true;
+    }
+    return false;
+  };
+  switch (static_cast<FormGroup>(g)) {
+    case FormGroup::kPosition: return differ(a.means, b.means, 3, 3);
+    case FormGroup::kColour: return differ(a.sh, b.sh, a.sh_coeffs() * 3, 3);
+    case FormGroup::kLogScale: return differ(a.log_scales, b.log_scales, 3, 3);
+    case FormGroup::kRotation: return differ(a.rotations, b.rotations, 4, 4);
+    case FormGroup::kOpacity: return differ(a.opacity_logits, b.opacity_logits, 1, 1);
+  }
+  return false;
+}
+
+}  // namespace
+
+absl::Status ServingFormOptions::Validate() const {
+  if (control_points < 4 || control_points > 256) {
+    return absl::InvalidArgumentError(absl::StrCat("serving form: ", control_points, " control points, want 4..256"));
+  }
+  if (!(max_position_error_m > 0) || max_control_points < control_points || max_control_points > 256) {
+    return absl::InvalidArgumentError(absl::StrCat("serving form: max_position_error_m ", max_position_error_m,
+                                                   " must be > 0 and max_control_points ", max_control_points,
+                                                   " in [control_points, 256]"));
+  }
+  if (samples_per_segment < 2 || samples_per_segment > 64) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("serving form: ", samples_per_segment, " samples per segment, want 2..64"));
+  }
+  return absl::OkStatus();
+}
+
+int ServingForm::modelled_channels() const {
+  int n = 0;
+  for (int g = 1; g < kFormGroups; ++g) n += (groups_ & (1u << g)) ? kFormGroupChannels[g] : 0;
+  return n;
+}
+
+double ServingForm::Tau(int64_t time_us) const {
+  if (time_range_.end_us <= time_range_.start_us) return 0;
+  const double tau = (static_cast<double>(time_us) - static_cast<double>(time_range_.start_us)) /
+                     (static_cast<double>(time_range_.end_us) - static_cast<double>(time_range_.start_us));
+  return std::clamp(tau, 0.0, 1.0);
+}
+
+int ServingForm::Weights(double tau, float w[4]) const {
+  // Uniform cubic B-spline over control_points_ - 3 segments of [0, 1].
+  const int segments = control_points_ - 3;
+  const double u = tau * segments;
+  const int k = std::clamp(static_cast<int>(std::floor(u)), 0, segments - 1);
+  const double s = u - k, s2 = s * s, s3 = s2 * s;
+  w[0] = static_cast<float>((1 - s) * (1 - s) * (1 - s) / 6);
+  w[1] = static_cast<float>((3 * s3 - 6 * s2 + 4) / 6);
+  w[2] = static_cast<float>((-3 * s3 + 3 * s2 + 3 * s + 1) / 6);
+  w[3] = static_cast<float>(s3 / 6);
+  return k;
+}
+
+void ServingForm::EvaluateInto(double tau, GaussianStore* out, ThreadPool& pool) const {
+  float w[4];
+  const int k = Weights(tau, w);
+  const int M = control_points_, Co = modelled_channels(), C = 3 + Co;
+  const std::vector<Target> all = Targets(groups_, out);
+  const std::vector<Target> other(all.begin() + 3, all.end());
+  pool.ParallelFor(static_cast<int64_t>(rows_.size()), 4096, [&](int64_t b, int64_t e, int) {
+    for (int64_t r = b; r < e; ++r) {
+      const size_t i = rows_[r];
+      const float* off = &offset_[r * C];
+      const float* step = &step_[r * C];
+      const int16_t* qp = &q_position_[(static_cast<size_t>(r) * M + k) * 3];
+      for (int c = 0; c < 3; ++c) {
+        const float s = w[0] * qp[c] + w[1] * qp[3 + c] + w[2] * qp[6 + c] + w[3] * qp[9 + c];
+        out->means[i * 3 + c] = off[c] + step[c] * s;
+      }
+      const int8_t* qo = q_other_.data() + (static_cast<size_t>(r) * M + k) * Co;
+      for (int c = 0; c < Co; ++c) {
+        const float s = w[0] * qo[c] + w[1] * qo[Co + c] + w[2] * qo[2 * Co + c] + w[3] * qo[3 * Co + c];
+        other[c].data[i * other[c].stride + other[c].offset] = off[3 + c] + step[3 + c] * s;
+      }
+    }
+  });
+}
+
+absl::StatusOr<const GaussianStore*> ServingForm::At(int64_t time_us, ThreadPool& pool) {
+  const double tau = Tau(time_us);
+  if (tau == last_tau_) return &current_;
+  EvaluateInto(tau, &current_, pool);
+  last_tau_ = tau;
+  ++evaluations_;
+  return &current_;
+}
+
+size_t ServingForm::table_bytes() const {
+  return rows_.size() * sizeof(uint32_t) + (offset_.size() + step_.size()) * sizeof(float) +
+         q_position_.size() * sizeof(int16_t) + q_other_.size() * sizeof(int8_t);
+}
+
+absl::StatusOr<std::unique_ptr<ServingForm>> ServingForm::Build(ServedScene& exact, const ServingFormOptions& o,
+                                                                ThreadPool& pool) {
+  if (absl::Status s = o.Validate(); !s.ok()) return s;
+  double previous_p99 = 0;
+  for (int m = o.control_points;; m = std::min(2 * m - 3, o.max_control_points)) {  // segments double
+    absl::StatusOr<std::unique_ptr<ServingForm>> f = Fit(exact, m, o.samples_per_segment, pool);
+    if (!f.ok()) return f;
+    const double p99 = (*f)->error_.position_p99_m;
+    if (p99 <= o.max_position_error_m || m >= o.max_control_points) return f;
+    // Give up early when the last doubling's gain, kept up to max_control_points, cannot reach the
+    // bound (a field with motion finer than the spline: the caller serves the exact field).
+    if (previous_p99 > 0) {
+      const double gain = std::max(1.0, previous_p99 / std::max(p99, 1e-12));
+      const double doublings_left = std::log2(double(o.max_control_points - 3) / double(m - 3));
+      if (p99 / std::pow(gain, doublings_left) > o.max_position_error_m) return f;
+    }
+    previous_p99 = p99;
+    LOG(INFO) << "serving form: " << m << " control points leave a p99 position error of " << p99 * 1000
+              << " mm, fitting again with more";
+  }
+}
+
+absl::StatusOr<std::unique_ptr<ServingForm>> ServingForm::Fit(ServedScene& exact, int control_points,
+                                                              int samples_per_segment, ThreadPool& pool) {
+  ServingFormOptions o;
+  o.control_points = control_points;
+  o.max_control_points = std::max(control_points, 4);
+  o.samples_per_segment = samples_per_segment;
+  if (absl::Status s = o.Validate(); !s.ok()) return s;
+  std::unique_ptr<ServingForm> f(new ServingForm());
+  f->time_range_ = exact.time_range();
+  f->control_points_ = o.control_points;
+  const FieldTimeRange tr = f->time_range_;
+  auto time_at = [&](double tau) {
+    return tr.start_us + static_cast<int64_t>(std::llround(tau * static_cast<double>(tr.end_us - tr.start_us)));
+  };
+  auto sample = [&](int64_t t) -> absl::StatusOr<const GaussianStore*> {
+    absl::StatusOr<const GaussianStore*> g = exact.At(t, pool);
+    if (g.ok() && (*g)->sh_degree != 3) return absl::FailedPreconditionError("serving form: SH degree 3 expected");
+    return g;
+  };
+  absl::StatusOr<const GaussianStore*> first = sample(tr.start_us);
+  if (!first.ok()) return first.status();
+  f->current_ = **first;
+  f->groups_ = 1u << static_cast<int>(FormGroup::kPosition);  // position always: a form's tables start with it
+  std::vector<uint32_t> rows = exact.dynamic_rows();
+  std::sort(rows.begin(), rows.end());
+  if (tr.end_us <= tr.start_us || rows.empty()) return f;  // one time, or nothing moves
+
+  // Which other groups move: probes over the range (the error check below covers every group).
+  for (double tau : {1.0 / 3, 2.0 / 3, 1.0}) {
+    absl::StatusOr<const GaussianStore*> g = sample(time_at(tau));
+    if (!g.ok()) return g.status();
+    for (int grp = 1; grp < kFormGroups; ++grp) {
+      if (f->groups_ & (1u << grp)) continue;
+      for (uint32_t i : rows) {
+        if (GroupDiffers(grp, f->current_, **g, i)) {
+          f->groups_ |= 1u << grp;
+          break;
+        }
+      }
+    }
+  }
+  const int M = o.control_points, Co = f->modelled_channels(), C = 3 + Co;
+  const size_t nd = rows.size();
+
+  // Least squares: coefficients = P y over the fit samples, P = (B^T B)^-1 B^T, streamed one sample at a time.
+  const int S = (M - 3) * o.samples_per_segment + 1;
+  std::vector<int64_t> fit_us(S);
+  Eigen::MatrixXd B = Eigen::MatrixXd::Zero(S, M);
+  for (int s = 0; s < S; ++s) {
+    fit_us[s] = time_at(static_cast<double>(s) / (S - 1));
+    float w[4];
+    const int k = f->Weights(f->Tau(fit_us[s]), w);
+    for (int j = 0; j < 4; ++j) B(s, k + j) = w[j];
+  }
+  const Eigen::MatrixXd P = (B.transpose() * B).ldlt().solve(B.transpose());
+  std::vector<float> coef(nd * M * C, 0.0f);
+  std::vector<float> rest_mean(nd * kRestShValues, 0.0f);
+  for (int s = 0; s < S; ++s) {
+    absl::StatusOr<const GaussianStore*> g = sample(fit_us[s]);
+    if (!g.ok()) return g.status();
+    const GaussianStore& y = **g;
+    const std::vector<Source> src = Targets(f->groups_, &y);
+    std::vector<float> p(M);
+    for (int m = 0; m < M; ++m) p[m] = static_cast<float>(P(m, s));
+    pool.ParallelFor(static_cast<int64_t>(nd), 2048, [&](int64_t b, int64_t e, int) {
+      for (int64_t r = b; r < e; ++r) {
+        const size_t i = rows[r];
+        float* a = &coef[r * M * C];
+        for (int c = 0; c < C; ++c) {
+          const float v = src[c].data[i * src[c].stride + src[c].offset];
+          for (int m = 0; m < M; ++m) a[m * C + c] += p[m] * v;
+        }
+        const float* rest = &y.sh[i * kShOutputs + 3];
+        for (int k = 0; k < kRestShValues; ++k) rest_mean[r * kRestShValues + k] += rest[k] / S;
+      }
+    });
+  }
+
+  // Quantise: per Gaussian and channel, the coefficients' midrange as the offset and a step that spans them.
+  f->rows_ = std::move(rows);
+  f->offset_.assign(nd * C, 0.0f);
+  f->step_.assign(nd * C, 0.0f);
+  f->q_position_.assign(nd * M * 3, 0);
+  f->q_other_.assign(nd * M * Co, 0);
+  pool.ParallelFor(static_cast<int64_t>(nd), 2048, [&](int64_t b, int64_t e, int) {
+    for (int64_t r = b; r < e; ++r) {
+      for (int c = 0; c < C; ++c) {
+        float lo = std::numeric_limits<float>::max(), hi = std::numeric_limits<float>::lowest();
+        for (int m = 0; m < M; ++m) {
+          lo = std::min(lo, coef[(r * M + m) * C + c]);
+          hi = std::max(hi, coef[(r * M + m) * C + c]);
+        }
+        const float qmax = c < 3 ? 32767.0f : 127.0f;
+        const float off = 0.5f * (lo + hi), step = 0.5f * (hi - lo) / qmax;
+        f->offset_[r * C + c] = off;
+        f->step_[r * C + c] = step;
+        for (int m = 0; m < M; ++m) {
+          const float q = step > 0 ? std::round((coef[(r * M + m) * C + c] - off) / step) : 0.0f;
+          const float qc = std::clamp(q, -qmax, qmax);
+          if (c < 3) {
+            f->q_position_[(r * M + m) * 3 + c] = static_cast<int16_t>(qc);
+          } else {
+            f->q_other_[(r * M + m) * Co + (c - 3)] = static_cast<int8_t>(qc);
+          }
+        }
+      }
+      const size_t i = f->rows_[r];
+      std::copy_n(&rest_mean[r * kRestShValues], kRestShValues, &f->current_.sh[i * kShOutputs + 3]);
+    }
+  });
+  std::vector<float>().swap(coef);
+  std::vector<float>().swap(rest_mean);
+
+  // The check: the form against the exact field halfway between the fit samples.
+  GaussianStore probe = f->current_;
+  f->position_error_m_.assign(nd, 0.0f);
+  std::mutex mu;
+  for (int s = 0; s + 1 < S; ++s) {
+    const int64_t t = (fit_us[s] + fit_us[s + 1]) / 2;
+    absl::StatusOr<const GaussianStore*> g = sample(t);
+    if (!g.ok()) return g.status();
+    const GaussianStore& y = **g;
+    f->EvaluateInto(f->Tau(t), &probe, pool);
+    pool.ParallelFor(static_cast<int64_t>(nd), 4096, [&](int64_t b, int64_t e, int) {
+      std::array<float, kFormGroups> local{};
+      float rest_max = 0;
+      for (int64_t r = b; r < e; ++r) {
+        const size_t i = f->rows_[r];
+        double d2 = 0;
+        for (int c = 0; c < 3; ++c) d2 += std::pow(double(probe.means[i * 3 + c]) - y.means[i * 3 + c], 2);
+        f->position_error_m_[r] = std::max(f->position_error_m_[r], static_cast<float>(std::sqrt(d2)));
+        local[0] = std::max(local[0], f->position_error_m_[r]);
+        for (int grp = 1; grp < kFormGroups; ++grp) {
+          for (int c = 0; c < kFormGroupChannels[grp]; ++c) {
+            float a = 0, x = 0;
+            switch (static_cast<FormGroup>(grp)) {
+              case FormGroup::kPosition: break;
+              case FormGroup::kColour: a = probe.sh[i * kShOutputs + c], x = y.sh[i * kShOutputs + c]; break;
+              case FormGroup::kLogScale: a = probe.log_scales[i * 3 + c], x = y.log_scales[i * 3 + c]; break;
+              case FormGroup::kRotation: a = probe.rotations[i * 4 + c], x = y.rotations[i * 4 + c]; break;
+              case FormGroup::kOpacity: a = probe.opacity_logits[i], x = y.opacity_logits[i]; break;
+            }
+            local[grp] = std::max(local[grp], std::abs(a - x));
+          }
+        }
+        for (int k = 3; k < kShOutputs; ++k) {
+          rest_max = std::max(rest_max, std::abs(probe.sh[i * kShOutputs + k] - y.sh[i * kShOutputs + k]));
+        }
+      }
+      std::lock_guard<std::mutex> lock(mu);
+      for (int grp = 0; grp < kFormGroups; ++grp) f->error_.max[grp] = std::max(f->error_.max[grp], local[grp]);
+      f->error_.sh_rest_max = std::max(f->error_.sh_rest_max, rest_max);
+    });
+  }
+  f->error_.check_samples = S - 1;
+  std::vector<float> sorted = f->position_error_m_;
+  const size_t p99 = std::min(sorted.size() - 1, static_cast<size_t>(0.99 * static_cast<double>(sorted.size())));
+  std::nth_element(sorted.begin(), sorted.begin() + p99, sorted.end());
+  f->error_.position_p99_m = sorted[p99];
+  f->last_tau_ = -1;  // current_ holds the start's time-invariant values; the first At evaluates
+  return f;
+}
+
+}  // namespace streetsim::field

@@ -1,0 +1,108 @@
+// The serving form of a field (docs/field.md "Serving form"): what `streetsim serve` evaluates per
+// timestamp instead of the field's network. Each Gaussian's time-varying parameters (position,
+// DC colour and, for the extended field, log-scale, rotation and opacity) are fitted over the
+// log's time range by a uniform cubic B-spline, least squares on samples of the exact field; the
+// coefficients are stored quantised (position int16, the rest int8, each with its own offset and
+// step per Gaussian and channel). Parameters the form does not model (the higher SH bands) keep
+// their time-mean, and Gaussians that do not move keep one value. Evaluating a timestamp is then a
+// 4-tap blend per channel of the moving Gaussians: memory-bound, no network.
+//
+// Build() measures what the form costs: after the fit it compares the form with the exact field at
+// the midpoints between the fit samples and records each moving Gaussian's largest position error
+// (position_error_m) and the largest error per channel group (ServingFormError).
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <memory>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "render/common/thread_pool.h"
+#include "scene/field/static_skip.h"
+#include "scene/gaussians/gaussian_store.h"
+
+namespace streetsim::field {
+
+struct ServingFormOptions {
+  // B-spline control points over the log's time range (4..256) of the first fit. 20 keeps a
+  // moving Gaussian's tables under 250 B with the spec field (3 position + 3 colour channels).
+  int control_points = 20;
+  // Fit samples per spline segment (the exact field is evaluated (control_points - 3) *
+  // samples_per_segment + 1 times for the fit, as often again for the error check).
+  int samples_per_segment = 4;
+  // When the check finds the 99th percentile of the moving Gaussians' position error above this,
+  // the fit is redone with twice the control points, up to max_control_points (a field with more
+  // motion in time than the spline follows costs memory, not accuracy).
+  double max_position_error_m = 0.002;
+  int max_control_points = 128;
+  absl::Status Validate() const;
+};
+
+// The channel groups a form can model, in table order.
+enum class FormGroup : uint8_t { kPosition = 0, kColour = 1, kLogScale = 2, kRotation = 3, kOpacity = 4 };
+inline constexpr int kFormGroups = 5;
+inline constexpr int kFormGroupChannels[kFormGroups] = {3, 3, 3, 4, 1};
+
+// The largest difference between the form and the exact field over the check samples, per group
+// (position in metres, the others in their raw units: SH, log-scale, quaternion component, logit).
+struct ServingFormError {
+  std::array<float, kFormGroups> max{};
+  float sh_rest_max = 0;     // SH bands 1-3, kept at their time-mean
+  float position_p99_m = 0;  // 99th percentile over moving Gaussians of their largest position error
+  int check_samples = 0;
+};
+
+class ServingForm : public ServedScene {
+ public:
+  // Samples `exact` over its time range (At, 2 * segments * samples_per_segment + 1 times) and fits
+  // its moving Gaussians. `exact` is left at an arbitrary time.
+  static absl::StatusOr<std::unique_ptr<ServingForm>> Build(ServedScene& exact, const ServingFormOptions& options,
+                                                            ThreadPool& pool);
+  // One fit with `control_points` (Build's step).
+  static absl::StatusOr<std::unique_ptr<ServingForm>> Fit(ServedScene& exact, int control_points,
+                                                          int samples_per_segment, ThreadPool& pool);
+
+  absl::StatusOr<const GaussianStore*> At(int64_t time_us, ThreadPool& pool) override;
+  size_t size() const override { return current_.size(); }
+  size_t num_dynamic() const override { return rows_.size(); }
+  int64_t field_evaluations() const override { return evaluations_; }
+  FieldTimeRange time_range() const override { return time_range_; }
+  std::vector<uint32_t> dynamic_rows() const override { return rows_; }
+
+  int control_points() const { return control_points_; }
+  bool models(FormGroup g) const { return groups_ & (1u << static_cast<int>(g)); }
+  const ServingFormError& error() const { return error_; }
+  // Per moving Gaussian (dynamic_rows order): its largest position error at the check samples (m).
+  // Only after Build (a form read from a cache has its summary, error(), not this).
+  const std::vector<float>& position_error_m() const { return position_error_m_; }
+  // Host bytes of the per-Gaussian tables beyond the Gaussians themselves.
+  size_t table_bytes() const;
+
+ private:
+  friend class ServingFormCodec;  // serving_form_io.cc
+  ServingForm() = default;
+  int modelled_channels() const;  // channels of every modelled group but position
+  // B-spline weights at normalised time tau in [0, 1]: the first control point and 4 weights.
+  int Weights(double tau, float w[4]) const;
+  // Writes the form at tau into `out` (only the moving rows' modelled channels).
+  void EvaluateInto(double tau, GaussianStore* out, ThreadPool& pool) const;
+  double Tau(int64_t time_us) const;
+
+  FieldTimeRange time_range_;
+  int control_points_ = 0;
+  uint32_t groups_ = 0;          // bit per FormGroup
+  GaussianStore current_;        // the Gaussians at last_tau_ (time-invariant values already in place)
+  std::vector<uint32_t> rows_;   // moving Gaussians, ascending
+  // Per moving Gaussian and channel (position first, then the other modelled groups in order):
+  // value = offset + step * sum_j w_j q_j.
+  std::vector<float> offset_, step_;
+  std::vector<int16_t> q_position_;  // [rows][control_points][3]
+  std::vector<int8_t> q_other_;      // [rows][control_points][modelled_channels]
+  ServingFormError error_;
+  std::vector<float> position_error_m_;
+  double last_tau_ = -1;
+  int64_t evaluations_ = 0;
+};
+
+}  // namespace streetsim::field
