@@ -111,6 +111,16 @@ struct GaussianParamsView {
   const float* sh = nullptr;              // [n*sh_stride*3]
 };
 
+// Which parameters of which Gaussians changed since a scene's last update (serving a dynamic scene:
+// the moving Gaussians' positions and colours), for Engine::UpdateSceneRows and the LiDAR
+// renderer's UpdateRows. Every other value is the same as in that update.
+struct ParamsChange {
+  const uint32_t* rows = nullptr;  // distinct rows
+  size_t num_rows = 0;
+  bool means = false, log_scales = false, rotations = false, opacity = false;
+  int sh_coeffs = 0;  // the first sh_coeffs SH coefficients of each channel changed (0: none)
+};
+
 // A scene living in a backend's memory. Opaque; created by Engine::Upload.
 class DeviceScene {
  public:
@@ -169,6 +179,14 @@ class Engine {
     for (size_t i = 0; i < n; ++i)
       for (int k = 0; k < K * 3; ++k) store.sh[i * K * 3 + k] = params.sh[i * params.sh_stride * 3 + k];
     return UpdateScene(store, scene);
+  }
+
+  // Serving: like UpdateSceneParams when only `change` differs from the scene's last update (the
+  // same Gaussians otherwise). Backends may copy and check just those values; the default updates
+  // everything.
+  virtual absl::Status UpdateSceneRows(const GaussianParamsView& params, const ParamsChange& change,
+                                       std::unique_ptr<DeviceScene>* scene) {
+    return UpdateSceneParams(params, scene);
   }
 };
 

@@ -95,7 +95,12 @@ absl::StatusOr<const DeviceScene*> DynamicSceneField::At(int64_t time_us, Engine
     // In place: the backend keeps its buffers and copies in parallel, checking only what rendering
     // needs (UpdateScene would validate the whole store again and, on the cpu, rebuild every array:
     // most of a 500k-Gaussian step went to allocating, zeroing and copying).
-    if (absl::Status s = engine.UpdateSceneParams(ParamsViewOf(**store), &device_); !s.ok()) {
+    // Only the moving Gaussians' changed values when the device copy holds an earlier time of this
+    // scene (every other value is the same at every time).
+    const absl::Status s = device_evaluation_ >= 0
+                               ? engine.UpdateSceneRows(ParamsViewOf(**store), serving_->changes(), &device_)
+                               : engine.UpdateSceneParams(ParamsViewOf(**store), &device_);
+    if (!s.ok()) {
       device_evaluation_ = -1;  // the device copy is in an unknown state: update on the next call
       return absl::InternalError(absl::StrCat("uploading the deformed scene failed: ", s.message()));
     }
@@ -116,6 +121,8 @@ absl::StatusOr<std::shared_ptr<const HostScene>> DynamicSceneField::HostAt(int64
       host_->reflectance = reflectance_;
     }
     host_->view = *store;
+    host_->previous_generation = host_evaluation_ >= 0 ? host_->generation : 0;
+    host_->change = serving_->changes();
     host_->generation = HostScene::NewHostSceneGeneration();
     host_evaluation_ = serving_->field_evaluations();
   }

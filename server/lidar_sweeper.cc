@@ -12,6 +12,10 @@ public:
   absl::Status Upload(const GaussianStore &store) override {
     return renderer_.Upload(store);
   }
+  absl::Status UpdateRows(const GaussianStore &store,
+                          const ParamsChange &change) override {
+    return renderer_.UpdateRows(store, change);
+  }
   absl::Status Render(const LidarModel &model, const LidarSweepPose &sweep,
                       const LidarRenderOptions &options,
                       LidarRenderOutput *out) override {

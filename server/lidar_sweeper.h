@@ -21,6 +21,12 @@ class LidarSweeper {
 public:
   virtual ~LidarSweeper() = default;
   virtual absl::Status Upload(const GaussianStore &store) = 0;
+  // Only `change` differs from the last upload (a dynamic scene's next time); the default uploads
+  // the whole store again.
+  virtual absl::Status UpdateRows(const GaussianStore &store,
+                                  const ParamsChange &change) {
+    return Upload(store);
+  }
   virtual absl::Status Render(const LidarModel &model,
                               const LidarSweepPose &sweep,
                               const LidarRenderOptions &options,

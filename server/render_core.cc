@@ -60,8 +60,10 @@ absl::Status RenderCore::RenderLidar(const std::shared_ptr<const HostScene>& hos
     lidar_ = *std::move(created);
   }
   if (lidar_generation_ != host->generation) {
+    const bool follows = host->change && host->previous_generation != 0 && lidar_generation_ == host->previous_generation;
     lidar_generation_ = 0;
-    if (absl::Status s = lidar_->Upload(host->gaussians()); !s.ok()) {
+    if (absl::Status s = follows ? lidar_->UpdateRows(host->gaussians(), *host->change) : lidar_->Upload(host->gaussians());
+        !s.ok()) {
       return absl::InternalError(absl::StrCat("LiDAR upload failed: ", s.message()));
     }
     lidar_generation_ = host->generation;

@@ -29,6 +29,10 @@ struct HostScene {
   const GaussianStore* view = nullptr;       // or viewed (a dynamic scene's current time)
   std::optional<std::vector<float>> reflectance;  // [N] in [0, 1]; none: 0.5
   uint64_t generation = NewHostSceneGeneration();
+  // A dynamic scene: the generation this one follows and what changed since it (a renderer that
+  // holds that generation may update just those values); 0 / none: upload everything.
+  uint64_t previous_generation = 0;
+  std::optional<ParamsChange> change;
 
   const GaussianStore& gaussians() const { return view ? *view : store; }
 

@@ -125,6 +125,22 @@ class CpuEngine final : public Engine {
     return s;
   }
 
+  absl::Status UpdateSceneRows(const GaussianParamsView& params, const ParamsChange& change,
+                               std::unique_ptr<DeviceScene>* scene) override {
+    auto* cpu_scene = scene->get() ? dynamic_cast<CpuScene*>(scene->get()) : nullptr;
+    if (cpu_scene == nullptr || options_.precision != CpuPrecision::kFloatSimd || cpu_scene->soa().n != params.n ||
+        cpu_scene->soa().sh_degree != params.sh_degree) {
+      return UpdateSceneParams(params, scene);
+    }
+    if (kept_scene_ == cpu_scene) kept_scene_ = nullptr;
+    absl::Status s = cpu_scene->mutable_soa().AssignRows(pool_, params, change);
+    if (!s.ok()) {
+      cpu_scene->mutable_soa() = cpu::SceneSoa();  // do not leave a half-written scene renderable
+      cpu_scene->SetShape(0, params.sh_degree);
+    }
+    return s;
+  }
+
   absl::Status RenderBackward(const DeviceScene& scene, const RenderOutputGrads& grads,
                               const BackwardOptions& options, GaussianGrads* out) override {
     const auto t0 = Clock::now();

@@ -176,4 +176,56 @@ absl::Status SceneSoa::Assign(ThreadPool& pool, const GaussianParamsView& p) {
   return absl::OkStatus();
 }
 
+absl::Status SceneSoa::AssignRows(ThreadPool& pool, const GaussianParamsView& p, const ParamsChange& c) {
+  const int K = ShCoeffsForDegree(p.sh_degree);
+  if (p.n != n || p.sh_degree != sh_degree || p.sh_stride < K || c.sh_coeffs < 0 || c.sh_coeffs > K) {
+    return absl::InvalidArgumentError("UpdateSceneRows: the view does not match the scene");
+  }
+  std::atomic<bool> bad{false};
+  const size_t stride = static_cast<size_t>(p.sh_stride) * 3;
+  const int sh_values = c.sh_coeffs * 3;
+  pool.ParallelFor(static_cast<int64_t>(c.num_rows), 4096, [&](int64_t b, int64_t e, int) {
+    uint32_t nf = 0;
+    for (int64_t r = b; r < e; ++r) {
+      const size_t i = c.rows[r];
+      if (i >= n) {
+        nf = 1;
+        continue;
+      }
+      if (c.means) {
+        const float* m = p.means + i * 3;
+        mx[i] = m[0], my[i] = m[1], mz[i] = m[2];
+        nf |= NonFinite(m[0]) | NonFinite(m[1]) | NonFinite(m[2]);
+      }
+      if (c.log_scales) {
+        const float* l = p.log_scales + i * 3;
+        ls0[i] = l[0], ls1[i] = l[1], ls2[i] = l[2];
+        nf |= NonFinite(l[0]) | NonFinite(l[1]) | NonFinite(l[2]);
+      }
+      if (c.rotations) {
+        const float* q = p.rotations + i * 4;
+        qw[i] = q[0], qx[i] = q[1], qy[i] = q[2], qz[i] = q[3];
+        nf |= NonFinite(q[0]) | NonFinite(q[1]) | NonFinite(q[2]) | NonFinite(q[3]);
+        nf |= (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3] < 1e-20f);
+      }
+      if (c.opacity) {
+        opacity_logit[i] = p.opacity_logits[i];
+        nf |= NonFinite(p.opacity_logits[i]);
+      }
+      for (int kc = 0; kc < sh_values; ++kc) {
+        const float v = p.sh[i * stride + kc];
+        sh[static_cast<size_t>(kc) * n + i] = v;
+        nf |= NonFinite(v);
+      }
+    }
+    if (nf) bad.store(true, std::memory_order_relaxed);
+  });
+  if (bad.load()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("UpdateSceneRows: a changed parameter is not finite, a rotation is zero or a row is out of range (",
+                     FirstBadGaussian(p), ")"));
+  }
+  return absl::OkStatus();
+}
+
 }  // namespace streetsim::cpu

@@ -27,6 +27,9 @@ struct SceneSoa {
   // in parallel, checking only what rendering needs: finite values and non-zero rotations.
   // On error the contents are unspecified.
   absl::Status Assign(ThreadPool& pool, const GaussianParamsView& p);
+  // Serving: overwrites only `change`'s rows and values (the view must have this copy's size and SH
+  // degree), checking them as Assign does. On error the changed rows are unspecified.
+  absl::Status AssignRows(ThreadPool& pool, const GaussianParamsView& p, const ParamsChange& change);
 };
 
 }  // namespace streetsim::cpu

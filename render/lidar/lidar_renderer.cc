@@ -1,6 +1,7 @@
 #include "render/lidar/lidar_renderer.h"
 
 #include <algorithm>
+#include <atomic>
 #include <bit>
 #include <chrono>
 #include <cmath>
@@ -137,6 +138,52 @@ absl::Status LidarRenderer::Upload(const GaussianStore& store) {
   if (store.size() > (1u << 30)) return absl::InvalidArgumentError("too many Gaussians for the LiDAR renderer");
   lidar::CopyToSoa(*pool_, store, &w.soa);
   w.uploaded = true;
+  return absl::OkStatus();
+}
+
+absl::Status LidarRenderer::UpdateRows(const GaussianStore& store, const ParamsChange& c) {
+  Work& w = *work_;
+  if (!w.uploaded || w.soa.n != store.size()) {
+    return absl::InvalidArgumentError("LiDAR UpdateRows: no upload of this scene's size");
+  }
+  w.backward_ready = false;
+  std::atomic<bool> bad{false};
+  lidar::LidarSoa& s = w.soa;
+  pool_->ParallelFor(static_cast<int64_t>(c.num_rows), 4096, [&](int64_t b, int64_t e, int) {
+    bool local_bad = false;
+    for (int64_t r = b; r < e; ++r) {
+      const size_t i = c.rows[r];
+      if (i >= s.n) {
+        local_bad = true;
+        continue;
+      }
+      if (c.means) {
+        const float* m = &store.means[i * 3];
+        s.mx[i] = m[0], s.my[i] = m[1], s.mz[i] = m[2];
+        local_bad |= !std::isfinite(m[0]) || !std::isfinite(m[1]) || !std::isfinite(m[2]);
+      }
+      if (c.log_scales) {
+        const float* l = &store.log_scales[i * 3];
+        s.ls0[i] = l[0], s.ls1[i] = l[1], s.ls2[i] = l[2];
+        local_bad |= !std::isfinite(l[0]) || !std::isfinite(l[1]) || !std::isfinite(l[2]);
+      }
+      if (c.rotations) {
+        const float* q = &store.rotations[i * 4];
+        s.qw[i] = q[0], s.qx[i] = q[1], s.qy[i] = q[2], s.qz[i] = q[3];
+        const float q2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3];
+        local_bad |= !std::isfinite(q2) || q2 == 0;
+      }
+      if (c.opacity) {
+        s.opacity_logit[i] = store.opacity_logits[i];
+        local_bad |= !std::isfinite(store.opacity_logits[i]);
+      }
+    }
+    if (local_bad) bad.store(true, std::memory_order_relaxed);
+  });
+  if (bad.load()) {
+    w.uploaded = false;
+    return absl::InvalidArgumentError("LiDAR UpdateRows: a changed value is not finite or a row is out of range");
+  }
   return absl::OkStatus();
 }
 

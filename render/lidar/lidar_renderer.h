@@ -23,6 +23,7 @@
 #include <Eigen/Geometry>
 
 #include "absl/status/status.h"
+#include "render/engine.h"
 #include "render/lidar/lidar_gradients.h"
 #include "render/lidar/lidar_model.h"
 #include "render/lidar/lidar_sweep.h"
@@ -99,6 +100,10 @@ class LidarRenderer {
   // copy of it for the following sweeps: validation and the copy happen once per scene, not per
   // sweep. On error the previously uploaded scene is dropped.
   absl::Status Upload(const GaussianStore& store);
+  // Serving: the uploaded scene with only `change`'s rows and values taken from `store` (the same
+  // Gaussians otherwise; SH is not the LiDAR's). InvalidArgument when nothing of this size is
+  // uploaded or a changed value is not finite (then the upload is dropped).
+  absl::Status UpdateRows(const GaussianStore& store, const ParamsChange& change);
   size_t uploaded_size() const;
 
   // Renders the uploaded scene. InvalidArgument for an invalid model, a non-finite or non-rigid

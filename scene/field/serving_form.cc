@@ -141,6 +141,18 @@ absl::StatusOr<const GaussianStore*> ServingForm::At(int64_t time_us, ThreadPool
   return &current_;
 }
 
+ParamsChange ServingForm::changes() const {
+  ParamsChange c;
+  c.rows = rows_.data();
+  c.num_rows = rows_.size();
+  c.means = true;
+  c.sh_coeffs = models(FormGroup::kColour) ? 1 : 0;
+  c.log_scales = models(FormGroup::kLogScale);
+  c.rotations = models(FormGroup::kRotation);
+  c.opacity = models(FormGroup::kOpacity);
+  return c;
+}
+
 size_t ServingForm::table_bytes() const {
   return rows_.size() * sizeof(uint32_t) + (offset_.size() + step_.size()) * sizeof(float) +
          q_position_.size() * sizeof(int16_t) + q_other_.size() * sizeof(int8_t);

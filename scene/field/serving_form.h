@@ -69,6 +69,7 @@ class ServingForm : public ServedScene {
   int64_t field_evaluations() const override { return evaluations_; }
   FieldTimeRange time_range() const override { return time_range_; }
   std::vector<uint32_t> dynamic_rows() const override { return rows_; }
+  ParamsChange changes() const override;
 
   int control_points() const { return control_points_; }
   bool models(FormGroup g) const { return groups_ & (1u << static_cast<int>(g)); }

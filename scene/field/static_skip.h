@@ -14,6 +14,7 @@
 
 #include "absl/status/statusor.h"
 #include "render/common/thread_pool.h"
+#include "render/engine.h"
 #include "scene/field/deformation_field.h"
 #include "scene/gaussians/gaussian_store.h"
 
@@ -105,6 +106,9 @@ class ServedScene {
   virtual int64_t field_evaluations() const = 0;    // how often the field ran
   virtual FieldTimeRange time_range() const = 0;    // the log's, which At clamps to
   virtual std::vector<uint32_t> dynamic_rows() const = 0;  // the Gaussians At changes
+  // What At changes from one time to another (rows and parameters; valid while this scene is), for
+  // backends that update only those (Engine::UpdateSceneRows).
+  virtual ParamsChange changes() const = 0;
   // Where At evaluates the field: "cpu", or the device of SetDevice (the subclasses'), until that
   // device fails.
   const std::string& device() const { return device_; }
@@ -141,6 +145,14 @@ class ServingField : public ServedScene {
   int64_t field_evaluations() const override { return evaluations_; }
   FieldTimeRange time_range() const override { return field_.time_range(); }
   std::vector<uint32_t> dynamic_rows() const override { return dynamic_rows_; }
+  ParamsChange changes() const override {
+    ParamsChange c;
+    c.rows = dynamic_rows_.data();
+    c.num_rows = dynamic_rows_.size();
+    c.means = true;
+    c.sh_coeffs = canonical_.sh_coeffs();
+    return c;
+  }
 
   // Evaluates the dynamic Gaussians with `forward` on `device` from the next At on (the static
   // ones keep their baked values); a failing call falls back to the cpu for good (DeviceFailed).

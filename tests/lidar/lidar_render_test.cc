@@ -192,6 +192,43 @@ TEST(LidarRender, WallAtKnownDistance) {
   EXPECT_EQ(out.range[63 * 2048 + 1800], 0.0f);
 }
 
+// A dynamic scene's next time changes some Gaussians (serving): UpdateRows of just those gives the
+// sweep a full Upload of the new store gives, bit for bit; a non-finite changed value drops the upload.
+TEST(LidarRender, UpdateRowsRendersLikeUploadOfTheNewStore) {
+  const LidarModel m = KittiHdl64e(512);
+  const Eigen::Isometry3d T_wl = SensorPose();
+  GaussianStore before;
+  for (double y = -4; y <= 4; y += 0.1)
+    for (double z = -3; z <= 0.6; z += 0.1)
+      AddGaussian(&before, T_wl * Eigen::Vector3d(10, y, z), Eigen::Vector3d(0.005, 0.1, 0.1), 0.7f);
+  GaussianStore after = before;
+  std::vector<uint32_t> rows;
+  for (uint32_t i = 0; i < before.size(); i += 3) {
+    rows.push_back(i);
+    after.means[i * 3] -= 1.5f;  // a third of the wall comes 1.5 m closer
+  }
+  ParamsChange change;
+  change.rows = rows.data();
+  change.num_rows = rows.size();
+  change.means = true;
+  LidarRenderer incremental(2), full(2);
+  LidarRenderOutput a, b, c;
+  ASSERT_TRUE(incremental.Upload(before).ok());
+  ASSERT_TRUE(incremental.Render(m, T_wl, {}, &c).ok());
+  ASSERT_TRUE(incremental.UpdateRows(after, change).ok());
+  ASSERT_TRUE(incremental.Render(m, T_wl, {}, &a).ok());
+  ASSERT_TRUE(full.Render(after, m, T_wl, {}, &b).ok());
+  EXPECT_EQ(a.range, b.range);
+  EXPECT_NE(a.range, c.range);
+  after.means[rows[2] * 3 + 2] = std::nanf("");
+  EXPECT_EQ(incremental.UpdateRows(after, change).code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_FALSE(incremental.Render(m, T_wl, {}, &a).ok()) << "a failed update leaves nothing to render";
+  GaussianStore smaller = before;
+  smaller.Resize(10);
+  ASSERT_TRUE(incremental.Upload(before).ok());
+  EXPECT_EQ(incremental.UpdateRows(smaller, change).code(), absl::StatusCode::kInvalidArgument);
+}
+
 // Rolling sweep: the sensor moves 1 m forward and yaws 3 degrees during the sweep between a wall
 // 10 m ahead and one 10 m behind. Column c is measured from the pose at s = (c + 0.5) / columns of
 // the way, so its range is the distance from that pose along its own ray (analytic; the pose

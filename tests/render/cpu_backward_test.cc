@@ -11,6 +11,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "render/cpu/binning.h"
+#include "render/params_view.h"
 #include "render/cpu/blend.h"
 #include "render/cpu/blend_backward.h"
 #include "render/cpu/cpu_engine.h"
@@ -357,6 +358,54 @@ TEST(CpuBackward, UpdateSceneParamsRendersLikeUpload) {
     EXPECT_THAT(std::string(st.message()), ::testing::HasSubstr("Gaussian 17: rotation = (0, 0, 0, 0)"));
     v.rotations = full.rotations.data();
   }
+}
+
+// Serving updates only the moving Gaussians' changed values (UpdateSceneRows): after a full
+// update at one time and a row update to another, the frame is the one a plain Upload of the
+// second time gives, bit for bit; a non-finite changed value or a row out of range is refused.
+TEST(CpuBackward, UpdateSceneRowsRendersLikeUploadOfTheNewTime) {
+  const GaussianStore before = MakeSyntheticStreet({.num_gaussians = 1'003, .seed = 5, .sh_degree = 3});
+  GaussianStore after = before;
+  std::vector<uint32_t> rows;
+  for (uint32_t i = 3; i < before.size(); i += 7) {
+    rows.push_back(i);
+    for (int k = 0; k < 3; ++k) after.means[i * 3 + k] += 0.05f * (k + 1);
+    for (int k = 0; k < 3; ++k) after.sh[i * 48 + k] += 0.2f;  // DC only
+    after.opacity_logits[i] += 0.5f;
+  }
+  ParamsChange change;
+  change.rows = rows.data();
+  change.num_rows = rows.size();
+  change.means = change.opacity = true;
+  change.sh_coeffs = 1;
+  PinholeCamera camera;
+  camera.width = 160;
+  camera.height = 96;
+  camera.fx = camera.fy = 120;
+  camera.cx = 79.5;
+  camera.cy = 47.5;
+  camera.T_world_from_cam = StreetCameraPose(4.0);
+  auto engine = CreateCpuEngine({.num_threads = 2});
+  std::unique_ptr<DeviceScene> updated;
+  ASSERT_TRUE(engine->UpdateSceneParams(ParamsViewOf(before), &updated).ok());
+  ASSERT_TRUE(engine->UpdateSceneRows(ParamsViewOf(after), change, &updated).ok());
+  auto uploaded = engine->Upload(after);
+  ASSERT_TRUE(uploaded.ok());
+  RenderOutput a, b, c;
+  ASSERT_TRUE(engine->Render(*updated, camera, {}, &a).ok());
+  ASSERT_TRUE(engine->Render(**uploaded, camera, {}, &b).ok());
+  auto old = engine->Upload(before);
+  ASSERT_TRUE(engine->Render(**old, camera, {}, &c).ok());
+  EXPECT_EQ(a.rgb, b.rgb);
+  EXPECT_NE(a.rgb, c.rgb) << "the change must show";
+  GaussianStore bad = after;
+  bad.means[rows[4] * 3 + 1] = std::nanf("");
+  EXPECT_EQ(engine->UpdateSceneRows(ParamsViewOf(bad), change, &updated).code(), absl::StatusCode::kInvalidArgument);
+  ASSERT_TRUE(engine->UpdateSceneParams(ParamsViewOf(after), &updated).ok());
+  std::vector<uint32_t> out_of_range = {5, static_cast<uint32_t>(after.size())};
+  change.rows = out_of_range.data();
+  change.num_rows = out_of_range.size();
+  EXPECT_EQ(engine->UpdateSceneRows(ParamsViewOf(after), change, &updated).code(), absl::StatusCode::kInvalidArgument);
 }
 
 }  // namespace

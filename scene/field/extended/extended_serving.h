@@ -59,6 +59,14 @@ class ExtServingField : public ServedScene {
   const DeformationField& field() const { return field_.base(); }
   FieldTimeRange time_range() const override { return field_.base().time_range(); }
   std::vector<uint32_t> dynamic_rows() const override { return rows_; }
+  ParamsChange changes() const override {  // every parameter the decoder may change
+    ParamsChange c;
+    c.rows = rows_.data();
+    c.num_rows = rows_.size();
+    c.means = c.log_scales = c.rotations = c.opacity = true;
+    c.sh_coeffs = canonical_.sh_coeffs();
+    return c;
+  }
   const ExtendedField& extended() const { return field_; }
 
   // Evaluates the dynamic Gaussians with `forward` on `device` from the next At on (the static
