@@ -39,6 +39,7 @@ std::vector<TargetOf<F>> Targets(uint32_t groups, Store* s) {
         case FormGroup::kLogScale: t.push_back({s->log_scales.data(), 3, c}); break;
         case FormGroup::kRotation: t.push_back({s->rotations.data(), 4, c}); break;
         case FormGroup::kOpacity: t.push_back({s->opacity_logits.data(), 1, c}); break;
+        case FormGroup::kShBands: t.push_back({s->sh.data(), K3, 3 + c}); break;
       }
     }
   }
@@ -59,6 +60,11 @@ bool GroupDiffers(int g, const GaussianStore& a, const GaussianStore& b, size_t 
     case FormGroup::kLogScale: return differ(a.log_scales, b.log_scales, 3, 3);
     case FormGroup::kRotation: return differ(a.rotations, b.rotations, 4, 4);
     case FormGroup::kOpacity: return differ(a.opacity_logits, b.opacity_logits, 1, 1);
+    case FormGroup::kShBands:
+      for (int c = 3; c < a.sh_coeffs() * 3; ++c) {
+        if (a.sh[i * a.sh_coeffs() * 3 + c] != b.sh[i * b.sh_coeffs() * 3 + c]) return true;
+      }
+      return false;
   }
   return false;
 }
@@ -66,17 +72,20 @@ bool GroupDiffers(int g, const GaussianStore& a, const GaussianStore& b, size_t 
 }  // namespace
 
 absl::Status ServingFormOptions::Validate() const {
-  if (control_points < 4 || control_points > 256) {
-    return absl::InvalidArgumentError(absl::StrCat("serving form: ", control_points, " control points, want 4..256"));
+  if (degree != 1 && degree != 3) {
+    return absl::InvalidArgumentError(absl::StrCat("serving form: degree ", degree, ", want 1 or 3"));
   }
-  if (!(max_position_error_m > 0) || max_control_points < control_points || max_control_points > 256) {
-    return absl::InvalidArgumentError(absl::StrCat("serving form: max_position_error_m ", max_position_error_m,
-                                                   " must be > 0 and max_control_points ", max_control_points,
-                                                   " in [control_points, 256]"));
+  if (segments_per_cell < 1 || max_segments_per_cell < segments_per_cell || max_segments_per_cell > 64) {
+    return absl::InvalidArgumentError(absl::StrCat("serving form: ", segments_per_cell, " to ", max_segments_per_cell,
+                                                   " segments per cell, want 1 <= first <= max <= 64"));
   }
   if (samples_per_segment < 2 || samples_per_segment > 64) {
     return absl::InvalidArgumentError(
         absl::StrCat("serving form: ", samples_per_segment, " samples per segment, want 2..64"));
+  }
+  if (!(max_position_error_m > 0)) {
+    return absl::InvalidArgumentError(absl::StrCat("serving form: max_position_error_m ", max_position_error_m,
+                                                   " must be > 0"));
   }
   return absl::OkStatus();
 }
@@ -95,11 +104,17 @@ double ServingForm::Tau(int64_t time_us) const {
 }
 
 int ServingForm::Weights(double tau, float w[4]) const {
-  // Uniform cubic B-spline over control_points_ - 3 segments of [0, 1].
-  const int segments = control_points_ - 3;
+  const int segments = control_points_ - degree_;
   const double u = tau * segments;
   const int k = std::clamp(static_cast<int>(std::floor(u)), 0, segments - 1);
   const double s = u - k, s2 = s * s, s3 = s2 * s;
+  if (degree_ == 1) {
+    w[0] = static_cast<float>(1 - s);
+    w[1] = static_cast<float>(s);
+    w[2] = w[3] = 0;
+    return k;
+  }
+  // Uniform cubic B-spline.
   w[0] = static_cast<float>((1 - s) * (1 - s) * (1 - s) / 6);
   w[1] = static_cast<float>((3 * s3 - 6 * s2 + 4) / 6);
   w[2] = static_cast<float>((-3 * s3 + 3 * s2 + 3 * s + 1) / 6);
@@ -107,7 +122,8 @@ int ServingForm::Weights(double tau, float w[4]) const {
   return k;
 }
 
-void ServingForm::EvaluateInto(double tau, GaussianStore* out, ThreadPool& pool) const {
+template <int kTaps>
+void ServingForm::EvaluateTaps(double tau, GaussianStore* out, ThreadPool& pool) const {
   float w[4];
   const int k = Weights(tau, w);
   const int M = control_points_, Co = modelled_channels(), C = 3 + Co;
@@ -120,16 +136,26 @@ void ServingForm::EvaluateInto(double tau, GaussianStore* out, ThreadPool& pool)
       const float* step = &step_[r * C];
       const int16_t* qp = &q_position_[(static_cast<size_t>(r) * M + k) * 3];
       for (int c = 0; c < 3; ++c) {
-        const float s = w[0] * qp[c] + w[1] * qp[3 + c] + w[2] * qp[6 + c] + w[3] * qp[9 + c];
+        float s = 0;
+        for (int j = 0; j < kTaps; ++j) s += w[j] * qp[3 * j + c];
         out->means[i * 3 + c] = off[c] + step[c] * s;
       }
       const int8_t* qo = q_other_.data() + (static_cast<size_t>(r) * M + k) * Co;
       for (int c = 0; c < Co; ++c) {
-        const float s = w[0] * qo[c] + w[1] * qo[Co + c] + w[2] * qo[2 * Co + c] + w[3] * qo[3 * Co + c];
+        float s = 0;
+        for (int j = 0; j < kTaps; ++j) s += w[j] * qo[Co * j + c];
         other[c].data[i * other[c].stride + other[c].offset] = off[3 + c] + step[3 + c] * s;
       }
     }
   });
+}
+
+void ServingForm::EvaluateInto(double tau, GaussianStore* out, ThreadPool& pool) const {
+  if (degree_ == 1) {
+    EvaluateTaps<2>(tau, out, pool);
+  } else {
+    EvaluateTaps<4>(tau, out, pool);
+  }
 }
 
 absl::StatusOr<const GaussianStore*> ServingForm::At(int64_t time_us, ThreadPool& pool) {
@@ -146,7 +172,7 @@ ParamsChange ServingForm::changes() const {
   c.rows = rows_.data();
   c.num_rows = rows_.size();
   c.means = true;
-  c.sh_coeffs = models(FormGroup::kColour) ? 1 : 0;
+  c.sh_coeffs = models(FormGroup::kShBands) ? kShCoeffs : models(FormGroup::kColour) ? 1 : 0;
   c.log_scales = models(FormGroup::kLogScale);
   c.rotations = models(FormGroup::kRotation);
   c.opacity = models(FormGroup::kOpacity);
@@ -161,35 +187,39 @@ size_t ServingForm::table_bytes() const {
 absl::StatusOr<std::unique_ptr<ServingForm>> ServingForm::Build(ServedScene& exact, const ServingFormOptions& o,
                                                                 ThreadPool& pool) {
   if (absl::Status s = o.Validate(); !s.ok()) return s;
+  const int cells = std::max(1, exact.time_cells());
   double previous_p99 = 0;
-  for (int m = o.control_points;; m = std::min(2 * m - 3, o.max_control_points)) {  // segments double
-    absl::StatusOr<std::unique_ptr<ServingForm>> f = Fit(exact, m, o.samples_per_segment, pool);
+  for (int per_cell = o.segments_per_cell;; per_cell = std::min(2 * per_cell, o.max_segments_per_cell)) {
+    absl::StatusOr<std::unique_ptr<ServingForm>> f = Fit(exact, o.degree, cells * per_cell, o.samples_per_segment, pool);
     if (!f.ok()) return f;
     const double p99 = (*f)->error_.position_p99_m;
-    if (p99 <= o.max_position_error_m || m >= o.max_control_points) return f;
-    // Give up early when the last doubling's gain, kept up to max_control_points, cannot reach the
+    if (p99 <= o.max_position_error_m || per_cell >= o.max_segments_per_cell) return f;
+    // Give up early when the last doubling's gain, kept up to the most segments, cannot reach the
     // bound (a field with motion finer than the spline: the caller serves the exact field).
     if (previous_p99 > 0) {
       const double gain = std::max(1.0, previous_p99 / std::max(p99, 1e-12));
-      const double doublings_left = std::log2(double(o.max_control_points - 3) / double(m - 3));
+      const double doublings_left = std::log2(double(o.max_segments_per_cell) / per_cell);
       if (p99 / std::pow(gain, doublings_left) > o.max_position_error_m) return f;
     }
     previous_p99 = p99;
-    LOG(INFO) << "serving form: " << m << " control points leave a p99 position error of " << p99 * 1000
+    LOG(INFO) << "serving form: " << cells * per_cell << " segments leave a p99 position error of " << p99 * 1000
               << " mm, fitting again with more";
   }
 }
 
-absl::StatusOr<std::unique_ptr<ServingForm>> ServingForm::Fit(ServedScene& exact, int control_points,
+absl::StatusOr<std::unique_ptr<ServingForm>> ServingForm::Fit(ServedScene& exact, int degree, int segments,
                                                               int samples_per_segment, ThreadPool& pool) {
+  if ((degree != 1 && degree != 3) || segments < 1 || segments > 1024 || samples_per_segment < 2 ||
+      samples_per_segment > 64) {
+    return absl::InvalidArgumentError(absl::StrCat("serving form: degree ", degree, ", ", segments, " segments, ",
+                                                   samples_per_segment, " samples per segment"));
+  }
   ServingFormOptions o;
-  o.control_points = control_points;
-  o.max_control_points = std::max(control_points, 4);
   o.samples_per_segment = samples_per_segment;
-  if (absl::Status s = o.Validate(); !s.ok()) return s;
   std::unique_ptr<ServingForm> f(new ServingForm());
   f->time_range_ = exact.time_range();
-  f->control_points_ = o.control_points;
+  f->degree_ = degree;
+  f->control_points_ = segments + degree;
   const FieldTimeRange tr = f->time_range_;
   auto time_at = [&](double tau) {
     return tr.start_us + static_cast<int64_t>(std::llround(tau * static_cast<double>(tr.end_us - tr.start_us)));
@@ -221,42 +251,81 @@ absl::StatusOr<std::unique_ptr<ServingForm>> ServingForm::Fit(ServedScene& exact
       }
     }
   }
-  const int M = o.control_points, Co = f->modelled_channels(), C = 3 + Co;
+  const int M = f->control_points_, Co = f->modelled_channels(), C = 3 + Co;
   const size_t nd = rows.size();
 
-  // Least squares: coefficients = P y over the fit samples, P = (B^T B)^-1 B^T, streamed one sample at a time.
-  const int S = (M - 3) * o.samples_per_segment + 1;
+  // Least squares per Gaussian and channel: (B^T B) x = B^T y. B^T y is accumulated one sample at a
+  // time (each sample touches degree + 1 control points); B^T B is banded and the same for every
+  // Gaussian, so its Cholesky factor is computed once and each right-hand side solved in the band.
+  const int S = segments * o.samples_per_segment + 1;
+  const int bw = degree;
   std::vector<int64_t> fit_us(S);
-  Eigen::MatrixXd B = Eigen::MatrixXd::Zero(S, M);
+  std::vector<int> fit_k(S);
+  std::vector<std::array<float, 4>> fit_w(S);
+  Eigen::MatrixXd A = Eigen::MatrixXd::Zero(M, M);
   for (int s = 0; s < S; ++s) {
     fit_us[s] = time_at(static_cast<double>(s) / (S - 1));
-    float w[4];
-    const int k = f->Weights(f->Tau(fit_us[s]), w);
-    for (int j = 0; j < 4; ++j) B(s, k + j) = w[j];
+    fit_k[s] = f->Weights(f->Tau(fit_us[s]), fit_w[s].data());
+    for (int a = 0; a <= degree; ++a)
+      for (int b = 0; b <= degree; ++b) A(fit_k[s] + a, fit_k[s] + b) += double(fit_w[s][a]) * fit_w[s][b];
   }
-  const Eigen::MatrixXd P = (B.transpose() * B).ldlt().solve(B.transpose());
+  Eigen::MatrixXd L = Eigen::MatrixXd::Zero(M, M);  // banded Cholesky factor of A
+  for (int i = 0; i < M; ++i) {
+    for (int j = std::max(0, i - bw); j <= i; ++j) {
+      double sum = A(i, j);
+      for (int k = std::max(0, i - bw); k < j; ++k) sum -= L(i, k) * L(j, k);
+      if (i == j) {
+        if (!(sum > 0)) return absl::InternalError("serving form: the fit's normal matrix is singular");
+        L(i, i) = std::sqrt(sum);
+      } else {
+        L(i, j) = sum / L(j, j);
+      }
+    }
+  }
   std::vector<float> coef(nd * M * C, 0.0f);
-  std::vector<float> rest_mean(nd * kRestShValues, 0.0f);
+  // SH bands the form does not model keep their time-mean.
+  const bool bands = f->models(FormGroup::kShBands);
+  std::vector<float> rest_mean(bands ? 0 : nd * kRestShValues, 0.0f);
   for (int s = 0; s < S; ++s) {
     absl::StatusOr<const GaussianStore*> g = sample(fit_us[s]);
     if (!g.ok()) return g.status();
     const GaussianStore& y = **g;
     const std::vector<Source> src = Targets(f->groups_, &y);
-    std::vector<float> p(M);
-    for (int m = 0; m < M; ++m) p[m] = static_cast<float>(P(m, s));
+    const int k = fit_k[s];
+    const std::array<float, 4> w = fit_w[s];
     pool.ParallelFor(static_cast<int64_t>(nd), 2048, [&](int64_t b, int64_t e, int) {
       for (int64_t r = b; r < e; ++r) {
         const size_t i = rows[r];
-        float* a = &coef[r * M * C];
+        float* a = &coef[(r * M + k) * C];
         for (int c = 0; c < C; ++c) {
           const float v = src[c].data[i * src[c].stride + src[c].offset];
-          for (int m = 0; m < M; ++m) a[m * C + c] += p[m] * v;
+          for (int j = 0; j <= degree; ++j) a[j * C + c] += w[j] * v;
         }
-        const float* rest = &y.sh[i * kShOutputs + 3];
-        for (int k = 0; k < kRestShValues; ++k) rest_mean[r * kRestShValues + k] += rest[k] / S;
+        if (!bands) {
+          const float* rest = &y.sh[i * kShOutputs + 3];
+          for (int q = 0; q < kRestShValues; ++q) rest_mean[r * kRestShValues + q] += rest[q] / S;
+        }
       }
     });
   }
+  std::vector<float> Lf(static_cast<size_t>(M) * M);
+  for (int i = 0; i < M; ++i)
+    for (int j = 0; j < M; ++j) Lf[i * M + j] = static_cast<float>(L(i, j));
+  pool.ParallelFor(static_cast<int64_t>(nd), 1024, [&](int64_t b, int64_t e, int) {
+    for (int64_t r = b; r < e; ++r) {
+      float* x = &coef[r * M * C];
+      for (int i = 0; i < M; ++i) {  // L z = B^T y
+        for (int q = std::max(0, i - bw); q < i; ++q)
+          for (int c = 0; c < C; ++c) x[i * C + c] -= Lf[i * M + q] * x[q * C + c];
+        for (int c = 0; c < C; ++c) x[i * C + c] /= Lf[i * M + i];
+      }
+      for (int i = M - 1; i >= 0; --i) {  // L^T x = z
+        for (int q = i + 1; q <= std::min(M - 1, i + bw); ++q)
+          for (int c = 0; c < C; ++c) x[i * C + c] -= Lf[q * M + i] * x[q * C + c];
+        for (int c = 0; c < C; ++c) x[i * C + c] /= Lf[i * M + i];
+      }
+    }
+  });
 
   // Quantise: per Gaussian and channel, the coefficients' midrange as the offset and a step that spans them.
   f->rows_ = std::move(rows);
@@ -287,7 +356,7 @@ absl::StatusOr<std::unique_ptr<ServingForm>> ServingForm::Fit(ServedScene& exact
         }
       }
       const size_t i = f->rows_[r];
-      std::copy_n(&rest_mean[r * kRestShValues], kRestShValues, &f->current_.sh[i * kShOutputs + 3]);
+      if (!bands) std::copy_n(&rest_mean[r * kRestShValues], kRestShValues, &f->current_.sh[i * kShOutputs + 3]);
     }
   });
   std::vector<float>().swap(coef);
@@ -321,6 +390,7 @@ absl::StatusOr<std::unique_ptr<ServingForm>> ServingForm::Fit(ServedScene& exact
               case FormGroup::kLogScale: a = probe.log_scales[i * 3 + c], x = y.log_scales[i * 3 + c]; break;
               case FormGroup::kRotation: a = probe.rotations[i * 4 + c], x = y.rotations[i * 4 + c]; break;
               case FormGroup::kOpacity: a = probe.opacity_logits[i], x = y.opacity_logits[i]; break;
+              case FormGroup::kShBands: a = probe.sh[i * kShOutputs + 3 + c], x = y.sh[i * kShOutputs + 3 + c]; break;
             }
             local[grp] = std::max(local[grp], std::abs(a - x));
           }

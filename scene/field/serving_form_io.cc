@@ -19,7 +19,7 @@ using checked_file::Reader;
 using checked_file::Writer;
 
 constexpr char kMagic[8] = {'S', 'T', 'S', 'F', 'O', 'R', 'M', '\n'};
-constexpr uint32_t kVersion = 1;
+constexpr uint32_t kVersion = 2;
 constexpr uint64_t kPrime = 1099511628211ull;
 
 uint64_t Mix(uint64_t h, uint64_t v) { return (h ^ v) * kPrime; }
@@ -47,6 +47,7 @@ std::string ServingFormCodec::Encode(const ServingForm& f, uint64_t key) {
   w.Pod(f.time_range_.start_us);
   w.Pod(f.time_range_.end_us);
   w.Pod<int32_t>(f.control_points_);
+  w.Pod<int32_t>(f.degree_);
   w.Pod<uint32_t>(f.groups_);
   const GaussianStore& g = f.current_;
   w.Pod<uint64_t>(g.size());
@@ -91,18 +92,19 @@ absl::StatusOr<std::unique_ptr<ServingForm>> ServingFormCodec::Decode(const std:
         absl::StrCat(path, ": built from other files or options (the scene changed since): stale"));
   }
   std::unique_ptr<ServingForm> f(new ServingForm());
-  int32_t m = 0, sh_degree = 0;
+  int32_t m = 0, degree = 0, sh_degree = 0;
   uint32_t groups = 0;
   uint64_t n = 0, nd = 0;
-  if (!r.Pod(&f->time_range_.start_us) || !r.Pod(&f->time_range_.end_us) || !r.Pod(&m) || !r.Pod(&groups) ||
+  if (!r.Pod(&f->time_range_.start_us) || !r.Pod(&f->time_range_.end_us) || !r.Pod(&m) || !r.Pod(&degree) || !r.Pod(&groups) ||
       !r.Pod(&n) || !r.Pod(&sh_degree)) {
     return corrupt("truncated header");
   }
-  if (m < 4 || m > 256 || !(groups & 1u) || groups >= (1u << kFormGroups) || sh_degree != 3 ||
+  if ((degree != 1 && degree != 3) || m < degree + 1 || m > 1024 + degree || !(groups & 1u) || groups >= (1u << kFormGroups) || sh_degree != 3 ||
       n > (1ull << 32) || f->time_range_.end_us < f->time_range_.start_us) {
     return corrupt("header out of range");
   }
   f->control_points_ = m;
+  f->degree_ = degree;
   f->groups_ = groups;
   GaussianStore& g = f->current_;
   g.sh_degree = sh_degree;
@@ -148,8 +150,10 @@ absl::StatusOr<std::unique_ptr<ServingForm>> DecodeServingForm(const std::string
 absl::StatusOr<uint64_t> ServingFormSourceKey(const std::vector<std::string>& files, const ServingFormOptions& form,
                                               const StaticSkipOptions& skip) {
   uint64_t h = Mix(1469598103934665603ull, kVersion);
-  h = Mix(Mix(h, static_cast<uint64_t>(form.control_points)), static_cast<uint64_t>(form.samples_per_segment));
-  h = Mix(MixDouble(h, form.max_position_error_m), static_cast<uint64_t>(form.max_control_points));
+  for (int v : {form.degree, form.segments_per_cell, form.max_segments_per_cell, form.samples_per_segment}) {
+    h = Mix(h, static_cast<uint64_t>(v));
+  }
+  h = MixDouble(h, form.max_position_error_m);
   for (double v : {skip.motion_threshold_m, skip.sh_threshold, skip.log_scale_threshold, skip.rotation_threshold,
                    skip.opacity_threshold, double(skip.num_samples), double(skip.enabled)}) {
     h = MixDouble(h, v);

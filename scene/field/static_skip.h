@@ -5,6 +5,7 @@
 // cameras and LiDARs render it.
 #pragma once
 
+#include <algorithm>
 #include <cstdint>
 #include <functional>
 #include <initializer_list>
@@ -105,6 +106,9 @@ class ServedScene {
   virtual size_t num_dynamic() const = 0;           // Gaussians evaluated per timestamp
   virtual int64_t field_evaluations() const = 0;    // how often the field ran
   virtual FieldTimeRange time_range() const = 0;    // the log's, which At clamps to
+  // Cells of the field's time grid over time_range (its time features are linear within a cell;
+  // field::TimeCells), or 1 when it has none.
+  virtual int time_cells() const = 0;
   virtual std::vector<uint32_t> dynamic_rows() const = 0;  // the Gaussians At changes
   // What At changes from one time to another (rows and parameters; valid while this scene is), for
   // backends that update only those (Engine::UpdateSceneRows).
@@ -123,6 +127,13 @@ class ServedScene {
 
   std::string device_ = "cpu";
 };
+
+// Cells of a field's time grid over the log's range: time_resolution - 1 with the full time range,
+// half of that with S3Gaussian's [0, 1] mapping (only the upper half of the axis is used).
+inline int TimeCells(const FieldConfig& c) {
+  const int cells = std::max(1, c.time_resolution - 1);
+  return c.full_time_range || cells % 2 != 0 ? cells : cells / 2;
+}
 
 class ServingField : public ServedScene {
  public:
@@ -144,6 +155,7 @@ class ServingField : public ServedScene {
   const DeformationField& field() const { return field_; }
   int64_t field_evaluations() const override { return evaluations_; }
   FieldTimeRange time_range() const override { return field_.time_range(); }
+  int time_cells() const override { return TimeCells(field_.config()); }
   std::vector<uint32_t> dynamic_rows() const override { return dynamic_rows_; }
   ParamsChange changes() const override {
     ParamsChange c;

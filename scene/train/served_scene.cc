@@ -61,8 +61,8 @@ absl::StatusOr<std::unique_ptr<field::ServedScene>> LoadServedScene(
   if (!cached.ok()) return cached.status();
   if (cached->within_bound(form)) return std::unique_ptr<field::ServedScene>(std::move(cached->form));
   LOG(WARNING) << dir << ": the serving form's p99 position error, "
-               << cached->form->error().position_p99_m * 1000 << " mm at " << cached->form->control_points()
-               << " control points, is above " << form.max_position_error_m * 1000
+               << cached->form->error().position_p99_m * 1000 << " mm with " << cached->form->segments()
+               << " segments, is above " << form.max_position_error_m * 1000
                << " mm: serving the exact field";
   if (cached->exact) return std::move(cached->exact);
   return make_exact();

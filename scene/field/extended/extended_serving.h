@@ -58,6 +58,7 @@ class ExtServingField : public ServedScene {
   int64_t field_evaluations() const override { return evaluations_; }
   const DeformationField& field() const { return field_.base(); }
   FieldTimeRange time_range() const override { return field_.base().time_range(); }
+  int time_cells() const override { return TimeCells(field_.base().config()); }
   std::vector<uint32_t> dynamic_rows() const override { return rows_; }
   ParamsChange changes() const override {  // every parameter the decoder may change
     ParamsChange c;
