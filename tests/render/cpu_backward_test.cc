@@ -311,12 +311,8 @@ TEST(CpuBackward, RepeatedBackwardCallsGiveTheSameGradients) {
   }
 }
 
-// Training uploads parameters through UpdateSceneParams (the trainer's layout: SH stride 16 at any
-// active degree; the SoA copy's SH is transposed 8 x 8 in registers where it can): the frame must
-// be the one a plain Upload of the same parameters gives, bit for bit, and a non-finite value
-// anywhere must be refused.
-TEST(CpuBackward, UpdateSceneParamsRendersLikeUpload) {
-  const GaussianStore full = MakeSyntheticStreet({.num_gaussians = 1'003, .seed = 4, .sh_degree = 3});
+// The 160x96 street view of the update tests below.
+PinholeCamera UpdateTestCamera() {
   PinholeCamera camera;
   camera.width = 160;
   camera.height = 96;
@@ -324,6 +320,16 @@ TEST(CpuBackward, UpdateSceneParamsRendersLikeUpload) {
   camera.cx = 79.5;
   camera.cy = 47.5;
   camera.T_world_from_cam = StreetCameraPose(4.0);
+  return camera;
+}
+
+// Training uploads parameters through UpdateSceneParams (the trainer's layout: SH stride 16 at any
+// active degree; the SoA copy's SH is transposed 8 x 8 in registers where it can): the frame must
+// be the one a plain Upload of the same parameters gives, bit for bit, and a non-finite value
+// anywhere must be refused.
+TEST(CpuBackward, UpdateSceneParamsRendersLikeUpload) {
+  const GaussianStore full = MakeSyntheticStreet({.num_gaussians = 1'003, .seed = 4, .sh_degree = 3});
+  const PinholeCamera camera = UpdateTestCamera();
   auto engine = CreateCpuEngine({.num_threads = 2});
   for (int degree : {1, 3}) {
     GaussianParamsView v = testing::FullDegreeParamsView(full, degree);
@@ -378,13 +384,7 @@ TEST(CpuBackward, UpdateSceneRowsRendersLikeUploadOfTheNewTime) {
   change.num_rows = rows.size();
   change.means = change.opacity = true;
   change.sh_coeffs = 1;
-  PinholeCamera camera;
-  camera.width = 160;
-  camera.height = 96;
-  camera.fx = camera.fy = 120;
-  camera.cx = 79.5;
-  camera.cy = 47.5;
-  camera.T_world_from_cam = StreetCameraPose(4.0);
+  const PinholeCamera camera = UpdateTestCamera();
   auto engine = CreateCpuEngine({.num_threads = 2});
   std::unique_ptr<DeviceScene> updated;
   ASSERT_TRUE(engine->UpdateSceneParams(ParamsViewOf(before), &updated).ok());

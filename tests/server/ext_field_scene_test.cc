@@ -81,7 +81,11 @@ class ExtFieldSceneTest : public ServerTest {
     store_ = Street(1, 3000);
     ext_ = std::make_unique<field::ExtendedField>(MovingExtension(MovingField(store_, 0, kLogEndUs), 3));
     WriteExtendedScene(data_root_ + "/ext", store_, *ext_);
-    StartServer();
+    // The exact field: these tests hold the served extended field against the exact serving path
+    // and the CLI's; its serving form has a test of its own below.
+    server::ServerOptions o = TestOptions(data_root_, state_dir_);
+    o.exact_field = true;
+    StartServer(o);
   }
 
   v1::RenderRequest At(const std::string& scene, int64_t time_us) const {
@@ -138,11 +142,15 @@ TEST_F(ExtFieldSceneTest, ServedRenderEqualsTheServingPathAndTheCliPath) {
   EXPECT_GT(MaxByteDiff(LocalRgb(*base_only, 8), served), 10);
 }
 
-// This test field moves in time faster than the serving form's spline can follow (a p99 position
-// error of ~9 mm at 128 control points): the server says so and serves the exact field, which is
-// what the test above compared bit for bit. With a looser bound it serves the form, which then
-// models the decoder's log-scale, rotation and opacity too, and renders as the form built here.
+// A form whose measured error is outside its bound is not served: the server says so and serves the
+// exact field. Inside it, the form models the decoder's log-scale, rotation and opacity too, and
+// renders as the form built here.
 TEST_F(ExtFieldSceneTest, AFormOutsideItsBoundIsNotServedAndOneInsideServesTheDecoderHeads) {
+  client_.reset();
+  server_.reset();
+  server::ServerOptions o = TestOptions(data_root_, state_dir_);
+  o.serving_form.max_position_error_m = 1e-6;  // no form of this moving field is that close
+  StartServer(o);
   absl::StatusOr<v1::Scene> loaded = client_->LoadScene("ext", true);
   ASSERT_TRUE(loaded.ok()) << loaded.status();
   EXPECT_EQ(loaded->field_serving(), "exact");
@@ -150,7 +158,6 @@ TEST_F(ExtFieldSceneTest, AFormOutsideItsBoundIsNotServedAndOneInsideServesTheDe
 
   client_.reset();
   server_.reset();
-  server::ServerOptions o = TestOptions(data_root_, state_dir_);
   o.serving_form.max_position_error_m = 1.0;
   StartServer(o);
   loaded = client_->LoadScene("ext", true);
