@@ -127,8 +127,23 @@ void ServingForm::EvaluateTaps(double tau, GaussianStore* out, ThreadPool& pool)
   float w[4];
   const int k = Weights(tau, w);
   const int M = control_points_, Co = modelled_channels(), C = 3 + Co;
+  // The channels after position as runs that are contiguous in the store (S3Gaussian's DC colour
+  // and SH bands are one run of 48 floats), so that the inner loop vectorises.
+  struct Run {
+    float* data;
+    int stride, offset, first, count;  // first: channel index among the non-position ones
+  };
+  std::vector<Run> runs;
   const std::vector<Target> all = Targets(groups_, out);
-  const std::vector<Target> other(all.begin() + 3, all.end());
+  for (int c = 0; c < Co; ++c) {
+    const Target& t = all[3 + c];
+    if (!runs.empty() && runs.back().data == t.data && runs.back().stride == t.stride &&
+        runs.back().offset + runs.back().count == t.offset) {
+      ++runs.back().count;
+    } else {
+      runs.push_back({t.data, t.stride, t.offset, c, 1});
+    }
+  }
   pool.ParallelFor(static_cast<int64_t>(rows_.size()), 4096, [&](int64_t b, int64_t e, int) {
     for (int64_t r = b; r < e; ++r) {
       const size_t i = rows_[r];
@@ -141,10 +156,16 @@ void ServingForm::EvaluateTaps(double tau, GaussianStore* out, ThreadPool& pool)
         out->means[i * 3 + c] = off[c] + step[c] * s;
       }
       const int8_t* qo = q_other_.data() + (static_cast<size_t>(r) * M + k) * Co;
-      for (int c = 0; c < Co; ++c) {
-        float s = 0;
-        for (int j = 0; j < kTaps; ++j) s += w[j] * qo[Co * j + c];
-        other[c].data[i * other[c].stride + other[c].offset] = off[3 + c] + step[3 + c] * s;
+      for (const Run& run : runs) {
+        float* dst = run.data + i * run.stride + run.offset;
+        const float* o = off + 3 + run.first;
+        const float* st = step + 3 + run.first;
+        const int8_t* q = qo + run.first;
+        for (int c = 0; c < run.count; ++c) {
+          float s = 0;
+          for (int j = 0; j < kTaps; ++j) s += w[j] * q[Co * j + c];
+          dst[c] = o[c] + st[c] * s;
+        }
       }
     }
   });
