@@ -205,6 +205,95 @@ size_t ServingForm::table_bytes() const {
          q_position_.size() * sizeof(int16_t) + q_other_.size() * sizeof(int8_t);
 }
 
+void ServingForm::Quantise(const std::vector<float>& coef, const float* rest_mean, ThreadPool& pool) {
+  const size_t nd = rows_.size();
+  const int M = control_points_, Co = modelled_channels(), C = 3 + Co;
+  // Quantise: per Gaussian and channel, the coefficients' midrange as the offset and a step that spans them.
+  offset_.assign(nd * C, 0.0f);
+  step_.assign(nd * C, 0.0f);
+  q_position_.assign(nd * M * 3, 0);
+  q_other_.assign(nd * M * Co, 0);
+  pool.ParallelFor(static_cast<int64_t>(nd), 2048, [&](int64_t b, int64_t e, int) {
+    for (int64_t r = b; r < e; ++r) {
+      for (int c = 0; c < C; ++c) {
+        float lo = std::numeric_limits<float>::max(), hi = std::numeric_limits<float>::lowest();
+        for (int m = 0; m < M; ++m) {
+          lo = std::min(lo, coef[(r * M + m) * C + c]);
+          hi = std::max(hi, coef[(r * M + m) * C + c]);
+        }
+        const float qmax = c < 3 ? 32767.0f : 127.0f;
+        const float off = 0.5f * (lo + hi), step = 0.5f * (hi - lo) / qmax;
+        offset_[r * C + c] = off;
+        step_[r * C + c] = step;
+        for (int m = 0; m < M; ++m) {
+          const float q = step > 0 ? std::round((coef[(r * M + m) * C + c] - off) / step) : 0.0f;
+          const float qc = std::clamp(q, -qmax, qmax);
+          if (c < 3) {
+            q_position_[(r * M + m) * 3 + c] = static_cast<int16_t>(qc);
+          } else {
+            q_other_[(r * M + m) * Co + (c - 3)] = static_cast<int8_t>(qc);
+          }
+        }
+      }
+      const size_t i = rows_[r];
+      if (rest_mean) std::copy_n(&rest_mean[r * kRestShValues], kRestShValues, &current_.sh[i * kShOutputs + 3]);
+    }
+  });
+}
+
+absl::Status ServingForm::Check(ServedScene& exact, const std::vector<int64_t>& fit_us, ThreadPool& pool) {
+  const size_t nd = rows_.size();
+  const int S = static_cast<int>(fit_us.size());
+  // The check: the form against the exact field halfway between the fit samples.
+  GaussianStore probe = current_;
+  position_error_m_.assign(nd, 0.0f);
+  std::mutex mu;
+  for (int s = 0; s + 1 < S; ++s) {
+    const int64_t t = (fit_us[s] + fit_us[s + 1]) / 2;
+    absl::StatusOr<const GaussianStore*> g = exact.At(t, pool);
+    if (!g.ok()) return g.status();
+    const GaussianStore& y = **g;
+    EvaluateInto(Tau(t), &probe, pool);
+    pool.ParallelFor(static_cast<int64_t>(nd), 4096, [&](int64_t b, int64_t e, int) {
+      std::array<float, kFormGroups> local{};
+      float rest_max = 0;
+      for (int64_t r = b; r < e; ++r) {
+        const size_t i = rows_[r];
+        double d2 = 0;
+        for (int c = 0; c < 3; ++c) d2 += std::pow(double(probe.means[i * 3 + c]) - y.means[i * 3 + c], 2);
+        position_error_m_[r] = std::max(position_error_m_[r], static_cast<float>(std::sqrt(d2)));
+        local[0] = std::max(local[0], position_error_m_[r]);
+        for (int grp = 1; grp < kFormGroups; ++grp) {
+          for (int c = 0; c < kFormGroupChannels[grp]; ++c) {
+            float a = 0, x = 0;
+            switch (static_cast<FormGroup>(grp)) {
+              case FormGroup::kPosition: break;
+              case FormGroup::kColour: a = probe.sh[i * kShOutputs + c], x = y.sh[i * kShOutputs + c]; break;
+              case FormGroup::kLogScale: a = probe.log_scales[i * 3 + c], x = y.log_scales[i * 3 + c]; break;
+              case FormGroup::kRotation: a = probe.rotations[i * 4 + c], x = y.rotations[i * 4 + c]; break;
+              case FormGroup::kOpacity: a = probe.opacity_logits[i], x = y.opacity_logits[i]; break;
+              case FormGroup::kShBands: a = probe.sh[i * kShOutputs + 3 + c], x = y.sh[i * kShOutputs + 3 + c]; break;
+            }
+            local[grp] = std::max(local[grp], std::abs(a - x));
+          }
+        }
+        for (int k = 3; k < kShOutputs; ++k) {
+          rest_max = std::max(rest_max, std::abs(probe.sh[i * kShOutputs + k] - y.sh[i * kShOutputs + k]));
+        }
+      }
+      std::lock_guard<std::mutex> lock(mu);
+      for (int grp = 0; grp < kFormGroups; ++grp) error_.max[grp] = std::max(error_.max[grp], local[grp]);
+      error_.sh_rest_max = std::max(error_.sh_rest_max, rest_max);
+    });
+  }
+  error_.check_samples = S - 1;
+  std::vector<float> sorted = position_error_m_;
+  const size_t p99 = std::min(sorted.size() - 1, static_cast<size_t>(0.99 * static_cast<double>(sorted.size())));
+  std::nth_element(sorted.begin(), sorted.begin() + p99, sorted.end());
+  error_.position_p99_m = sorted[p99];
+  return absl::OkStatus();
+}
+
 absl::StatusOr<std::unique_ptr<ServingForm>> ServingForm::Build(ServedScene& exact, const ServingFormOptions& o,
                                                                 ThreadPool& pool) {
   if (absl::Status s = o.Validate(); !s.ok()) return s;
@@ -348,88 +437,12 @@ absl::StatusOr<std::unique_ptr<ServingForm>> ServingForm::Fit(ServedScene& exact
     }
   });
 
-  // Quantise: per Gaussian and channel, the coefficients' midrange as the offset and a step that spans them.
   f->rows_ = std::move(rows);
-  f->offset_.assign(nd * C, 0.0f);
-  f->step_.assign(nd * C, 0.0f);
-  f->q_position_.assign(nd * M * 3, 0);
-  f->q_other_.assign(nd * M * Co, 0);
-  pool.ParallelFor(static_cast<int64_t>(nd), 2048, [&](int64_t b, int64_t e, int) {
-    for (int64_t r = b; r < e; ++r) {
-      for (int c = 0; c < C; ++c) {
-        float lo = std::numeric_limits<float>::max(), hi = std::numeric_limits<float>::lowest();
-        for (int m = 0; m < M; ++m) {
-          lo = std::min(lo, coef[(r * M + m) * C + c]);
-          hi = std::max(hi, coef[(r * M + m) * C + c]);
-        }
-        const float qmax = c < 3 ? 32767.0f : 127.0f;
-        const float off = 0.5f * (lo + hi), step = 0.5f * (hi - lo) / qmax;
-        f->offset_[r * C + c] = off;
-        f->step_[r * C + c] = step;
-        for (int m = 0; m < M; ++m) {
-          const float q = step > 0 ? std::round((coef[(r * M + m) * C + c] - off) / step) : 0.0f;
-          const float qc = std::clamp(q, -qmax, qmax);
-          if (c < 3) {
-            f->q_position_[(r * M + m) * 3 + c] = static_cast<int16_t>(qc);
-          } else {
-            f->q_other_[(r * M + m) * Co + (c - 3)] = static_cast<int8_t>(qc);
-          }
-        }
-      }
-      const size_t i = f->rows_[r];
-      if (!bands) std::copy_n(&rest_mean[r * kRestShValues], kRestShValues, &f->current_.sh[i * kShOutputs + 3]);
-    }
-  });
+  f->Quantise(coef, bands ? nullptr : rest_mean.data(), pool);
   std::vector<float>().swap(coef);
   std::vector<float>().swap(rest_mean);
 
-  // The check: the form against the exact field halfway between the fit samples.
-  GaussianStore probe = f->current_;
-  f->position_error_m_.assign(nd, 0.0f);
-  std::mutex mu;
-  for (int s = 0; s + 1 < S; ++s) {
-    const int64_t t = (fit_us[s] + fit_us[s + 1]) / 2;
-    absl::StatusOr<const GaussianStore*> g = sample(t);
-    if (!g.ok()) return g.status();
-    const GaussianStore& y = **g;
-    f->EvaluateInto(f->Tau(t), &probe, pool);
-    pool.ParallelFor(static_cast<int64_t>(nd), 4096, [&](int64_t b, int64_t e, int) {
-      std::array<float, kFormGroups> local{};
-      float rest_max = 0;
-      for (int64_t r = b; r < e; ++r) {
-        const size_t i = f->rows_[r];
-        double d2 = 0;
-        for (int c = 0; c < 3; ++c) d2 += std::pow(double(probe.means[i * 3 + c]) - y.means[i * 3 + c], 2);
-        f->position_error_m_[r] = std::max(f->position_error_m_[r], static_cast<float>(std::sqrt(d2)));
-        local[0] = std::max(local[0], f->position_error_m_[r]);
-        for (int grp = 1; grp < kFormGroups; ++grp) {
-          for (int c = 0; c < kFormGroupChannels[grp]; ++c) {
-            float a = 0, x = 0;
-            switch (static_cast<FormGroup>(grp)) {
-              case FormGroup::kPosition: break;
-              case FormGroup::kColour: a = probe.sh[i * kShOutputs + c], x = y.sh[i * kShOutputs + c]; break;
-              case FormGroup::kLogScale: a = probe.log_scales[i * 3 + c], x = y.log_scales[i * 3 + c]; break;
-              case FormGroup::kRotation: a = probe.rotations[i * 4 + c], x = y.rotations[i * 4 + c]; break;
-              case FormGroup::kOpacity: a = probe.opacity_logits[i], x = y.opacity_logits[i]; break;
-              case FormGroup::kShBands: a = probe.sh[i * kShOutputs + 3 + c], x = y.sh[i * kShOutputs + 3 + c]; break;
-            }
-            local[grp] = std::max(local[grp], std::abs(a - x));
-          }
-        }
-        for (int k = 3; k < kShOutputs; ++k) {
-          rest_max = std::max(rest_max, std::abs(probe.sh[i * kShOutputs + k] - y.sh[i * kShOutputs + k]));
-        }
-      }
-      std::lock_guard<std::mutex> lock(mu);
-      for (int grp = 0; grp < kFormGroups; ++grp) f->error_.max[grp] = std::max(f->error_.max[grp], local[grp]);
-      f->error_.sh_rest_max = std::max(f->error_.sh_rest_max, rest_max);
-    });
-  }
-  f->error_.check_samples = S - 1;
-  std::vector<float> sorted = f->position_error_m_;
-  const size_t p99 = std::min(sorted.size() - 1, static_cast<size_t>(0.99 * static_cast<double>(sorted.size())));
-  std::nth_element(sorted.begin(), sorted.begin() + p99, sorted.end());
-  f->error_.position_p99_m = sorted[p99];
+  if (absl::Status st = f->Check(exact, fit_us, pool); !st.ok()) return st;
   f->last_tau_ = -1;  // current_ holds the start's time-invariant values; the first At evaluates
   return f;
 }

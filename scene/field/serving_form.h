@@ -111,6 +111,11 @@ class ServingForm : public ServedScene {
   // Writes the form at tau into `out` (only the moving rows' modelled channels).
   void EvaluateInto(double tau, GaussianStore* out, ThreadPool& pool) const;
   double Tau(int64_t time_us) const;
+  // Fit's steps: the least-squares coefficients [rows][control points][channels] into the quantised
+  // tables (and, when the SH bands are not modelled, rest_mean [rows][45] into current_); then the
+  // form against `exact` halfway between the fit samples (error_, position_error_m_).
+  void Quantise(const std::vector<float>& coef, const float* rest_mean, ThreadPool& pool);
+  absl::Status Check(ServedScene& exact, const std::vector<int64_t>& fit_us, ThreadPool& pool);
 
   FieldTimeRange time_range_;
   int control_points_ = 0;
