@@ -2,54 +2,9 @@
 
 #include "absl/strings/str_cat.h"
 #include "render/params_view.h"
-#include "scene/field/extended/extended_serving.h"
 #include "scene/field/serving_form.h"
-#include "scene/field/vulkan/vulkan_serving.h"
 
 namespace streetsim::server {
-
-absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Begin(
-    const GaussianStore& canonical, std::optional<std::vector<float>> reflectance) {
-  if (canonical.sh_degree != 3) {
-    return absl::FailedPreconditionError(
-        absl::StrCat("a field needs SH degree 3 Gaussians, scene.ply has degree ", canonical.sh_degree));
-  }
-  std::unique_ptr<DynamicSceneField> f(new DynamicSceneField());
-  f->num_gaussians_ = canonical.size();
-  f->reflectance_ = std::move(reflectance);
-  // One pool per scene: ThreadPool is not reentrant, and At runs under the engine lock, so the
-  // field and the renderer never compete for the cores.
-  f->pool_ = std::make_unique<ThreadPool>(0);
-  return f;
-}
-
-absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
-    field::DeformationField field, GaussianStore canonical, std::optional<std::vector<float>> reflectance,
-    const field::StaticSkipOptions& options, const SceneUploader& upload, bool on_vulkan) {
-  absl::StatusOr<std::unique_ptr<DynamicSceneField>> f = Begin(canonical, std::move(reflectance));
-  if (!f.ok()) return f.status();
-  // On Vulkan the static analysis runs on the device too (50 evaluations of every Gaussian).
-  const field::ServingField::Device vk = on_vulkan ? field::VulkanFieldForward() : field::ServingField::Device{};
-  absl::StatusOr<field::ServingField> serving = field::ServingField::Create(
-      std::move(field), std::move(canonical), options, *(*f)->pool_, on_vulkan ? &vk : nullptr);
-  if (!serving.ok()) return serving.status();
-  (*f)->serving_ = std::make_unique<field::ServingField>(std::move(*serving));
-  return Finish(std::move(*f), upload);
-}
-
-absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
-    field::ExtendedField field, GaussianStore canonical, std::optional<std::vector<float>> reflectance,
-    const field::StaticSkipOptions& options, const SceneUploader& upload, bool on_vulkan) {
-  absl::StatusOr<std::unique_ptr<DynamicSceneField>> f = Begin(canonical, std::move(reflectance));
-  if (!f.ok()) return f.status();
-  const field::ExtServingField::Device vk =
-      on_vulkan ? field::VulkanExtFieldForward() : field::ExtServingField::Device{};
-  absl::StatusOr<std::unique_ptr<field::ExtServingField>> serving = field::ExtServingField::Create(
-      std::move(field), std::move(canonical), options, *(*f)->pool_, on_vulkan ? &vk : nullptr);
-  if (!serving.ok()) return serving.status();
-  (*f)->serving_ = std::move(*serving);
-  return Finish(std::move(*f), upload);
-}
 
 absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
     std::unique_ptr<field::ServedScene> served, std::optional<std::vector<float>> reflectance,
@@ -57,15 +12,12 @@ absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
   if (!served) return absl::InvalidArgumentError("no served scene");
   std::unique_ptr<DynamicSceneField> f(new DynamicSceneField());
   f->num_gaussians_ = served->size();
+  f->num_dynamic_ = served->num_dynamic();
   f->reflectance_ = std::move(reflectance);
+  // One pool per scene: ThreadPool is not reentrant, and At runs under the engine lock, so the
+  // field and the renderer never compete for the cores.
   f->pool_ = std::make_unique<ThreadPool>(0);
   f->serving_ = std::move(served);
-  return Finish(std::move(f), upload);
-}
-
-absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Finish(std::unique_ptr<DynamicSceneField> f,
-                                                                            const SceneUploader& upload) {
-  f->num_dynamic_ = f->serving_->num_dynamic();
   // The first upload allocates the device copy (and checks the Gaussians); later timestamps update it.
   absl::StatusOr<const GaussianStore*> first = f->serving_->At(f->serving_->time_range().start_us, *f->pool_);
   if (!first.ok()) return first.status();

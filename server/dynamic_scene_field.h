@@ -1,10 +1,9 @@
-// A dynamic scene served at the request's time (docs/server.md "Dynamic scenes"): the canonical
-// Gaussians of scene.ply deformed by DIR/field.bin through field::ServingField, or with
-// DIR/field_ext.bin by the extended field through field::ExtServingField (static Gaussians baked
-// once at load, the dynamic ones evaluated once per new timestamp). The deformed Gaussians
-// of the last timestamp are kept on the device and on the host, so every camera and the LiDAR of
-// one step share one field evaluation. With `on_vulkan` the dynamic Gaussians are evaluated on a
-// Vulkan device (field::ServeOnVulkan; the cpu after a device failure).
+// A dynamic scene served at the request's time (docs/server.md "Dynamic scenes"): a
+// field::ServedScene (scene_loading.cc makes it: the serving form of DIR/field.bin, or the exact
+// field through field::ServingField / field::ExtServingField, possibly on a Vulkan device),
+// evaluated once per new timestamp. The Gaussians of the last timestamp are kept on the device and
+// on the host, so every camera and the LiDAR of one step share one evaluation, and a new time
+// updates only what the served scene changes (ServedScene::changes).
 #pragma once
 
 #include <atomic>
@@ -17,7 +16,6 @@
 
 #include "absl/status/statusor.h"
 #include "render/common/thread_pool.h"
-#include "scene/field/extended/extended_field.h"
 #include "scene/field/static_skip.h"
 #include "server/scene_field.h"
 
@@ -25,17 +23,7 @@ namespace streetsim::server {
 
 class DynamicSceneField : public SceneField {
  public:
-  // Runs the static analysis (seconds for large scenes: the registry's loading thread) and
-  // uploads the baked Gaussians through `upload`. `canonical` must have SH degree 3.
-  static absl::StatusOr<std::unique_ptr<DynamicSceneField>> Create(
-      field::DeformationField field, GaussianStore canonical, std::optional<std::vector<float>> reflectance,
-      const field::StaticSkipOptions& options, const SceneUploader& upload, bool on_vulkan = false);
-  // The same with an extended field (--field extended: field.bin + field_ext.bin).
-  static absl::StatusOr<std::unique_ptr<DynamicSceneField>> Create(
-      field::ExtendedField field, GaussianStore canonical, std::optional<std::vector<float>> reflectance,
-      const field::StaticSkipOptions& options, const SceneUploader& upload, bool on_vulkan = false);
-  // A served scene made elsewhere: the serving form (field::ServingForm, scene_loading.cc) or an
-  // exact field made with `pool` (null: a pool of its own).
+  // Evaluates `served` at its start and uploads that through `upload`.
   static absl::StatusOr<std::unique_ptr<DynamicSceneField>> Create(std::unique_ptr<field::ServedScene> served,
                                                                    std::optional<std::vector<float>> reflectance,
                                                                    const SceneUploader& upload);
@@ -47,12 +35,6 @@ class DynamicSceneField : public SceneField {
 
  private:
   DynamicSceneField() = default;
-  // The two halves around building serving_ that both Create share: the checks, the pool and the
-  // reflectance; then the first evaluation and upload.
-  static absl::StatusOr<std::unique_ptr<DynamicSceneField>> Begin(const GaussianStore& canonical,
-                                                                   std::optional<std::vector<float>> reflectance);
-  static absl::StatusOr<std::unique_ptr<DynamicSceneField>> Finish(std::unique_ptr<DynamicSceneField> f,
-                                                                    const SceneUploader& upload);
   // The deformed store at time_us (mu_ held).
   absl::StatusOr<const GaussianStore*> EvaluateLocked(int64_t time_us) const;
 

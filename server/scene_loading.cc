@@ -5,7 +5,6 @@
 #include <system_error>
 #include <vector>
 
-#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "render/common/thread_pool.h"
 #include "scene/field/extended/extended_serving.h"
@@ -42,14 +41,20 @@ absl::StatusOr<SceneManifest> ReadSceneDirManifest(const std::string& manifest_p
 
 namespace {
 
+// A status about a scene's field file: `named` (field.bin, or field_ext.bin for an extended field) first.
+absl::Status InFieldFile(const fs::path& named, const absl::Status& s) {
+  return absl::Status(s.code(), absl::StrCat(named.string(), ": ", s.message()));
+}
+
 // The field exactly as trained (field.bin, with `ext_path` the extended field), its static
-// Gaussians baked (load.static_skip), on load.field_device.
+// Gaussians baked (load.static_skip), on load.field_device. Errors name the field's file.
 absl::StatusOr<std::unique_ptr<field::ServedScene>> ExactServedScene(const fs::path& field_path,
                                                                      const fs::path* ext_path, GaussianStore canonical,
                                                                      const SceneLoadOptions& load) {
+  const fs::path& named = ext_path ? *ext_path : field_path;
   if (canonical.sh_degree != 3) {
-    return absl::FailedPreconditionError(
-        absl::StrCat("a field needs SH degree 3 Gaussians, scene.ply has degree ", canonical.sh_degree));
+    return InFieldFile(named, absl::FailedPreconditionError(absl::StrCat(
+                                  "a field needs SH degree 3 Gaussians, scene.ply has degree ", canonical.sh_degree)));
   }
   absl::StatusOr<field::DeformationField> f = field::LoadField(field_path.string());
   if (!f.ok()) return f.status();  // DATA_LOSS naming the file
@@ -57,18 +62,18 @@ absl::StatusOr<std::unique_ptr<field::ServedScene>> ExactServedScene(const fs::p
   ThreadPool pool(0);
   if (ext_path) {
     absl::StatusOr<field::ExtendedField> ext = field::LoadExtendedField(ext_path->string(), std::move(*f));
-    if (!ext.ok()) return ext.status();
+    if (!ext.ok()) return ext.status();  // names field_ext.bin
     const field::ExtServingField::Device vk =
         on_vulkan ? field::VulkanExtFieldForward() : field::ExtServingField::Device{};
     absl::StatusOr<std::unique_ptr<field::ExtServingField>> s = field::ExtServingField::Create(
         std::move(*ext), std::move(canonical), load.static_skip, pool, on_vulkan ? &vk : nullptr);
-    if (!s.ok()) return s.status();
+    if (!s.ok()) return InFieldFile(named, s.status());
     return std::unique_ptr<field::ServedScene>(std::move(*s));
   }
   const field::ServingField::Device vk = on_vulkan ? field::VulkanFieldForward() : field::ServingField::Device{};
   absl::StatusOr<field::ServingField> s =
       field::ServingField::Create(std::move(*f), std::move(canonical), load.static_skip, pool, on_vulkan ? &vk : nullptr);
-  if (!s.ok()) return s.status();
+  if (!s.ok()) return InFieldFile(named, s.status());
   return std::unique_ptr<field::ServedScene>(std::make_unique<field::ServingField>(std::move(*s)));
 }
 
@@ -106,21 +111,14 @@ absl::StatusOr<std::shared_ptr<LoadedScene>> LoadSceneFile(const std::string& pa
     // train::LoadSceneField does (damage, another run's file: DATA_LOSS naming field_ext.bin).
     const fs::path ext_path = fs::path(path).parent_path() / field::kExtendedFieldFileName;
     const bool extended = fs::exists(ext_path, ec);
-    const fs::path& named = extended ? ext_path : field_path;
+    const fs::path* ext = extended ? &ext_path : nullptr;
     absl::StatusOr<std::unique_ptr<field::ServedScene>> served =
-        load.exact_field ? ExactServedScene(field_path, extended ? &ext_path : nullptr, std::move(*store), load)
-                         : ServingFormOf(field_path, extended ? &ext_path : nullptr, std::move(*store), load);
+        load.exact_field ? ExactServedScene(field_path, ext, std::move(*store), load)
+                         : ServingFormOf(field_path, ext, std::move(*store), load);
+    if (!served.ok()) return served.status();  // naming the file
     absl::StatusOr<std::unique_ptr<DynamicSceneField>> dynamic =
-        served.ok() ? DynamicSceneField::Create(std::move(*served), std::move(*reflectance), upload)
-                    : absl::StatusOr<std::unique_ptr<DynamicSceneField>>(served.status());
-    if (!dynamic.ok()) {
-      // Errors of the field files name their file already.
-      if (absl::StrContains(dynamic.status().message(), named.string()) ||
-          absl::StrContains(dynamic.status().message(), field_path.string())) {
-        return dynamic.status();
-      }
-      return absl::Status(dynamic.status().code(), absl::StrCat(named.string(), ": ", dynamic.status().message()));
-    }
+        DynamicSceneField::Create(std::move(*served), std::move(*reflectance), upload);
+    if (!dynamic.ok()) return InFieldFile(extended ? ext_path : field_path, dynamic.status());
     loaded->field = std::move(*dynamic);
     return loaded;
   }

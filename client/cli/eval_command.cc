@@ -228,24 +228,17 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
     std::shared_ptr<field::ServedScene> served_scene;
     if (served && *f) {
       const auto t0 = std::chrono::steady_clock::now();
-      absl::StatusOr<std::shared_ptr<field::ServedScene>> ss = absl::UnknownError("unset");
-      if (*exact_field) {
-        ss = train::MakeServedScene(*f, *store, *skip);
-      } else {  // the serving form, as `streetsim serve` serves it (cached in DIR/field.serving)
-        auto make_exact = [&]() { return train::MakeExactServedScene(*f, *store, *skip); };
-        absl::StatusOr<std::unique_ptr<field::ServedScene>> scene =
-            train::LoadServedScene(dir, make_exact, field::ServingFormOptions{}, *skip);
-        if (scene.ok()) {
-          if (const auto* form = dynamic_cast<const field::ServingForm*>(scene->get())) {
-            served_form_position_max_m = std::max(served_form_position_max_m, form->error().max[0]);
-            ++served_by_form;
-          }
-          ss = std::shared_ptr<field::ServedScene>(std::move(*scene));
-        } else {
-          ss = scene.status();
-        }
-      }
+      // By default the serving form, as `streetsim serve` serves it (cached in DIR/field.serving).
+      auto make_exact = [&]() { return train::MakeExactServedScene(*f, *store, *skip); };
+      absl::StatusOr<std::shared_ptr<field::ServedScene>> ss =
+          *exact_field ? train::MakeServedScene(*f, *store, *skip)
+                       : absl::StatusOr<std::shared_ptr<field::ServedScene>>(
+                             train::LoadServedScene(dir, make_exact, field::ServingFormOptions{}, *skip));
       if (!ss.ok()) return Fail(1, ss.status());
+      if (const auto* form = dynamic_cast<const field::ServingForm*>(ss->get())) {
+        served_form_position_max_m = std::max(served_form_position_max_m, form->error().max[0]);
+        ++served_by_form;
+      }
       served_analysis_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
       served_scene = *ss;
       served_dynamic += served_scene->num_dynamic();

@@ -1,5 +1,5 @@
-// --static-motion-m M, --static-sh S and --field-serving served|exact, shared by `streetsim serve` and `streetsim eval --served`:
-// the static skip's thresholds (scene/field/static_skip.h; defaults 0.01 m and 0.01; 0 makes every
+// --static-motion-m M, --static-sh S and --field-serving served|exact, shared by `streetsim serve`
+// and `streetsim eval --served`: the static skip's thresholds (scene/field/static_skip.h; defaults 0.01 m and 0.01; 0 makes every
 // Gaussian dynamic, i.e. no skip). Bad values (not a number, negative, NaN, above 1000) are
 // InvalidArgument naming the flag.
 #pragma once

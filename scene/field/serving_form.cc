@@ -6,6 +6,7 @@
 #include <limits>
 #include <mutex>
 #include <type_traits>
+#include <utility>
 
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
@@ -14,7 +15,7 @@ namespace streetsim::field {
 
 namespace {
 
-constexpr int kRestShValues = (kShCoeffs - 1) * 3;  // SH bands 1-3: kept at their time-mean
+constexpr int kRestShValues = (kShCoeffs - 1) * 3;  // SH bands 1-3
 
 // Where channel `c` of group `g` lives in a store: array, stride per Gaussian, offset.
 template <typename F>
@@ -46,28 +47,18 @@ std::vector<TargetOf<F>> Targets(uint32_t groups, Store* s) {
   return t;
 }
 
-// Whether group g of row i differs between two stores.
-bool GroupDiffers(int g, const GaussianStore& a, const GaussianStore& b, size_t i) {
-  auto differ = [&](const std::vector<float>& x, const std::vector<float>& y, int stride, int count) {
-    for (int c = 0; c < count; ++c) {
-      if (x[i * stride + c] != y[i * stride + c]) return true;
-    }
-    return false;
-  };
-  switch (static_cast<FormGroup>(g)) {
-    case FormGroup::kPosition: return differ(a.means, b.means, 3, 3);
-    case FormGroup::kColour: return differ(a.sh, b.sh, a.sh_coeffs() * 3, 3);
-    case FormGroup::kLogScale: return differ(a.log_scales, b.log_scales, 3, 3);
-    case FormGroup::kRotation: return differ(a.rotations, b.rotations, 4, 4);
-    case FormGroup::kOpacity: return differ(a.opacity_logits, b.opacity_logits, 1, 1);
-    case FormGroup::kShBands:
-      for (int c = 3; c < a.sh_coeffs() * 3; ++c) {
-        if (a.sh[i * a.sh_coeffs() * 3 + c] != b.sh[i * b.sh_coeffs() * 3 + c]) return true;
-      }
-      return false;
+constexpr uint32_t kAllGroups = (1u << kFormGroups) - 1;
+
+// The group of each channel Targets(groups, ...) lists, in the same order.
+std::vector<int> GroupOfChannels(uint32_t groups) {
+  std::vector<int> out;
+  for (int g = 0; g < kFormGroups; ++g) {
+    if (groups & (1u << g)) out.insert(out.end(), kFormGroupChannels[g], g);
   }
-  return false;
+  return out;
 }
+
+float ValueAt(const Source& s, size_t i) { return s.data[i * s.stride + s.offset]; }
 
 }  // namespace
 
@@ -244,8 +235,9 @@ void ServingForm::Quantise(const std::vector<float>& coef, const float* rest_mea
 absl::Status ServingForm::Check(ServedScene& exact, const std::vector<int64_t>& fit_us, ThreadPool& pool) {
   const size_t nd = rows_.size();
   const int S = static_cast<int>(fit_us.size());
-  // The check: the form against the exact field halfway between the fit samples.
+  // The form against the exact field halfway between the fit samples.
   GaussianStore probe = current_;
+  const std::vector<int> group_of = GroupOfChannels(kAllGroups);
   position_error_m_.assign(nd, 0.0f);
   std::mutex mu;
   for (int s = 0; s + 1 < S; ++s) {
@@ -254,36 +246,22 @@ absl::Status ServingForm::Check(ServedScene& exact, const std::vector<int64_t>& 
     if (!g.ok()) return g.status();
     const GaussianStore& y = **g;
     EvaluateInto(Tau(t), &probe, pool);
+    // Every group, modelled or not (one that is not must not change: a probe may have missed it).
+    const std::vector<Source> got = Targets(kAllGroups, &std::as_const(probe)), want = Targets(kAllGroups, &y);
     pool.ParallelFor(static_cast<int64_t>(nd), 4096, [&](int64_t b, int64_t e, int) {
       std::array<float, kFormGroups> local{};
-      float rest_max = 0;
       for (int64_t r = b; r < e; ++r) {
         const size_t i = rows_[r];
         double d2 = 0;
-        for (int c = 0; c < 3; ++c) d2 += std::pow(double(probe.means[i * 3 + c]) - y.means[i * 3 + c], 2);
+        for (int c = 0; c < 3; ++c) d2 += std::pow(double(ValueAt(got[c], i)) - ValueAt(want[c], i), 2);
         position_error_m_[r] = std::max(position_error_m_[r], static_cast<float>(std::sqrt(d2)));
         local[0] = std::max(local[0], position_error_m_[r]);
-        for (int grp = 1; grp < kFormGroups; ++grp) {
-          for (int c = 0; c < kFormGroupChannels[grp]; ++c) {
-            float a = 0, x = 0;
-            switch (static_cast<FormGroup>(grp)) {
-              case FormGroup::kPosition: break;
-              case FormGroup::kColour: a = probe.sh[i * kShOutputs + c], x = y.sh[i * kShOutputs + c]; break;
-              case FormGroup::kLogScale: a = probe.log_scales[i * 3 + c], x = y.log_scales[i * 3 + c]; break;
-              case FormGroup::kRotation: a = probe.rotations[i * 4 + c], x = y.rotations[i * 4 + c]; break;
-              case FormGroup::kOpacity: a = probe.opacity_logits[i], x = y.opacity_logits[i]; break;
-              case FormGroup::kShBands: a = probe.sh[i * kShOutputs + 3 + c], x = y.sh[i * kShOutputs + 3 + c]; break;
-            }
-            local[grp] = std::max(local[grp], std::abs(a - x));
-          }
-        }
-        for (int k = 3; k < kShOutputs; ++k) {
-          rest_max = std::max(rest_max, std::abs(probe.sh[i * kShOutputs + k] - y.sh[i * kShOutputs + k]));
+        for (size_t c = 3; c < got.size(); ++c) {
+          local[group_of[c]] = std::max(local[group_of[c]], std::abs(ValueAt(got[c], i) - ValueAt(want[c], i)));
         }
       }
       std::lock_guard<std::mutex> lock(mu);
       for (int grp = 0; grp < kFormGroups; ++grp) error_.max[grp] = std::max(error_.max[grp], local[grp]);
-      error_.sh_rest_max = std::max(error_.sh_rest_max, rest_max);
     });
   }
   error_.check_samples = S - 1;
@@ -324,8 +302,6 @@ absl::StatusOr<std::unique_ptr<ServingForm>> ServingForm::Fit(ServedScene& exact
     return absl::InvalidArgumentError(absl::StrCat("serving form: degree ", degree, ", ", segments, " segments, ",
                                                    samples_per_segment, " samples per segment"));
   }
-  ServingFormOptions o;
-  o.samples_per_segment = samples_per_segment;
   std::unique_ptr<ServingForm> f(new ServingForm());
   f->time_range_ = exact.time_range();
   f->degree_ = degree;
@@ -352,13 +328,15 @@ absl::StatusOr<std::unique_ptr<ServingForm>> ServingForm::Fit(ServedScene& exact
     absl::StatusOr<const GaussianStore*> g = sample(time_at(tau));
     if (!g.ok()) return g.status();
     for (int grp = 1; grp < kFormGroups; ++grp) {
-      if (f->groups_ & (1u << grp)) continue;
-      for (uint32_t i : rows) {
-        if (GroupDiffers(grp, f->current_, **g, i)) {
-          f->groups_ |= 1u << grp;
-          break;
+      if (f->models(static_cast<FormGroup>(grp))) continue;
+      const std::vector<Source> a = Targets(1u << grp, &std::as_const(f->current_)), b = Targets(1u << grp, *g);
+      const bool moves = std::any_of(rows.begin(), rows.end(), [&](uint32_t i) {
+        for (size_t c = 0; c < a.size(); ++c) {
+          if (ValueAt(a[c], i) != ValueAt(b[c], i)) return true;
         }
-      }
+        return false;
+      });
+      if (moves) f->groups_ |= 1u << grp;
     }
   }
   const int M = f->control_points_, Co = f->modelled_channels(), C = 3 + Co;
@@ -367,7 +345,7 @@ absl::StatusOr<std::unique_ptr<ServingForm>> ServingForm::Fit(ServedScene& exact
   // Least squares per Gaussian and channel: (B^T B) x = B^T y. B^T y is accumulated one sample at a
   // time (each sample touches degree + 1 control points); B^T B is banded and the same for every
   // Gaussian, so its Cholesky factor is computed once and each right-hand side solved in the band.
-  const int S = segments * o.samples_per_segment + 1;
+  const int S = segments * samples_per_segment + 1;
   const int bw = degree;
   std::vector<int64_t> fit_us(S);
   std::vector<int> fit_k(S);

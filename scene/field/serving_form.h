@@ -1,12 +1,12 @@
 // The serving form of a field (docs/field.md "Serving form"): what `streetsim serve` evaluates per
-// timestamp instead of the field's network. Each Gaussian's time-varying parameters (position,
-// DC colour and, for the extended field, log-scale, rotation and opacity) are fitted over the
-// log's time range by a uniform spline (piecewise linear by default, knots on the field's time
-// grid), least squares on samples of the exact field; the
-// coefficients are stored quantised (position int16, the rest int8, each with its own offset and
-// step per Gaussian and channel). Parameters the form does not model (the higher SH bands) keep
-// their time-mean, and Gaussians that do not move keep one value. Evaluating a timestamp is then a
-// 4-tap blend per channel of the moving Gaussians: memory-bound, no network.
+// timestamp instead of the field's network. Each moving Gaussian's time-varying parameters
+// (position, DC colour, SH bands 1-3 and, for the extended field, log-scale, rotation and opacity:
+// whichever the field changes) are fitted over the log's time range by a uniform spline
+// (piecewise linear by default, knots on the field's time grid), least squares on samples of the
+// exact field; the coefficients are stored quantised (position int16, the rest int8, each with
+// its own offset and step per Gaussian and channel). Gaussians that do not move keep one value.
+// Evaluating a timestamp is then a 2-tap blend (4 for the cubic) per channel of the moving
+// Gaussians: memory-bound, no network.
 //
 // Build() measures what the form costs: after the fit it compares the form with the exact field at
 // the midpoints between the fit samples and records each moving Gaussian's largest position error
@@ -59,11 +59,11 @@ enum class FormGroup : uint8_t {
 inline constexpr int kFormGroups = 6;
 inline constexpr int kFormGroupChannels[kFormGroups] = {3, 3, 3, 4, 1, 45};
 
-// The largest difference between the form and the exact field over the check samples, per group
-// (position in metres, the others in their raw units: SH, log-scale, quaternion component, logit).
+// The largest difference between the form and the exact field over the check samples, per group,
+// modelled or not (position in metres, the others in their raw units: SH, log-scale, quaternion
+// component, logit).
 struct ServingFormError {
   std::array<float, kFormGroups> max{};
-  float sh_rest_max = 0;     // SH bands 1-3 (modelled, or at their time-mean when they do not change)
   float position_p99_m = 0;  // 99th percentile over moving Gaussians of their largest position error
   int check_samples = 0;
 };
@@ -90,7 +90,6 @@ class ServingForm : public ServedScene {
   int control_points() const { return control_points_; }
   int degree() const { return degree_; }
   int segments() const { return control_points_ - degree_; }
-  FieldTimeRange time_range_us() const { return time_range_; }
   bool models(FormGroup g) const { return groups_ & (1u << static_cast<int>(g)); }
   const ServingFormError& error() const { return error_; }
   // Per moving Gaussian (dynamic_rows order): its largest position error at the check samples (m).
@@ -112,7 +111,7 @@ class ServingForm : public ServedScene {
   void EvaluateInto(double tau, GaussianStore* out, ThreadPool& pool) const;
   double Tau(int64_t time_us) const;
   // Fit's steps: the least-squares coefficients [rows][control points][channels] into the quantised
-  // tables (and, when the SH bands are not modelled, rest_mean [rows][45] into current_); then the
+  // tables (and, when the SH bands do not change, rest_mean [rows][45] into current_); then the
   // form against `exact` halfway between the fit samples (error_, position_error_m_).
   void Quantise(const std::vector<float>& coef, const float* rest_mean, ThreadPool& pool);
   absl::Status Check(ServedScene& exact, const std::vector<int64_t>& fit_us, ThreadPool& pool);

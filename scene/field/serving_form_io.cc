@@ -19,7 +19,7 @@ using checked_file::Reader;
 using checked_file::Writer;
 
 constexpr char kMagic[8] = {'S', 'T', 'S', 'F', 'O', 'R', 'M', '\n'};
-constexpr uint32_t kVersion = 2;
+constexpr uint32_t kVersion = 3;
 constexpr uint64_t kPrime = 1099511628211ull;
 
 uint64_t Mix(uint64_t h, uint64_t v) { return (h ^ v) * kPrime; }
@@ -62,7 +62,6 @@ std::string ServingFormCodec::Encode(const ServingForm& f, uint64_t key) {
   w.Raw(f.q_position_.data(), f.q_position_.size() * sizeof(int16_t));
   w.Raw(f.q_other_.data(), f.q_other_.size() * sizeof(int8_t));
   w.Raw(f.error_.max.data(), sizeof(float) * kFormGroups);
-  w.Pod(f.error_.sh_rest_max);
   w.Pod(f.error_.position_p99_m);
   w.Pod<int32_t>(f.error_.check_samples);
   w.Pod<uint64_t>(Checksum(w.buf.data(), w.buf.size()));
@@ -126,7 +125,7 @@ absl::StatusOr<std::unique_ptr<ServingForm>> ServingFormCodec::Decode(const std:
       !r.Raw(f->step_.data(), nd * C * sizeof(float)) ||
       !r.Raw(f->q_position_.data(), f->q_position_.size() * sizeof(int16_t)) ||
       !r.Raw(f->q_other_.data(), f->q_other_.size()) || !r.Raw(f->error_.max.data(), sizeof(float) * kFormGroups) ||
-      !r.Pod(&f->error_.sh_rest_max) || !r.Pod(&f->error_.position_p99_m) || !r.Pod(&f->error_.check_samples)) {
+      !r.Pod(&f->error_.position_p99_m) || !r.Pod(&f->error_.check_samples)) {
     return corrupt("truncated tables");
   }
   if (r.pos() != body) return corrupt("trailing bytes");
