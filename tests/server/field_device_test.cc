@@ -454,5 +454,27 @@ TEST(ServeFieldDeviceFlag, BadValuesExit2) {
   }
 }
 
+// --field-serving takes served or exact, on serve and on eval (where it needs --served): anything
+// else exits 2 naming the flag, before a scene or log is read.
+TEST(ServeFieldServingFlag, BadValuesExit2) {
+  const std::string dir = ScratchDir("field_device", "bad_serving_flag");
+  for (const std::string bad : {"form", "EXACT", "served,exact", ""}) {
+    cli_test::Result r = cli_test::RunStreetsim("serve --listen 127.0.0.1:0 --data-root " + dir + " --state-dir " + dir +
+                                                    "/state --field-serving '" + bad + "'",
+                                                dir + "/out.txt", dir + "/err.txt");
+    EXPECT_EQ(r.code, 2) << bad << ": " << r.err;
+    EXPECT_NE(r.err.find("--field-serving"), std::string::npos) << r.err;
+    r = cli_test::RunStreetsim("eval --scene " + dir + "/none --log " + dir + "/none --served --field-serving '" + bad +
+                                   "'",
+                               dir + "/out.txt", dir + "/err.txt");
+    EXPECT_EQ(r.code, 2) << bad << ": " << r.err;
+    EXPECT_NE(r.err.find("--field-serving"), std::string::npos) << r.err;
+  }
+  const cli_test::Result r = cli_test::RunStreetsim(
+      "eval --scene " + dir + "/none --log " + dir + "/none --field-serving exact", dir + "/out.txt", dir + "/err.txt");
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_NE(r.err.find("need --served"), std::string::npos) << r.err;
+}
+
 }  // namespace
 }  // namespace streetsim::testing
