@@ -141,7 +141,7 @@ bool JobRunner::TrainAvailable() {
   return train_available_ == 1;
 }
 
-bool JobRunner::WithTrain(const v1::Job& job) { return job.config().max_iterations() > 0 && TrainAvailable(); }
+bool JobRunner::WithTrain(const v1::Job& job) { return AsksTraining(job.config()) && TrainAvailable(); }
 
 JobRunner::~JobRunner() { Stop(); }
 
@@ -274,8 +274,12 @@ absl::Status JobRunner::CheckContinuation(const v1::CreateTrainingJobRequest& re
                      "' is a static scene: static_iterations, field_lr_*, field_motion_prior and "
                      "field_motion_prior_scans need a field (config.field)"));
   }
-  if (meta->iterations >= c.max_iterations()) {
-    return absl::InvalidArgumentError(absl::StrCat("config.max_iterations (", c.max_iterations(),
+  // The iterations asked for: the settings' (as text, checked by ValidateTrainingConfig), else
+  // the deprecated max_iterations; neither: the scene's own, which cannot be above its own.
+  int64_t asked = c.max_iterations();
+  if (auto it = c.settings().find("iterations"); it != c.settings().end()) (void)absl::SimpleAtoi(it->second, &asked);
+  if (meta->iterations >= asked) {
+    return absl::InvalidArgumentError(absl::StrCat("config iterations (", asked,
                                                    ") must be above the ", meta->iterations, " iterations scene '",
                                                    from, "' was trained for"));
   }
@@ -476,9 +480,8 @@ void JobRunner::RunJob(const std::string& id) {
   const bool with_train = WithTrain(job);
   const int publish_index = NumStages(with_train) - 1;
   p->set_num_stages(NumStages(with_train));
-  if (job.config().max_iterations() > 0 && !with_train) {
-    LOG(WARNING) << "job " << id << ": max_iterations " << job.config().max_iterations()
-                 << " asked for, but this build has no `streetsim train`: init only";
+  if (AsksTraining(job.config()) && !with_train) {
+    LOG(WARNING) << "job " << id << ": training asked for, but this build has no `streetsim train`: init only";
   }
   absl::StatusOr<std::string> log = ResolveUnderRoot(options_.data_root, job.log_path());
 
@@ -526,12 +529,18 @@ void JobRunner::RunJob(const std::string& id) {
     (void)store_->Put(job);
     if (!log.ok()) return fail(log.status());
     std::vector<std::string> argv = options_.train_command;
-    argv.insert(argv.end(), {"--log", *log, "--out", work, "--iterations", std::to_string(job.config().max_iterations())});
+    argv.insert(argv.end(), {"--log", *log, "--out", work});
     const std::vector<std::string> flags = TrainFlags(job.config());
     argv.insert(argv.end(), flags.begin(), flags.end());
     std::string trainer_message;  // its last "streetsim train: ..." line: why it failed, if it does
     auto on_line = [&](const std::string& line) {
       if (line.rfind("streetsim train: ", 0) == 0) trainer_message = line.substr(17, 512);
+      // The divergence guard's rollbacks (docs/training.md "Divergence guard"), for the job's client.
+      if (line.rfind("streetsim train: iteration ", 0) == 0 && line.find("rolled back") != std::string::npos &&
+          p->notes_size() < 16) {
+        p->add_notes(line.substr(17, 512));
+        return true;  // a change to the record, stored with the progress
+      }
       TrainProgressLine t;
       if (!ParseTrainProgressLine(line, &t)) return false;
       p->set_iteration(t.iteration);

@@ -28,7 +28,9 @@ absl::StatusOr<ParsedArgs> ParsedArgs::Parse(const std::vector<std::string>& arg
       if (s.name == name) spec = &s;
     }
     if (spec == nullptr) return absl::InvalidArgumentError(absl::StrCat("unknown flag --", name));
-    if (out.values_.count(name)) return absl::InvalidArgumentError(absl::StrCat("--", name, " given twice"));
+    if (out.values_.count(name) && !spec->repeatable) {
+      return absl::InvalidArgumentError(absl::StrCat("--", name, " given twice"));
+    }
     if (spec->takes_value && !has_inline) {
       if (i + 1 >= args.size()) return absl::InvalidArgumentError(absl::StrCat("--", name, " needs a value"));
       value = args[++i];
@@ -36,6 +38,7 @@ absl::StatusOr<ParsedArgs> ParsedArgs::Parse(const std::vector<std::string>& arg
       return absl::InvalidArgumentError(absl::StrCat("--", name, " takes no value"));
     }
     out.values_[name] = value;
+    out.ordered_.emplace_back(name, value);
   }
   return out;
 }

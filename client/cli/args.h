@@ -6,6 +6,7 @@
 #include <optional>
 #include <set>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -15,6 +16,7 @@ namespace streetsim {
 struct FlagSpec {
   std::string name;  // without the leading dashes
   bool takes_value = true;
+  bool repeatable = false;  // e.g. --set: every occurrence is kept (ordered())
 };
 
 class ParsedArgs {
@@ -25,10 +27,13 @@ class ParsedArgs {
   bool Has(const std::string& name) const { return values_.count(name) > 0; }
   absl::StatusOr<std::string> Required(const std::string& name) const;
   const std::vector<std::string>& positional() const { return positional_; }
+  // Every flag as given, in command-line order (name, value; "" for a flag without one).
+  const std::vector<std::pair<std::string, std::string>>& ordered() const { return ordered_; }
 
  private:
   std::map<std::string, std::string> values_;
   std::vector<std::string> positional_;
+  std::vector<std::pair<std::string, std::string>> ordered_;
 };
 
 // Prints "streetsim <command>: <message>" as one line on stderr (newlines in the message become

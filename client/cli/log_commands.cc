@@ -104,10 +104,16 @@ int Info(const std::vector<std::string>& argv) {
     std::printf("world: %s\n", log->format == "colmap" ? "the COLMAP model's frame" : "ego frame of the first frame");
   }
   std::printf("cameras: %zu\n", log->cameras.size());
+  bool rig_has_colour = false;
+  for (const CameraSensor& c : log->cameras) rig_has_colour = rig_has_colour || c.colour;
   for (const CameraSensor& c : log->cameras) {
     const CameraIntrinsics& k = c.intrinsics;
-    std::printf("  %s: %dx%d %s, fx %.2f fy %.2f cx %.2f cy %.2f, %s, T_ego_from_cam t = %s\n", c.name.c_str(),
-                k.width, k.height, c.colour ? "colour" : "grayscale", k.fx, k.fy, k.cx, k.cy,
+    // How `streetsim train` uses it by default (docs/training.md "Grayscale cameras").
+    const char* trains = c.colour          ? "trains in colour"
+                         : rig_has_colour ? "trains on luminance beside the colour cameras"
+                                          : "trains as it is (no colour camera)";
+    std::printf("  %s: %dx%d %s (%s), fx %.2f fy %.2f cx %.2f cy %.2f, %s, T_ego_from_cam t = %s\n", c.name.c_str(),
+                k.width, k.height, c.colour ? "colour" : "grayscale", trains, k.fx, k.fy, k.cx, k.cy,
                 DistortionModelName(k.model), Translation(c.T_ego_from_cam).c_str());
   }
   std::printf("lidars: %zu\n", log->lidars.size());

@@ -22,8 +22,10 @@
 #include "client/cli/camera_json.h"
 #include "client/cli/commands.h"
 #include "client/cli/image_io.h"
+#include "client/cli/train_flags.h"
 #include "client/cpp/streetsim_client.h"
 #include "scene/common/checked_file.h"
+#include "scene/train/config/run_config.h"
 
 namespace streetsim {
 namespace {
@@ -190,72 +192,31 @@ int RunScenesCommand(const std::vector<std::string>& argv) {
   return 0;
 }
 
-// `jobs train`'s training flags, spelled as `streetsim train`'s, into the job's config. Only the
-// syntax is checked here; the server checks the values (ValidateTrainingConfig) and says what is
-// wrong with them.
+// `jobs train`'s settings, spelled as `streetsim train`'s (its flags, --set, --preset and
+// --config's settings), into the job's preset and settings map (a later value wins). Only the
+// syntax is checked here; the server checks the values with the trainer's own definitions.
 static absl::Status TrainingConfigFromFlags(const ParsedArgs& args, v1::TrainingConfig* c) {
-  auto integer = [&](const char* flag, auto set) -> absl::Status {
-    if (auto v = args.Get(flag)) {
-      int64_t n = 0;
-      if (!absl::SimpleAtoi(*v, &n) || n < INT32_MIN || n > INT32_MAX) {
-        return absl::InvalidArgumentError(absl::StrCat("--", flag, " takes an integer, not '", *v, "'"));
-      }
-      set(static_cast<int32_t>(n));
-    }
-    return absl::OkStatus();
-  };
-  auto number = [&](const char* flag, auto set) -> absl::Status {
-    if (auto v = args.Get(flag)) {
-      double x = 0;
-      if (!absl::SimpleAtod(*v, &x)) return absl::InvalidArgumentError(absl::StrCat("--", flag, " takes a number, not '", *v, "'"));
-      set(x);
-    }
-    return absl::OkStatus();
-  };
-  if (auto v = args.Get("seed")) {
-    uint64_t seed = 0;
-    if (!absl::SimpleAtoi(*v, &seed)) return absl::InvalidArgumentError(absl::StrCat("--seed takes an integer >= 0, not '", *v, "'"));
-    c->set_seed(seed);
+  absl::StatusOr<train::config::CommandLineConfig> given = TrainCommandLineConfig(args);
+  if (!given.ok()) return given.status();
+  if (given->config_path) {
+    return absl::InvalidArgumentError("--config: a job takes --preset and settings (--set NAME=VALUE, --NAME VALUE)");
   }
-  if (auto v = args.Get("field")) c->set_field(*v);
-  if (auto v = args.Get("field-modules")) c->set_field_modules(*v);
-  if (auto v = args.Get("backend")) c->set_backend(*v);
+  if (given->preset) c->set_preset(*given->preset);
+  for (const auto& g : given->values) (*c->mutable_settings())[g.name] = g.text;
   if (auto v = args.Get("continue-from")) c->set_continue_from_scene(*v);
-  if (auto v = args.Get("field-motion-prior-scans")) c->set_field_motion_prior_scans(*v);
-  if (args.Has("pose-refinement")) c->set_pose_refinement(true);
-  for (absl::Status s : {
-           integer("static-iterations", [&](int32_t n) { c->set_static_iterations(n); }),
-           integer("low-res-iterations", [&](int32_t n) { c->set_low_res_iterations(n); }),
-           integer("holdout-every", [&](int32_t n) { c->set_holdout_every(n); }),
-           integer("clip-frames", [&](int32_t n) { c->set_clip_frames(n); }),
-           integer("clip-overlap", [&](int32_t n) { c->set_clip_overlap(n); }),
-           integer("field-lr-decay-iterations", [&](int32_t n) { c->set_field_lr_decay_iterations(n); }),
-           integer("position-lr-decay-iterations", [&](int32_t n) { c->set_position_lr_decay_iterations(n); }),
-           integer("field-ext-lr-decay-iterations", [&](int32_t n) { c->set_field_ext_lr_decay_iterations(n); }),
-           integer("densify-until", [&](int32_t n) { c->set_densify_until(n); }),
-           number("resolution-scale", [&](double x) { c->set_resolution_scale(x); }),
-           number("low-res-scale", [&](double x) { c->set_low_res_scale(x); }),
-           number("field-lr-scale", [&](double x) { c->set_field_lr_scale(x); }),
-           number("field-ext-lr-scale", [&](double x) { c->set_field_ext_lr_scale(x); }),
-           number("pose-lr-scale", [&](double x) { c->set_pose_lr_scale(x); }),
-           number("field-motion-prior", [&](double x) { c->set_field_motion_prior(x); }),
-       }) {
-    if (!s.ok()) return s;
-  }
   return absl::OkStatus();
+}
+
+static std::vector<FlagSpec> JobsFlagSpecs() {
+  std::vector<FlagSpec> specs = {{"scene-name"}, {"request-id"}, {"watch", false}, {"max-iterations"},
+                                 {"continue-from"}};
+  for (const FlagSpec& f : TrainSettingFlagSpecs()) specs.push_back(f);
+  return specs;
 }
 
 int RunJobsCommand(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args =
-      ParsedArgs::Parse(argv, WithConnection({{"scene-name"}, {"request-id"}, {"watch", false}, {"max-iterations"},
-                                              {"seed"}, {"field"}, {"field-modules"}, {"static-iterations"},
-                                              {"resolution-scale"}, {"low-res-scale"}, {"low-res-iterations"},
-                                              {"holdout-every"}, {"clip-frames"}, {"clip-overlap"}, {"field-lr-scale"},
-                                              {"field-lr-decay-iterations"}, {"position-lr-decay-iterations"},
-                                              {"field-ext-lr-scale"}, {"field-ext-lr-decay-iterations"},
-                                              {"backend"}, {"continue-from"}, {"pose-refinement", false},
-                                              {"pose-lr-scale"}, {"field-motion-prior"},
-                                              {"field-motion-prior-scans"}, {"densify-until"}}));
+      ParsedArgs::Parse(argv, WithConnection(JobsFlagSpecs()));
   if (!args.ok()) return Fail("jobs", 2, args.status());
   const std::vector<std::string>& pos = args->positional();
   const std::string verb = pos.empty() ? "list" : pos[0];
@@ -285,6 +246,11 @@ int RunJobsCommand(const std::vector<std::string>& argv) {
       req.mutable_config()->set_max_iterations(n);
     }
     if (absl::Status s = TrainingConfigFromFlags(*args, req.mutable_config()); !s.ok()) return Fail("jobs", 2, s);
+    // No settings and no --max-iterations: the default preset, as `streetsim train` runs it
+    // (--max-iterations 0: init only).
+    if (!args->Has("max-iterations") && req.config().preset().empty() && req.config().settings().empty()) {
+      req.mutable_config()->set_preset(train::config::kDefaultPreset);
+    }
     absl::StatusOr<v1::Job> job = (*c)->CreateTrainingJob(req);
     if (!job.ok()) return Fail("jobs", CodeFor(job.status()), job.status());
     PrintJob(*job);
@@ -298,12 +264,8 @@ int RunJobsCommand(const std::vector<std::string>& argv) {
     return 0;
   }
   return Fail("jobs", 2, absl::InvalidArgumentError(
-      "usage: streetsim jobs [list | train LOG_PATH [--scene-name N] [--request-id R] [--max-iterations N] "
-      "[streetsim train's --seed --field --field-modules --static-iterations --resolution-scale --low-res-scale "
-      "--low-res-iterations --holdout-every --clip-frames --clip-overlap --field-lr-scale --field-lr-decay-iterations "
-      "--position-lr-decay-iterations --field-ext-lr-scale --field-ext-lr-decay-iterations --field-motion-prior "
-      "--field-motion-prior-scans --densify-until "
-      "--backend --pose-refinement --pose-lr-scale] [--continue-from SCENE] [--watch] | "
+      "usage: streetsim jobs [list | train LOG_PATH [--scene-name N] [--request-id R] [--preset NAME] "
+      "[--set NAME=VALUE]... [streetsim train's setting flags] [--continue-from SCENE] [--watch] | "
       "watch ID | get ID | cancel ID] [--server HOST:PORT]"));
 }
 

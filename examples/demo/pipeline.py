@@ -35,18 +35,17 @@ import media  # noqa: E402
 import planner as planner_lib  # noqa: E402
 import report  # noqa: E402
 
-# What each preset trains and drives. `preview` is the best scene measured within 10 minutes of
-# training on 2 CPU cores (docs/benchmarks.md "Demo"); `tiny` exercises every step in seconds (the
-# pipeline's test).
+# What each demo preset trains and drives. `preview` is the trainer's preset of that name, the best
+# scene measured within 10 minutes of training on 2 CPU cores (docs/benchmarks.md "Demo"); `tiny`
+# is the same with every step cut to seconds (the pipeline's test).
 PRESETS = {
     "preview": {
-        "train": ["--resolution-scale", "0.5", "--static-iterations", "700", "--iterations", "1300",
-                  "--holdout-every", "4", "--seed", "0"],
+        "train": ["--preset", "preview", "--seed", "0"],
         "camera_scale": 0.5, "lidar_columns": 1024, "steps": 0, "report_frames": 12,
     },
     "tiny": {
-        "train": ["--resolution-scale", "0.125", "--static-iterations", "20", "--iterations", "40",
-                  "--holdout-every", "4", "--seed", "0", "--voxel", "0.6"],
+        "train": ["--preset", "preview", "--seed", "0", "--resolution-scale", "0.125", "--static-iterations", "20",
+                  "--iterations", "40", "--voxel", "0.6"],
         "camera_scale": 0.125, "lidar_columns": 256, "steps": 6, "report_frames": 3,
     },
 }
@@ -102,7 +101,10 @@ def train(args, preset, scene_dir, out):
     wall = run_logged("train", cmd, os.path.join(out, "train.log"), on_line)
     if not curve:
         raise StepFailed("train", "the trainer reported no iteration (see train.log)")
-    expected = int(preset["train"][preset["train"].index("--iterations") + 1])
+    # What the run resolved its settings to (the preset's and the flags'), as it recorded them.
+    with open(os.path.join(scene_dir, "config.json")) as f:
+        settings = json.load(f)["settings"]
+    expected = int(settings["iterations"])
     if curve[-1][1] != expected:
         raise StepFailed("train", f"the run ended at iteration {curve[-1][1]}, not {expected}")
     for f in ("scene.ply", "scene.json"):
@@ -111,7 +113,7 @@ def train(args, preset, scene_dir, out):
     with open(os.path.join(out, "train_curve.json"), "w") as f:
         json.dump({"columns": ["wall_s", "iteration", "loss", "psnr_db", "gaussians"], "rows": curve}, f)
     return {"wall_s": round(wall, 1), "iterations": curve[-1][1], "gaussians": curve[-1][4], "curve": curve,
-            "static_iterations": int(preset["train"][preset["train"].index("--static-iterations") + 1]),
+            "static_iterations": int(settings["static-iterations"]),
             "command": " ".join(["streetsim", "train", "--log", "LOG", "--out", "DIR"] + preset["train"])}
 
 

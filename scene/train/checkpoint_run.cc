@@ -9,7 +9,6 @@
 #include "absl/strings/str_cat.h"
 #include "scene/common/checked_file.h"
 #include "scene/train/motion_prior.h"
-#include "scene/train/train_state.h"
 
 namespace streetsim::train {
 
@@ -43,6 +42,11 @@ absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run
   if (run.field_motion_prior_all_scans) {
     j["field_motion_prior_scans"] = MotionPriorScansName(*run.field_motion_prior_all_scans);
   }
+  if (run.guard && run.guard->started) {
+    j["guard"] = {{"baseline", run.guard->baseline}, {"mean", run.guard->mean}, {"best", run.guard->best},
+                  {"psnr_mean", run.guard->psnr_mean}, {"psnr_best", run.guard->psnr_best},
+                  {"image_width", run.guard->image_width}};
+  }
   return checked_file::WriteAtomically((std::filesystem::path(dir) / kCheckpointRunFile).string(), j.dump(2) + "\n");
 }
 
@@ -64,34 +68,6 @@ absl::StatusOr<T> ParseJsonFile(const std::string& path,
 
 std::string RunFile(const std::string& dir) { return (std::filesystem::path(dir) / kCheckpointRunFile).string(); }
 
-// The schedule `j` records under `prefix` + "_scale" / "_decay_iterations" (nullopt: neither
-// key); throws where a key is missing or mistyped.
-absl::StatusOr<std::optional<FieldLrSchedule>> LrScheduleIn(const nlohmann::json& j, const std::string& path,
-                                                            const std::string& prefix = "field_lr") {
-  const std::string scale_key = prefix + "_scale", decay_key = prefix + "_decay_iterations";
-  if (!j.contains(scale_key) && !j.contains(decay_key)) return std::nullopt;
-  FieldLrSchedule lr;
-  lr.scale = j.at(scale_key).get<double>();
-  lr.decay_iterations = j.at(decay_key).get<int>();
-  if (!(lr.scale > 0 && lr.scale <= 1000) || lr.decay_iterations < 1) {
-    return absl::DataLossError(absl::StrCat(path, ": ", prefix, " schedule out of range"));
-  }
-  return std::optional<FieldLrSchedule>(lr);
-}
-
-// The integer the file records under `key` (nullopt without it); DataLoss saying "`what` out of
-// range" outside [lo, hi].
-absl::StatusOr<std::optional<int>> ReadRecordedInt(const std::string& dir, const std::string& key, int lo, int hi,
-                                                   const std::string& what) {
-  const std::string path = RunFile(dir);
-  return ParseJsonFile<std::optional<int>>(path, [&](const nlohmann::json& j) -> absl::StatusOr<std::optional<int>> {
-    if (!j.contains(key)) return std::nullopt;
-    const int n = j.at(key).get<int>();
-    if (n < lo || n > hi) return absl::DataLossError(absl::StrCat(path, ": ", what, " out of range"));
-    return std::optional<int>(n);
-  });
-}
-
 }  // namespace
 
 absl::StatusOr<std::string> ReadCheckpointField(const std::string& dir) {
@@ -105,83 +81,6 @@ absl::StatusOr<std::string> ReadCheckpointField(const std::string& dir) {
   });
 }
 
-absl::StatusOr<std::optional<FieldLrSchedule>> ReadCheckpointFieldLr(const std::string& dir) {
-  const std::string path = RunFile(dir);
-  return ParseJsonFile<std::optional<FieldLrSchedule>>(path, [&](const nlohmann::json& j) { return LrScheduleIn(j, path); });
-}
-
-absl::StatusOr<std::optional<FieldLrSchedule>> ReadCheckpointExtLr(const std::string& dir) {
-  const std::string path = RunFile(dir);
-  return ParseJsonFile<std::optional<FieldLrSchedule>>(
-      path, [&](const nlohmann::json& j) { return LrScheduleIn(j, path, "field_ext_lr"); });
-}
-
-absl::StatusOr<std::optional<LowResStage>> ReadCheckpointLowResStage(const std::string& dir) {
-  const std::string path = RunFile(dir);
-  return ParseJsonFile<std::optional<LowResStage>>(
-      path, [&](const nlohmann::json& j) -> absl::StatusOr<std::optional<LowResStage>> {
-        if (!j.contains("low_res_scale") && !j.contains("low_res_iterations")) return std::nullopt;
-        LowResStage low;
-        low.resolution_scale = j.at("low_res_scale").get<double>();
-        low.iterations = j.at("low_res_iterations").get<int64_t>();
-        if (!(low.resolution_scale > 0 && low.resolution_scale <= 1) || low.iterations < 1) {
-          return absl::DataLossError(absl::StrCat(path, ": low-resolution stage out of range"));
-        }
-        return std::optional<LowResStage>(low);
-      });
-}
-
-absl::StatusOr<std::optional<PoseRefinementSchedule>> ReadCheckpointPoseRefinement(const std::string& dir) {
-  const std::string path = RunFile(dir);
-  return ParseJsonFile<std::optional<PoseRefinementSchedule>>(
-      path, [&](const nlohmann::json& j) -> absl::StatusOr<std::optional<PoseRefinementSchedule>> {
-        if (!j.contains("pose_rotation_lr")) return std::nullopt;
-        PoseRefinementSchedule pose;
-        pose.rotation_lr = j.at("pose_rotation_lr").get<double>();
-        pose.translation_lr = j.at("pose_translation_lr").get<double>();
-        pose.from = j.at("pose_refine_from").get<int>();
-        pose.until = j.at("pose_refine_until").get<int64_t>();
-        if (!(pose.rotation_lr >= 0 && pose.rotation_lr <= 1) ||
-            !(pose.translation_lr >= 0 && pose.translation_lr <= 10) || pose.from < 0 || pose.until < 0) {
-          return absl::DataLossError(absl::StrCat(path, ": pose refinement schedule out of range"));
-        }
-        return std::optional<PoseRefinementSchedule>(pose);
-      });
-}
-
-absl::StatusOr<std::optional<int>> ReadCheckpointPositionLrDecay(const std::string& dir) {
-  return ReadRecordedInt(dir, "position_lr_decay_iterations", 1, 10'000'000, "position learning-rate decay");
-}
-
-absl::StatusOr<std::optional<int>> ReadCheckpointDensifyUntil(const std::string& dir) {
-  return ReadRecordedInt(dir, "densify_until", 0, kMaxDensifyUntil, "densify_until");
-}
-
-absl::StatusOr<std::optional<double>> ReadCheckpointMotionPrior(const std::string& dir) {
-  const std::string path = RunFile(dir);
-  return ParseJsonFile<std::optional<double>>(
-      path, [&](const nlohmann::json& j) -> absl::StatusOr<std::optional<double>> {
-        if (!j.contains("field_motion_prior")) return std::nullopt;
-        const double w = j.at("field_motion_prior").get<double>();
-        if (!(w >= 0 && w <= kMaxMotionPriorWeight)) {
-          return absl::DataLossError(absl::StrCat(path, ": field_motion_prior out of range"));
-        }
-        return std::optional<double>(w);
-      });
-}
-
-absl::StatusOr<std::optional<bool>> ReadCheckpointMotionPriorAllScans(const std::string& dir) {
-  const std::string path = RunFile(dir);
-  return ParseJsonFile<std::optional<bool>>(path, [&](const nlohmann::json& j) -> absl::StatusOr<std::optional<bool>> {
-    if (!j.contains("field_motion_prior_scans")) return std::nullopt;
-    const std::optional<bool> all_scans = ParseMotionPriorScans(j.at("field_motion_prior_scans").get<std::string>());
-    if (!all_scans) {
-      return absl::DataLossError(absl::StrCat(path, ": field_motion_prior_scans is neither \"all\" nor \"last\""));
-    }
-    return all_scans;
-  });
-}
-
 absl::StatusOr<int64_t> ReadCheckpointExtensionFrom(const std::string& dir) {
   const std::string path = RunFile(dir);
   return ParseJsonFile<int64_t>(path, [&](const nlohmann::json& j) -> absl::StatusOr<int64_t> {
@@ -192,19 +91,22 @@ absl::StatusOr<int64_t> ReadCheckpointExtensionFrom(const std::string& dir) {
   });
 }
 
-absl::StatusOr<std::optional<FieldLrSchedule>> ReadTrainMetaFieldLr(const std::string& dir) {
-  const std::filesystem::path d(dir);
-  absl::StatusOr<int64_t> at = PeekCheckpointIteration((d / "checkpoint.bin").string());
-  if (!at.ok()) return std::nullopt;
-  const std::string path = (d / "train_meta.json").string();
-  absl::StatusOr<std::optional<FieldLrSchedule>> lr = ParseJsonFile<std::optional<FieldLrSchedule>>(
-      path, [&](const nlohmann::json& j) -> absl::StatusOr<std::optional<FieldLrSchedule>> {
-        // Another iteration's file describes another segment, whose schedule may differ.
-        if (!j.contains("iterations") || j.at("iterations").get<int64_t>() != *at) return std::nullopt;
-        return LrScheduleIn(j, path);
+std::optional<DivergenceGuardState> ReadCheckpointGuard(const std::string& dir, int64_t iteration) {
+  absl::StatusOr<std::optional<DivergenceGuardState>> g = ParseJsonFile<std::optional<DivergenceGuardState>>(
+      RunFile(dir), [&](const nlohmann::json& j) -> absl::StatusOr<std::optional<DivergenceGuardState>> {
+        if (!j.contains("guard") || j.value("iteration", int64_t{-1}) != iteration) return std::nullopt;
+        const nlohmann::json& r = j.at("guard");
+        DivergenceGuardState s;
+        s.started = true;
+        s.baseline = r.at("baseline").get<int64_t>();
+        s.mean = r.at("mean").get<double>();
+        s.best = r.at("best").get<double>();
+        s.psnr_mean = r.at("psnr_mean").get<double>();
+        s.psnr_best = r.at("psnr_best").get<double>();
+        s.image_width = r.at("image_width").get<int>();
+        return std::optional<DivergenceGuardState>(s);
       });
-  if (absl::IsNotFound(lr.status())) return std::nullopt;
-  return lr;
+  return g.ok() ? *g : std::nullopt;
 }
 
 }  // namespace streetsim::train

@@ -1,6 +1,8 @@
-// DIR/checkpoint.json, written beside every checkpoint: which field the run trains and with what
-// learning-rate schedule, so that a resume that does not say keeps them (client/cli/train_command.cc,
-// docs/training.md "Default field" and "Field learning rates").
+// DIR/checkpoint.json, written beside every checkpoint: the iteration, which field the checkpoint
+// holds and the settings it trained with. A run's config is DIR/config.json
+// (scene/train/config/run_config.h); this record is the checkpoint's own state (the field, where
+// an extended field's modules joined) and what MigrateCheckpointRecord reads in directories from
+// before config.json.
 #pragma once
 
 #include <cstdint>
@@ -9,6 +11,7 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "scene/train/divergence_guard.h"
 
 namespace streetsim::train {
 
@@ -56,6 +59,8 @@ struct CheckpointRun {
   // ... and which of an object's scans assign Gaussians (MotionPriorOptions::all_scans), written as
   // `field_motion_prior_scans`: "last" or "all".
   std::optional<bool> field_motion_prior_all_scans;
+  // The divergence guard's state at the checkpoint (divergence_guard.h), written as `guard`.
+  std::optional<DivergenceGuardState> guard;
 };
 
 absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run);
@@ -64,57 +69,14 @@ absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run
 // the file; DataLoss where it is damaged.
 absl::StatusOr<std::string> ReadCheckpointField(const std::string& dir);
 
-// The field's learning-rate schedule the file records (`field_lr_scale`,
-// `field_lr_decay_iterations`). nullopt where the file predates them (such runs trained with the
-// spec's 1 and 30000) or the run is static; NotFound without the file; DataLoss where damaged or
-// out of range.
-absl::StatusOr<std::optional<FieldLrSchedule>> ReadCheckpointFieldLr(const std::string& dir);
-
-// The field's learning-rate schedule DIR/train_meta.json records, where that file was written at
-// the iteration of DIR/checkpoint.bin (a run segment that ended there): runs trained between
-// --field-lr-scale and checkpoint.json's record of it have it only there. nullopt where the file
-// is missing, from another iteration or without the schedule; DataLoss where damaged.
-absl::StatusOr<std::optional<FieldLrSchedule>> ReadTrainMetaFieldLr(const std::string& dir);
-
-// The low-resolution stage the file records (`low_res_scale`, `low_res_iterations`); nullopt
-// where the run has none or the file predates them; NotFound without the file; DataLoss where
-// damaged or out of range.
-absl::StatusOr<std::optional<LowResStage>> ReadCheckpointLowResStage(const std::string& dir);
-
-// The pose refinement schedule the file records (`pose_rotation_lr`, `pose_translation_lr`,
-// `pose_refine_from`, `pose_refine_until`); nullopt where the run does not refine its poses or the
-// file predates the record; NotFound without the file; DataLoss where damaged or out of range.
-absl::StatusOr<std::optional<PoseRefinementSchedule>> ReadCheckpointPoseRefinement(const std::string& dir);
-
-// The Gaussian means' learning-rate decay the file records (`position_lr_decay_iterations`);
-// nullopt where the file predates the record (such runs decayed over 3DGS's 30 000); NotFound
-// without the file; DataLoss where damaged or out of range.
-absl::StatusOr<std::optional<int>> ReadCheckpointPositionLrDecay(const std::string& dir);
-
-// The stage iteration densification runs until (`densify_until`); nullopt where the file predates
-// the record (such runs densified until 25 000); NotFound without the file; DataLoss where damaged
-// or out of range.
-absl::StatusOr<std::optional<int>> ReadCheckpointDensifyUntil(const std::string& dir);
-
-// The extension's network learning-rate schedule the file records (`field_ext_lr_scale`,
-// `field_ext_lr_decay_iterations`). nullopt where the run is not extended or the file predates the
-// record (such runs trained at ExtHyper's defaults); NotFound without the file; DataLoss where
-// damaged or out of range.
-absl::StatusOr<std::optional<FieldLrSchedule>> ReadCheckpointExtLr(const std::string& dir);
-
-// The LiDAR motion prior's weight the file records (`field_motion_prior`): nullopt where the run
-// is static or the file predates the record (such runs had no prior); NotFound without the file;
-// DataLoss where damaged or out of range.
-absl::StatusOr<std::optional<double>> ReadCheckpointMotionPrior(const std::string& dir);
-
-// Whether the motion prior assigned from all of an object's scans (`field_motion_prior_scans`:
-// "all" or "last"): nullopt where the file predates the record (such runs used the last scan);
-// NotFound without the file; DataLoss where damaged.
-absl::StatusOr<std::optional<bool>> ReadCheckpointMotionPriorAllScans(const std::string& dir);
-
 // The fine iteration an extended run's modules joined at (`field_extension_from`): 0 where the
 // file does not record one (they joined with the fine stage); NotFound without the file; DataLoss
 // where damaged or negative.
 absl::StatusOr<int64_t> ReadCheckpointExtensionFrom(const std::string& dir);
+
+// The divergence guard's state the file records for the checkpoint of `iteration`: nullopt where
+// it records none, another iteration's, or the file is missing or damaged (the guard then starts
+// afresh: a missing record never stops a run).
+std::optional<DivergenceGuardState> ReadCheckpointGuard(const std::string& dir, int64_t iteration);
 
 }  // namespace streetsim::train

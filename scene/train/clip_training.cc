@@ -50,6 +50,7 @@ absl::StatusOr<TrainResult> TrainClipAtScale(const DriveLog& log, const ClipRang
   // Every view of the clip, then the log-wide hold-out rule on the log's frame index (a clip
   // starting at frame 50 holds out 51, 55, ... as the whole-log run does).
   DatasetOptions dopt;
+  dopt.grayscale = opt.grayscale_cameras;
   dopt.resolution_scale = opt.resolution_scale;
   dopt.holdout_every = 0;
   dopt.split = Split::kAll;

@@ -66,6 +66,8 @@ absl::StatusOr<std::vector<View>> LoadViews(const DriveLog& log, const DatasetOp
                                                      ": no pixel of the undistorted image comes from the source"));
     }
   }
+  bool rig_has_colour = false;
+  for (const CameraSensor& c : log.cameras) rig_has_colour = rig_has_colour || c.colour;
   for (int f = 0; f < static_cast<int>(log.frames.size()); ++f) {
     const bool held = IsHeldOut(f, options.holdout_every);
     if (options.split == Split::kTrain && held) continue;
@@ -73,7 +75,10 @@ absl::StatusOr<std::vector<View>> LoadViews(const DriveLog& log, const DatasetOp
     for (int c = 0; c < static_cast<int>(log.frames[f].cameras.size()); ++c) {
       const CameraObservation& obs = log.frames[f].cameras[c];
       const CameraIntrinsics& k = log.cameras[obs.camera].intrinsics;
+      const bool gray_beside_colour = rig_has_colour && !log.cameras[obs.camera].colour;
+      if (gray_beside_colour && options.grayscale == GrayscaleCameras::kSkip) continue;
       View v;
+      v.luminance_only = gray_beside_colour && options.grayscale == GrayscaleCameras::kLuminance;
       v.frame = f;
       v.camera_obs = c;
       v.time_us = log.frames[f].time_us;

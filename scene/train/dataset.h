@@ -23,6 +23,9 @@ struct View {
   std::string name;
   PinholeCamera camera;  // at the resolution scale
   cv::Mat rgb8;          // CV_8UC3, R G B, camera.width x camera.height
+  // A grayscale camera's view in a log that has colour cameras: trained and measured on the
+  // render's luminance (losses.h LuminanceRgb), so that one surface is not taught two colours.
+  bool luminance_only = false;
   std::vector<DepthSample> lidar;  // sparse depth (nearest wins per scaled pixel)
   // PSNR* (scene/train/dynamic_pixels.h): 1 = pixel of a moving LiDAR point [W*H]; empty = unknown.
   std::vector<uint8_t> dynamic_pixels;
@@ -35,7 +38,13 @@ enum class Split { kTrain, kTest, kAll };
 // Frame f is held out when holdout_every > 0 and f % holdout_every == holdout_every - 1.
 bool IsHeldOut(int frame, int holdout_every);
 
+// What a grayscale camera does in a log that also has colour cameras (docs/training.md
+// "Grayscale cameras"). In a log of grayscale cameras only, they train as they are (the scene
+// is gray, as every view it is measured on).
+enum class GrayscaleCameras { kLuminance, kSkip, kAsColour };
+
 struct DatasetOptions {
+  GrayscaleCameras grayscale = GrayscaleCameras::kLuminance;
   double resolution_scale = 1.0;
   int holdout_every = 4;
   Split split = Split::kTrain;

@@ -46,6 +46,7 @@ absl::StatusOr<EvalResult> EvaluateViews(Engine& engine, const SceneForView& sce
     const std::vector<float> gt = v.RgbFloat();
     std::vector<float> clamped(out.rgb.size());
     for (size_t i = 0; i < clamped.size(); ++i) clamped[i] = std::min(std::max(out.rgb[i], 0.0f), 1.0f);
+    if (v.luminance_only) LuminanceRgb(clamped.data(), clamped.size() / 3, clamped.data());  // as it trained
     if (sink) {
       if (absl::Status s = sink(v, clamped); !s.ok()) return s;
     }

@@ -269,4 +269,22 @@ double Psnr(const float* render, const float* target, size_t n) {
   return mse > 0 ? 10.0 * std::log10(1.0 / mse) : 100.0;
 }
 
+namespace {
+constexpr float kLumaWeights[3] = {0.299f, 0.587f, 0.114f};
+}  // namespace
+
+void LuminanceRgb(const float* rgb, size_t pixels, float* y3) {
+  for (size_t p = 0; p < pixels; ++p) {
+    const float y = kLumaWeights[0] * rgb[p * 3] + kLumaWeights[1] * rgb[p * 3 + 1] + kLumaWeights[2] * rgb[p * 3 + 2];
+    y3[p * 3] = y3[p * 3 + 1] = y3[p * 3 + 2] = y;
+  }
+}
+
+void LuminanceBackward(const float* d_y3, size_t pixels, float* d_rgb) {
+  for (size_t p = 0; p < pixels; ++p) {
+    const float g = d_y3[p * 3] + d_y3[p * 3 + 1] + d_y3[p * 3 + 2];
+    for (int c = 0; c < 3; ++c) d_rgb[p * 3 + c] += kLumaWeights[c] * g;
+  }
+}
+
 }  // namespace streetsim::train

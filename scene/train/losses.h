@@ -35,4 +35,12 @@ double DepthLoss(const float* render_depth, const std::vector<DepthSample>& samp
 // 10 log10(1 / MSE) of images clamped to [0, 1].
 double Psnr(const float* render, const float* target, size_t n);
 
+// A grayscale camera's view beside colour cameras (docs/training.md "Grayscale cameras"): the
+// render's luminance (Rec. 601: 0.299 R + 0.587 G + 0.114 B) in all three channels of `y3`, so
+// that the RGB losses above compare it with the grayscale image (loaded with equal channels).
+void LuminanceRgb(const float* rgb, size_t pixels, float* y3);
+// Chains a gradient with respect to `y3` back to the render: adds w_c * sum_k d_y3[p, k] to
+// d_rgb[p, c].
+void LuminanceBackward(const float* d_y3, size_t pixels, float* d_rgb);
+
 }  // namespace streetsim::train

@@ -51,6 +51,9 @@ struct MotionPriorOptions {
   // carried from the latest scan that saw the object where it lies (the smear moves with the
   // object and lands on it where it stands).
   bool all_scans = false;
+  // A preset's prior, not one the user asked for: where the log cannot carry it (too few scans
+  // to track objects in), the run goes on without it and says so instead of failing.
+  bool optional = false;
 };
 
 // MotionPriorOptions::all_scans by name, as the flag, checkpoint.json, train_meta.json and

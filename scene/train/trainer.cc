@@ -13,6 +13,7 @@
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
 
+#include "absl/strings/cord.h"
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
 #include "render/common/thread_pool.h"
@@ -20,6 +21,7 @@
 #include "scene/gaussians/ply_io.h"
 #include "scene/init/initial_scene.h"
 #include "scene/field/field_io.h"
+#include "scene/train/divergence_guard.h"
 #include "scene/train/dynamic_pixels.h"
 #include "scene/train/gradient_guard.h"
 #include "scene/train/losses.h"
@@ -131,6 +133,7 @@ absl::StatusOr<TrainResult> TrainLogAtScale(const DriveLog& log, const std::stri
   if (opt.iterations < 1) return absl::InvalidArgumentError("iterations must be >= 1");
   if (absl::Status s = CheckFieldOptions(opt); !s.ok()) return s;
   DatasetOptions dopt;
+  dopt.grayscale = opt.grayscale_cameras;
   dopt.resolution_scale = opt.resolution_scale;
   dopt.holdout_every = opt.holdout_every;
   dopt.split = Split::kTrain;
@@ -233,7 +236,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
   std::unique_ptr<DeviceScene> scene;
   RenderOutput out;
   GaussianGrads grads;
-  std::vector<float> d_rgb, d_depth, d_pre, rgb_exp;
+  std::vector<float> d_rgb, d_depth, d_pre, rgb_exp, luma, d_luma;
   std::vector<std::vector<float>> gt_cache(num_views);
   const Hyper& h = opt.hyper;
   TrainResult result;
@@ -276,6 +279,13 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     if (!r.ok()) return r.status();
     stage = std::move(*r);
   }
+  // The loss watched for divergence (divergence_guard.h); the fine stage's start and opacity
+  // resets move it on purpose. A resumed run goes on with its checkpoint's record of it.
+  DivergenceGuard guard;
+  if (opt.resume && st.iteration > 0) {
+    std::optional<DivergenceGuardState> g = ReadCheckpointGuard(out_dir, st.iteration);
+    if (g && g->image_width == (*views)[0].camera.width) guard.Restore(*g);
+  }
   // The field's checkpoint first (one file per iteration), then the Gaussians', then older fields.
   int64_t saved_iteration = -1;  // the last checkpoint's, so that a stop right after one is free
   auto save_checkpoint = [&]() -> absl::Status {
@@ -298,6 +308,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     run.low_res = opt.low_res;
     run.position_lr_decay_iterations = h.lr_decay_steps;
     run.densify_until = h.densify_until;
+    run.guard = guard.state((*views)[0].camera.width);
     if (stage && stage->extended()) {
       run.field_extension_from = stage->extension_from_fine_iteration();
       run.field_ext_lr = FieldLrSchedule{opt.field.ext_hyper.lr_scale, opt.field.ext_hyper.lr_decay_steps};
@@ -312,6 +323,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
   // The fine stage's motion prior (built when the fine stage starts): the log's moving objects
   // tracked once, Gaussians assigned to them whenever the rows change.
   std::unique_ptr<MotionPrior> motion_prior;
+  bool motion_prior_skipped = false;  // a preset's prior the log cannot carry
   bool prior_rows_changed = true;
   std::vector<float> prior_grad;
   if (dynamic && opt.motion_prior.weight > 0 && opt.lidar_log == nullptr) {
@@ -333,6 +345,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     lidar_stage = std::move(*ls);
   }
 
+  bool said_suspicious = false;
   for (int64_t it = first; it <= opt.iterations; ++it) {
     const int active = std::min<int>(3, static_cast<int>(it / h.sh_degree_interval));
     const int vi = NextView(&st, num_views);
@@ -346,6 +359,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       absl::StatusOr<std::unique_ptr<DynamicStage>> b = DynamicStage::Begin(&st, fopt, fopt.time_range);
       if (!b.ok()) return b.status();
       stage = std::move(*b);
+      guard.Rebaseline(it);
       if (absl::Status s = stage->OrderGaussians(&st, pool); !s.ok()) return s;
       LOG(INFO) << "iteration " << it << ": fine stage, field of " << stage->field().layout().total
                 << " parameters";
@@ -379,12 +393,24 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     }
     d_rgb.assign(pixels * 3, 0.0f);
     d_depth.assign(pixels, 0.0f);
-    const double l1 = L1Loss(pool, image->data(), gt.data(), pixels * 3, 1.0f, d_rgb.data());
-    const double ssim = Ssim(pool, image->data(), gt.data(), W, H, static_cast<float>(-h.lambda_dssim), d_rgb.data());
+    // A grayscale camera beside colour ones supervises the render's luminance only (losses.h).
+    const std::vector<float>* compared = image;
+    float* d_compared = d_rgb.data();
+    if (view.luminance_only) {
+      luma.resize(pixels * 3);
+      LuminanceRgb(image->data(), pixels, luma.data());
+      d_luma.assign(pixels * 3, 0.0f);
+      compared = &luma;
+      d_compared = d_luma.data();
+    }
+    const double l1 = L1Loss(pool, compared->data(), gt.data(), pixels * 3, 1.0f, d_compared);
+    const double ssim =
+        Ssim(pool, compared->data(), gt.data(), W, H, static_cast<float>(-h.lambda_dssim), d_compared);
+    if (view.luminance_only) LuminanceBackward(d_luma.data(), pixels, d_rgb.data());
     double ld = 0;
     if (opt.depth_loss) ld = DepthLoss(out.depth.data(), view.lidar, static_cast<float>(h.lambda_depth), d_depth.data());
     double loss = l1 + h.lambda_dssim * (1 - ssim) + h.lambda_depth * ld;
-    const double psnr = Psnr(image->data(), gt.data(), pixels * 3);
+    const double psnr = Psnr(compared->data(), gt.data(), pixels * 3);
 
     // Back through the exposure to the render.
     const std::vector<float>* d_render = &d_rgb;
@@ -437,20 +463,26 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
     if (absl::Status s = GuardGradients(it, st.size(), kMaxNonFiniteGradientFraction, &grads, pool); !s.ok()) {
       return s;
     }
-    if (fine && opt.motion_prior.weight > 0 && !motion_prior) {
+    if (fine && opt.motion_prior.weight > 0 && !motion_prior && !motion_prior_skipped) {
       const auto t0 = Clock::now();
       // Tracked in the training frames' scans only: held-out frames are never used.
       const DriveLog train_log =
           TrainingFramesLog(*opt.lidar_log, 0, static_cast<int>(opt.lidar_log->frames.size()), opt.holdout_every);
       absl::StatusOr<std::unique_ptr<MotionPrior>> mp = MotionPrior::Build(train_log, opt.motion_prior);
-      if (!mp.ok()) return mp.status();
-      motion_prior = std::move(*mp);
-      motion_prior->Assign(st.params.means.data(), st.size(), pool);
-      prior_rows_changed = false;
-      LOG(INFO) << "motion prior: " << motion_prior->num_tracks() << " moving objects from " << train_log.frames.size()
-                << " training frames' LiDAR (" << std::chrono::duration<double>(Clock::now() - t0).count()
-                << " s), weight " << opt.motion_prior.weight << ", " << MotionPriorScansName(opt.motion_prior.all_scans)
-                << " scans; " << motion_prior->assigned() << " of " << st.size() << " Gaussians on moving objects";
+      if (!mp.ok() && !opt.motion_prior.optional) return mp.status();
+      if (!mp.ok()) {
+        LOG(WARNING) << "motion prior left out (the preset's; this log cannot carry it): " << mp.status().message();
+        motion_prior_skipped = true;
+      } else {
+        motion_prior = std::move(*mp);
+        motion_prior->Assign(st.params.means.data(), st.size(), pool);
+        prior_rows_changed = false;
+        LOG(INFO) << "motion prior: " << motion_prior->num_tracks() << " moving objects from "
+                  << train_log.frames.size() << " training frames' LiDAR ("
+                  << std::chrono::duration<double>(Clock::now() - t0).count() << " s), weight "
+                  << opt.motion_prior.weight << ", " << MotionPriorScansName(opt.motion_prior.all_scans) << " scans; "
+                  << motion_prior->assigned() << " of " << st.size() << " Gaussians on moving objects";
+      }
     }
     if (fine && motion_prior) {
       if (prior_rows_changed || motion_prior->n() != st.size()) {
@@ -490,6 +522,7 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       const bool outputs_soon = opt.write_outputs && opt.iterations - it < h.min_iterations_after_reset;
       if (stage_it % h.opacity_reset_interval == 0 && !outputs_soon) {
         ResetOpacity(&st);
+        guard.Rebaseline(it);
         replaced = true;
       }
     }
@@ -534,7 +567,22 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& train_views, c
       p.eta_s = ((p.eta_static_stage_only ? static_its : opt.iterations) - it) / std::max(p.it_per_s, 1e-9);
       progress(p);
     }
-    if (opt.checkpoint_every > 0 && it % opt.checkpoint_every == 0) {
+    const DivergenceGuard::Verdict verdict =
+        opt.divergence_guard ? guard.Observe(it, loss, psnr) : DivergenceGuard::Verdict::kFine;
+    if (verdict == DivergenceGuard::Verdict::kDiverged) {
+      // No checkpoint of the diverged state: the last one on disk is from before it.
+      log_fine_timings();
+      absl::Status diverged = absl::AbortedError(absl::StrCat(
+          "diverged at iteration ", it, fine ? " (fine stage)" : " (static stage)", ": ", guard.why(),
+          "; the last checkpoint (iteration ", std::max<int64_t>(saved_iteration, first - 1), ") is from before"));
+      diverged.SetPayload(kDivergedAtPayload, absl::Cord(absl::StrCat(it)));
+      return diverged;
+    }
+    if (verdict == DivergenceGuard::Verdict::kSuspicious && !said_suspicious) {
+      LOG(WARNING) << "iteration " << it << ": " << guard.why() << ": no checkpoint until it recovers";
+    }
+    said_suspicious = verdict == DivergenceGuard::Verdict::kSuspicious;
+    if (opt.checkpoint_every > 0 && it % opt.checkpoint_every == 0 && verdict == DivergenceGuard::Verdict::kFine) {
       if (absl::Status s = save_checkpoint(); !s.ok()) return s;
     }
     if (opt.stop_requested != nullptr && opt.stop_requested->load(std::memory_order_relaxed)) {

@@ -39,6 +39,11 @@ struct TrainOptions {
   // writes DIR/pose_corrections.json and evaluates its held-out views at interpolated corrections.
   bool pose_refinement = false;
   bool deterministic = false;  // fixed-order gradient reduction (identical bits run to run)
+  // Stop with Aborted (payload kDivergedAtPayload: the iteration) when the training loss diverges,
+  // keeping the last checkpoint from before it (divergence_guard.h).
+  bool divergence_guard = true;
+  // Grayscale cameras beside colour ones (dataset.h GrayscaleCameras).
+  GrayscaleCameras grayscale_cameras = GrayscaleCameras::kLuminance;
   bool write_outputs = true;   // scene.ply, plot, previews at the end
   int stop_after = 0;          // > 0: stop (as if killed) after this iteration, without final outputs
   // Set from outside (the CLI's SIGINT / SIGTERM handler): the run stops after the iteration in
@@ -60,6 +65,9 @@ struct TrainOptions {
   // The log whose scans the LiDAR step reads (Train sets it; TrainOnViews callers may).
   const DriveLog* lidar_log = nullptr;
 };
+
+// The payload of a diverged run's Aborted status: the iteration it diverged at, as text.
+inline constexpr char kDivergedAtPayload[] = "streetsim.train/diverged_at";
 
 struct Progress {
   int64_t iteration = 0, total = 0;

@@ -196,7 +196,7 @@ class PythonClientTest(unittest.TestCase):
         self.assertEqual(e.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
 
     def test_training_helper_streams_progress(self):
-        job = self.client.train("logs/fake", scene_name="py_trained", request_id="py-1")
+        job = self.client.train("logs/fake", scene_name="py_trained", request_id="py-1", max_iterations=0)
         updates = list(self.client.watch_job(job.job_id))
         self.assertGreaterEqual(len(updates), 1)
         self.assertEqual(updates[-1].state, training_pb2.JOB_STATE_SUCCEEDED, updates[-1].error)
@@ -214,19 +214,33 @@ class PythonClientTest(unittest.TestCase):
         with self.assertRaises(streetsim.StreetsimError) as e:
             self.client.train("logs/fake", scene_name="py_bad", max_iterations=100, low_res_scale=0.25)
         self.assertEqual(e.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
-        self.assertIn("low_res_iterations", e.exception.details)
+        self.assertIn("low-res-iterations", e.exception.details)
         with self.assertRaises(streetsim.StreetsimError) as e:
             self.client.train("logs/fake", scene_name="py_bad", max_iterations=100, field="dynamic")
         self.assertIn("config.field", e.exception.details)
         with self.assertRaises(streetsim.StreetsimError) as e:  # the motion prior needs a field
             self.client.train("logs/fake", scene_name="py_bad", max_iterations=100, field_motion_prior=0.3)
-        self.assertIn("config.field_motion_prior needs a field", e.exception.details)
+        self.assertIn("field-motion-prior needs a field", e.exception.details)
         with self.assertRaises(streetsim.StreetsimError) as e:  # which scans: last or all
             self.client.train("logs/fake", scene_name="py_bad", max_iterations=9000, field_motion_prior_scans="first")
-        self.assertIn("config.field_motion_prior_scans must be", e.exception.details)
+        self.assertIn("config.field_motion_prior_scans: field-motion-prior-scans must be", e.exception.details)
         with self.assertRaises(streetsim.StreetsimError) as e:  # densification's end: a stage iteration
             self.client.train("logs/fake", scene_name="py_bad", max_iterations=9000, densify_until=-1)
-        self.assertIn("config.densify_until must be in 0..10000000", e.exception.details)
+        self.assertIn("config.densify_until: densify-until must be an integer in 0..10000000", e.exception.details)
+        # Settings by name and presets (docs/training.md "Settings"), checked by the trainer's table.
+        with self.assertRaises(streetsim.StreetsimError) as e:
+            self.client.train("logs/fake", scene_name="py_bad", settings={"iterations": "many"})
+        self.assertIn("config.settings['iterations']: iterations must be an integer", e.exception.details)
+        with self.assertRaises(streetsim.StreetsimError) as e:
+            self.client.train("logs/fake", scene_name="py_bad", preset="fastest")
+        self.assertIn("no preset 'fastest'", e.exception.details)
+        job = self.client.train("logs/fake", scene_name="py_set", settings={"iterations": 40, "pose-refinement": False})
+        self.assertEqual(dict(job.config.settings), {"iterations": "40", "pose-refinement": "false"})
+        self.client.cancel_job(job.job_id)
+        # No settings at all: the default preset, as `streetsim train --log LOG --out DIR` runs it.
+        job = self.client.train("logs/fake", scene_name="py_default")
+        self.assertEqual(job.config.preset, "quality")
+        self.client.cancel_job(job.job_id)
         job = self.client.train("logs/fake", scene_name="py_static", max_iterations=0, request_id="py-opt")
         self.assertEqual(job.config.scene_name, "py_static")
 

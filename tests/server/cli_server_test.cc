@@ -261,7 +261,7 @@ TEST_F(CliServerTest, JobsTrainWatchListGet) {
   Result r = Exec("jobs list" + Server());
   ASSERT_EQ(r.exit_code, 0) << r.err;
   EXPECT_EQ(r.out, "");
-  r = Exec("jobs train logs/fake --scene-name cli_job --request-id rq1 --watch" + Server());
+  r = Exec("jobs train logs/fake --scene-name cli_job --request-id rq1 --max-iterations 0 --watch" + Server());
   ASSERT_EQ(r.exit_code, 0) << r.err;
   EXPECT_TRUE(Contains(r.out, "succeeded")) << r.out;
   EXPECT_TRUE(Contains(r.out, "scene cli_job")) << r.out;
@@ -276,10 +276,10 @@ TEST_F(CliServerTest, JobsTrainWatchListGet) {
   r = Exec("jobs watch " + id + Server());
   EXPECT_EQ(r.exit_code, 0) << r.err;
   // Idempotent by request id; the scene name is now taken.
-  r = Exec("jobs train logs/fake --scene-name cli_job --request-id rq1" + Server());
+  r = Exec("jobs train logs/fake --scene-name cli_job --request-id rq1 --max-iterations 0" + Server());
   EXPECT_EQ(r.exit_code, 0) << r.err;
   EXPECT_TRUE(Contains(r.out, id)) << r.out;
-  ExpectRefused("jobs train logs/fake --scene-name cli_job" + Server(), 2, "already");
+  ExpectRefused("jobs train logs/fake --scene-name cli_job --max-iterations 0" + Server(), 2, "already");
   r = Exec("scenes" + Server());
   EXPECT_TRUE(Contains(r.out, "cli_job")) << r.out;
   ExpectRefused("jobs get j-nope" + Server(), 2, "j-nope");
@@ -314,8 +314,8 @@ TEST_F(CliServerTest, JobsTrainPassesTheConfigToTheTrainer) {
   StartServe();
   const std::string options =
       " --max-iterations 12000 --seed 3 --field extended --field-modules temporal,decoder --static-iterations 4000"
-      " --resolution-scale 0.5 --low-res-scale 0.25 --low-res-iterations 3000 --holdout-every 0 --clip-frames 50"
-      " --clip-overlap 0 --field-lr-scale 2.5 --field-lr-decay-iterations 6000 --backend cpu --pose-refinement"
+      " --resolution-scale 0.5 --low-res-scale 0.25 --low-res-iterations 3000 --holdout-every 0"
+      " --field-lr-scale 2.5 --field-lr-decay-iterations 6000 --backend cpu --pose-refinement"
       " --pose-lr-scale 3 --position-lr-decay-iterations 7000 --field-ext-lr-scale 0.4"
       " --field-ext-lr-decay-iterations 4500 --field-motion-prior 0.3 --field-motion-prior-scans all"
       " --densify-until 9000";
@@ -327,17 +327,18 @@ TEST_F(CliServerTest, JobsTrainPassesTheConfigToTheTrainer) {
   const std::string log = ReadAll(state_dir_ + "/jobs/" + id + "/train.log");
   EXPECT_EQ(Lines(log), 1) << log;  // the log's complaint only: no flag was refused
   // Values the trainer would refuse are refused by the server before a job exists.
-  ExpectRefused("jobs train logs/fake --max-iterations 100 --field dynamic" + Server(), 2, "config.field must be");
+  ExpectRefused("jobs train logs/fake --max-iterations 100 --field dynamic" + Server(), 2, "field must be one of");
   ExpectRefused("jobs train logs/fake --max-iterations 100 --low-res-scale 0.5 --low-res-iterations 200" + Server(), 2,
-                "config.low_res_scale / low_res_iterations");
+                "low-res-scale / low-res-iterations");
   ExpectRefused("jobs train logs/fake --max-iterations 100 --static-iterations many" + Server(), 2,
-                "--static-iterations takes an integer");
+                "static-iterations must be an integer");
   ExpectRefused("jobs train logs/fake --max-iterations 9000 --field s3gaussian --field-ext-lr-scale 0.5" + Server(), 2,
-                "need field \"extended\"");
+                "needs field extended");
   ExpectRefused("jobs train logs/fake --max-iterations 9000 --field-motion-prior -1" + Server(), 2,
-                "config.field_motion_prior");
-  ExpectRefused("jobs train logs/fake --max-iterations 9000 --field-motion-prior-scans first" + Server(), 2,
-                "config.field_motion_prior_scans");
+                "field-motion-prior must be a number in [0, 10000]");
+  ExpectRefused("jobs train logs/fake --set field-motion-prior-scans=first" + Server(), 2,
+                "config.settings['field-motion-prior-scans']");
+  ExpectRefused("jobs train logs/fake --preset fastest" + Server(), 2, "no preset 'fastest'");
   r = Exec("jobs list" + Server());
   EXPECT_EQ(Lines(r.out), 1) << r.out;
   EXPECT_EQ(serve_->Terminate(), 0) << serve_->stderr_text();

@@ -1,7 +1,7 @@
 #!/bin/sh
-# Test double of `streetsim train --log LOG --out DIR --iterations N [--resume] [config flags]` for
-# the training-job tests. The config's flags (server/training_config.cc) are appended, one line per
-# run, to DIR/flags. Prints the trainer's progress lines on stderr, one per iteration, keeps a
+# Test double of `streetsim train --log LOG --out DIR [--preset P] [--set NAME=VALUE]... [--resume]`
+# for the training-job tests (--set iterations=N: N iterations, --set seed=S). The config's flags
+# (server/training_config.cc) but those two are appended, one line per run, to DIR/flags. Prints the trainer's progress lines on stderr, one per iteration, keeps a
 # "checkpoint" (DIR/checkpoint.bin = last iteration, replaced by rename) and on --resume continues from it (noted in
 # DIR/resumed). LOG/train_sleep_s: pause per iteration; LOG/train_fail: exit 5; LOG/preview.png:
 # copied to DIR/preview/ (as the trainer's held-out previews). Leaves
@@ -19,6 +19,15 @@ while [ $# -gt 0 ]; do
     --iterations) n="$2"; shift 2 ;;
     --seed) seed="$2"; shift 2 ;;
     --resume) resume=1; shift ;;
+    --preset) flags="$flags $1 $2"; shift 2 ;;
+    --set)
+      case "$2" in
+        iterations=*) n="${2#iterations=}" ;;
+        seed=*) seed="${2#seed=}" ;;
+        field=*) field="${2#field=}"; flags="$flags $1 $2" ;;
+        *) flags="$flags $1 $2" ;;
+      esac
+      shift 2 ;;
     --field) field="$2"; flags="$flags $1 $2"; shift 2 ;;
     --field-modules|--static-iterations|--resolution-scale|--low-res-scale|--low-res-iterations|\
     --holdout-every|--clip-frames|--clip-overlap|--field-lr-scale|--field-lr-decay-iterations|--backend)

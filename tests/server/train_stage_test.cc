@@ -232,8 +232,8 @@ TEST_F(TrainStageTest, AJobContinuesAnotherJobsScene) {
   std::ifstream flags(state_dir_ + "/scenes/longer/flags");
   std::vector<std::string> runs;
   for (std::string line; std::getline(flags, line);) runs.push_back(line);
-  EXPECT_EQ(runs, (std::vector<std::string>{"--field s3gaussian --static-iterations 4",  // the source's run
-                                            "--field-lr-decay-iterations 600"}));
+  EXPECT_EQ(runs, (std::vector<std::string>{"--set field=s3gaussian --set static-iterations=4",  // the source's run
+                                            "--set field-lr-decay-iterations=600"}));
   std::ifstream source_trained(state_dir_ + "/scenes/first/trained");
   std::string line;
   std::getline(source_trained, line);
@@ -385,7 +385,8 @@ TEST_F(TrainStageTest, RestartResumesTheTrainerFromItsCheckpoint) {
   std::ifstream flags(state_dir_ + "/scenes/resumed/flags");
   std::vector<std::string> runs;
   for (std::string line; std::getline(flags, line);) runs.push_back(line);
-  const std::string want = "--static-iterations 20 --low-res-scale 0.25 --low-res-iterations 10 --holdout-every 0";
+  const std::string want =
+      "--set static-iterations=20 --set low-res-scale=0.25 --set low-res-iterations=10 --set holdout-every=0";
   EXPECT_EQ(runs, (std::vector<std::string>{want, want}));
 }
 
@@ -440,8 +441,13 @@ TEST_F(TrainStageTest, BadTrainingOptionsAreRefusedAtCreation) {
   req.mutable_config()->set_low_res_scale(0.25);  // without low_res_iterations
   absl::StatusOr<v1::Job> job = client_->CreateTrainingJob(req);
   EXPECT_EQ(job.status().code(), absl::StatusCode::kInvalidArgument);
-  EXPECT_NE(job.status().message().find("config.low_res_scale and low_res_iterations go together"), std::string::npos)
+  EXPECT_NE(job.status().message().find("low-res-scale needs low-res-iterations > 0"), std::string::npos)
       << job.status();
+  req = JobFor("bad_options", 100);
+  (*req.mutable_config()->mutable_settings())["densify-untill"] = "5";
+  job = client_->CreateTrainingJob(req);
+  EXPECT_EQ(job.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(job.status().message().find("unknown setting 'densify-untill'"), std::string::npos) << job.status();
   req = JobFor("bad_options", 0);
   req.mutable_config()->set_field("s3gaussian");
   EXPECT_EQ(client_->CreateTrainingJob(req).status().code(), absl::StatusCode::kInvalidArgument);

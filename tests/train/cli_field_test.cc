@@ -192,14 +192,7 @@ TEST(CliField, ExtendedModulesGrowOnAnS3GaussianRunsResume) {
   r = RunCli(train + " --iterations 18 --resume --field extended --field-modules decoder" + kSmall);
   EXPECT_NE(r.code, 0);
   EXPECT_NE(r.err.find("checkpoint_field_17_ext.bin"), std::string::npos) << r.err;
-  // A damaged record is a one-line exit 2 naming the file: the modules' rate out of range ...
-  std::ofstream(dir + "/checkpoint.json", std::ios::trunc)
-      << R"({"iteration": 17, "field": "extended", "static_iterations": 8, "field_extension_from": 4,)"
-      << R"( "field_ext_lr_scale": 0, "field_ext_lr_decay_iterations": 900})";
-  r = RunCli(train + " --iterations 18 --resume --field extended --field-modules decoder" + kSmall);
-  EXPECT_EQ(r.code, 2) << r.err;
-  EXPECT_NE(r.err.find("checkpoint.json: field_ext_lr schedule out of range"), std::string::npos) << r.err;
-  // ... or where the modules joined.
+  // A damaged record of where the modules joined is a one-line exit 2 naming the file.
   std::ofstream(dir + "/checkpoint.json", std::ios::trunc)
       << R"({"iteration": 17, "field": "extended", "static_iterations": 8, "field_extension_from": -3})";
   r = RunCli(train + " --iterations 18 --resume --field extended --field-modules decoder" + kSmall);
@@ -310,13 +303,19 @@ TEST(CliField, MotionPriorScansAreRecordedAndKeptByAResume) {
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_NE(r.err.find("weight 0.5, all scans;"), std::string::npos) << r.err;
   EXPECT_EQ(recorded("checkpoint.json"), "all");
-  nlohmann::json j = nlohmann::json::parse(Slurp(dir + "/checkpoint.json"));
-  j["field_motion_prior_scans"] = "some";
-  std::ofstream(dir + "/checkpoint.json", std::ios::trunc) << j.dump();
+  nlohmann::json config = nlohmann::json::parse(Slurp(dir + "/config.json"));
+  EXPECT_EQ(config["schedule"][1]["set"]["field-motion-prior-scans"], "all") << config.dump();
+  config["settings"]["field-motion-prior-scans"] = "some";
+  std::ofstream(dir + "/config.json", std::ios::trunc) << config.dump();
   r = train(11, " --resume");
   EXPECT_EQ(r.code, 2) << r.err;
-  EXPECT_NE(r.err.find("checkpoint.json: field_motion_prior_scans is neither"), std::string::npos) << r.err;
-  j.erase("field_motion_prior_scans");  // a run from before the record: its last scans
+  EXPECT_NE(r.err.find("config.json: field-motion-prior-scans must be one of last, all, not 'some'"),
+            std::string::npos)
+      << r.err;
+  // A run from before config.json and before checkpoint.json recorded the scans: its last ones.
+  std::filesystem::remove(dir + "/config.json");
+  nlohmann::json j = nlohmann::json::parse(Slurp(dir + "/checkpoint.json"));
+  j.erase("field_motion_prior_scans");
   std::ofstream(dir + "/checkpoint.json", std::ios::trunc) << j.dump();
   r = train(11, " --resume");
   ASSERT_EQ(r.code, 0) << r.err;
@@ -341,7 +340,8 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
              " --field-lr-scale 2.5 --field-lr-decay-iterations 4000 --field-time-resolution 5" +
              " --field-motion-prior 0.5" + common);
   ASSERT_EQ(r.code, 0) << r.err;
-  EXPECT_NE(r.err.find("--field s3gaussian (the default"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("preset quality (10 iterations, S3Gaussian's field after 6 static)"), std::string::npos)
+      << r.err;
   // The motion prior tracks the training frames' scans only (78 frames, every 10th held out).
   EXPECT_NE(r.err.find("moving objects from 71 training frames' LiDAR"), std::string::npos) << r.err;
   EXPECT_NE(r.err.find("Gaussians on moving objects"), std::string::npos) << r.err;
@@ -373,117 +373,62 @@ TEST(CliField, DefaultFieldFollowsTheRunAndItsDirectory) {
   EXPECT_EQ(staged_run["field_lr_decay_iterations"], 4000);
   EXPECT_DOUBLE_EQ(staged_run["field_motion_prior"].get<double>(), 0.5);
 
-  // A resume keeps the run's own learning-rate schedule: the one checkpoint.json records; for a
-  // fine stage from before the file recorded it, the one train_meta.json records where a segment
-  // ended at the checkpoint's iteration, else the spec's; and refuses a damaged one.
+  // A resume keeps the run's own config (config.json): its learning-rate schedule and motion
+  // prior; a value given wins from the checkpoint on, the others stay the run's.
   auto resume_to = [&](int iterations, const std::string& extra = "") {
     return RunCli("train --log " + kKitti + " --out " + staged_dir + " --resume --iterations " +
-                  std::to_string(iterations) + " --static-iterations 6" + common + extra);
+                  std::to_string(iterations) + common + extra);
   };
   auto meta_lr = [&]() {
     const nlohmann::json m = nlohmann::json::parse(Slurp(staged_dir + "/train_meta.json"));
     return std::make_pair(m["field_lr_scale"].get<double>(), m["field_lr_decay_iterations"].get<int>());
   };
-  auto edit_json = [&](const std::string& name, const std::function<void(nlohmann::json&)>& edit) {
-    nlohmann::json j = nlohmann::json::parse(Slurp(staged_dir + "/" + name));
-    edit(j);
-    std::ofstream(staged_dir + "/" + name, std::ios::trunc) << j.dump();
-  };
-  auto drop_lr = [](nlohmann::json& j) {
-    j.erase("field_lr_scale");
-    j.erase("field_lr_decay_iterations");
+  auto meta_prior = [&]() {
+    return nlohmann::json::parse(Slurp(staged_dir + "/train_meta.json"))["field_motion_prior"].get<double>();
   };
   r = resume_to(11);
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(meta_lr(), std::make_pair(2.5, 4000));
-  auto meta_prior = [&]() {
-    return nlohmann::json::parse(Slurp(staged_dir + "/train_meta.json"))["field_motion_prior"].get<double>();
-  };
   EXPECT_DOUBLE_EQ(meta_prior(), 0.5);  // and its motion prior (a segment must not drop it)
   EXPECT_NE(r.err.find("Gaussians on moving objects"), std::string::npos) << r.err;
-  edit_json("checkpoint.json", drop_lr);  // a run from before the file recorded the schedule
-  r = resume_to(12);
+  r = resume_to(12, " --field-lr-scale 4");  // an explicit value wins, the other stays the run's
   ASSERT_EQ(r.code, 0) << r.err;
-  EXPECT_EQ(meta_lr(), std::make_pair(2.5, 4000));  // train_meta.json's, written at the checkpoint's 11
-  edit_json("checkpoint.json", drop_lr);
-  edit_json("train_meta.json", [](nlohmann::json& j) { j["iterations"] = 11; });  // not this checkpoint's
-  r = resume_to(13);
-  ASSERT_EQ(r.code, 0) << r.err;
-  EXPECT_EQ(meta_lr(), std::make_pair(1.0, 30000));  // S3Gaussian's, the only schedule before the flag
-  edit_json("checkpoint.json", drop_lr);
-  edit_json("train_meta.json", drop_lr);
-  r = resume_to(14);
-  ASSERT_EQ(r.code, 0) << r.err;
-  EXPECT_EQ(meta_lr(), std::make_pair(1.0, 30000));
-  r = resume_to(15, " --field-lr-scale 4");  // an explicit value wins, the other stays the run's
-  ASSERT_EQ(r.code, 0) << r.err;
-  EXPECT_EQ(meta_lr(), std::make_pair(4.0, 30000));
-  r = resume_to(16, " --field-lr-decay-iterations 700");  // annealing keeps the run's scale
+  EXPECT_NE(r.err.find("from iteration 11: field-lr-scale"), std::string::npos) << r.err;
+  EXPECT_EQ(meta_lr(), std::make_pair(4.0, 4000));
+  r = resume_to(13, " --field-lr-decay-iterations 700");  // annealing keeps the run's scale
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(meta_lr(), std::make_pair(4.0, 700));
-  edit_json("checkpoint.json", [](nlohmann::json& j) { j["field_motion_prior"] = -1; });
-  r = resume_to(17);
-  EXPECT_EQ(r.code, 2) << r.err;
-  EXPECT_NE(r.err.find("checkpoint.json: field_motion_prior out of range"), std::string::npos) << r.err;
-  r = resume_to(17, " --field-motion-prior 0");  // the flag wins, and turns it off
+  r = resume_to(14, " --field-motion-prior 0");  // turns it off
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(meta_lr(), std::make_pair(4.0, 700));
   EXPECT_DOUBLE_EQ(meta_prior(), 0.0);
   EXPECT_EQ(r.err.find("Gaussians on moving objects"), std::string::npos) << r.err;
-  edit_json("checkpoint.json", [](nlohmann::json& j) { j["field_lr_scale"] = -1; });
-  r = resume_to(18);
-  EXPECT_EQ(r.code, 2) << r.err;
-  EXPECT_NE(r.err.find("checkpoint.json"), std::string::npos) << r.err;
-  edit_json("checkpoint.json", drop_lr);
-  edit_json("train_meta.json", [](nlohmann::json& j) { j["field_lr_scale"] = "ten"; });
-  r = resume_to(18);
-  EXPECT_EQ(r.code, 2) << r.err;
-  EXPECT_NE(r.err.find("train_meta.json"), std::string::npos) << r.err;
+  // config.json holds the run's history: each change is a stage from the iteration it began at.
+  const nlohmann::json config = nlohmann::json::parse(Slurp(staged_dir + "/config.json"));
+  ASSERT_GE(config["schedule"].size(), 4u) << config.dump();
+  EXPECT_EQ(config["schedule"][1]["from"], 11);
+  EXPECT_EQ(config["schedule"][1]["set"]["field-lr-scale"], 4.0);
+  EXPECT_EQ(config["settings"]["field-lr-scale"], 2.5);
 
-  // Resume without --field: the directory decides. The checkpoints here are headers only (magic +
-  // iteration), so every resume then fails loading it; what is checked is the field picked first.
+  // A directory from before config.json: its checkpoint.json decides (a static run stays static
+  // past the warm-up), and a damaged one is refused naming it. The checkpoint here is a header
+  // only (magic + iteration), so the run then fails loading it.
   const std::string dir = streetsim::testing::ScratchDir("streetsim_cli_field_default", "resume");
-  auto header = [&](int64_t iteration) {
+  {
     std::ofstream f(dir + "/checkpoint.bin", std::ios::binary | std::ios::trunc);
+    const int64_t iteration = 6000;
     f.write("SSTRN001", 8);
     f.write(reinterpret_cast<const char*>(&iteration), sizeof(iteration));
-  };
+  }
   const std::string resume = "train --log " + kKitti + " --out " + dir + " --iterations 30000 --resume" + common;
-  header(6000);  // past the warm-up without a field checkpoint: a static run
+  auto record = [&](const std::string& text) { std::ofstream(dir + "/checkpoint.json", std::ios::trunc) << text; };
+  record(R"({"iteration": 6000, "field": "static"})");
   r = RunCli(resume);
-  EXPECT_NE(r.code, 0);
-  EXPECT_EQ(r.err.find("--field s3gaussian (the default"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("predates config.json"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("30000 iterations, static model"), std::string::npos) << r.err;
   EXPECT_NE(r.err.find("corrupt checkpoint"), std::string::npos) << r.err;
-  header(3000);  // inside the warm-up: the same rule as a fresh run of 30000 iterations
-  r = RunCli(resume);
-  EXPECT_NE(r.err.find("--field s3gaussian (the default"), std::string::npos) << r.err;
-  header(6000);
-  std::ofstream(dir + "/checkpoint_field_6000.bin") << "x";  // a dynamic run past its warm-up
-  r = RunCli(resume);
-  EXPECT_NE(r.err.find("--field s3gaussian (the default"), std::string::npos) << r.err;
-  std::ofstream(dir + "/checkpoint_field_6000_ext.bin") << "x";  // an extended run: say how to resume
-  r = RunCli(resume);
-  EXPECT_EQ(r.code, 2) << r.err;
-  EXPECT_NE(r.err.find("--field extended"), std::string::npos) << r.err;
-
-  // checkpoint.json (written with every checkpoint) decides over the files: a static run stopped
-  // inside the warm-up stays static (the files alone would make it a staged run).
-  std::filesystem::remove(dir + "/checkpoint_field_6000.bin");
-  std::filesystem::remove(dir + "/checkpoint_field_6000_ext.bin");
-  header(3000);
-  auto record = [&](const std::string& text) { std::ofstream(dir + "/checkpoint.json") << text; };
-  record(R"({"iteration": 3000, "field": "static"})");
-  r = RunCli(resume);
-  EXPECT_EQ(r.err.find("--field s3gaussian (the default"), std::string::npos) << r.err;
-  EXPECT_NE(r.err.find("corrupt checkpoint"), std::string::npos) << r.err;
-  record(R"({"iteration": 3000, "field": "s3gaussian", "static_iterations": 2000})");
-  r = RunCli(resume);
-  EXPECT_NE(r.err.find("--field s3gaussian (the default"), std::string::npos) << r.err;
-  record(R"({"iteration": 3000, "field": "extended"})");
-  r = RunCli(resume);
-  EXPECT_EQ(r.code, 2) << r.err;
-  EXPECT_NE(r.err.find("--field extended"), std::string::npos) << r.err;
-  for (const char* damaged : {"{\"field\": ", R"({"field": "dynamic"})", R"({"iteration": 3})"}) {
+  for (const char* damaged : {"{\"field\": ", R"({"field": "dynamic"})"}) {
+    std::filesystem::remove(dir + "/config.json");
     record(damaged);
     r = RunCli(resume);
     EXPECT_EQ(r.code, 2) << damaged << ": " << r.err;

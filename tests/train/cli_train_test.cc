@@ -118,7 +118,6 @@ TEST(CliTrain, BadArgumentsExitTwoWithOneLine) {
         // Low resolution first: both flags (or --low-res-iterations 0 alone), a scale below the
         // run's, a stage shorter than the run.
         "train --log " + kKitti + " --out /tmp/x --low-res-scale 0.25",
-        "train --log " + kKitti + " --out /tmp/x --low-res-iterations 5",
         "train --log " + kKitti + " --out /tmp/x --low-res-scale 1 --low-res-iterations 5",
         "train --log " + kKitti + " --out /tmp/x --resolution-scale 0.5 --low-res-scale 0.5 --low-res-iterations 5",
         "train --log " + kKitti + " --out /tmp/x --low-res-scale nan --low-res-iterations 5",
@@ -126,12 +125,18 @@ TEST(CliTrain, BadArgumentsExitTwoWithOneLine) {
         "train --log " + kKitti + " --out /tmp/x --low-res-scale 0.25 --low-res-iterations 0",
         "train --log " + kKitti + " --out /tmp/x --iterations 10 --low-res-scale 0.25 --low-res-iterations 10",
         // Pose refinement's options need it; its rate scale is positive.
-        "train --log " + kKitti + " --out /tmp/x --pose-lr-scale 2",
-        "train --log " + kKitti + " --out /tmp/x --pose-refine-from 2",
+        "train --log " + kKitti + " --out /tmp/x --no-pose-refinement --pose-lr-scale 2",
+        "train --log " + kKitti + " --out /tmp/x --no-pose-refinement --pose-refine-from 2",
         "train --log " + kKitti + " --out /tmp/x --pose-refinement --pose-lr-scale 0",
         "train --log " + kKitti + " --out /tmp/x --pose-refinement --pose-refine-from -1",
-        "train --log " + kKitti + " --out /tmp/x --pose-refine-until 5",
-        "train --log " + kKitti + " --out /tmp/x --pose-refinement --pose-refine-until 0"}) {
+        "train --log " + kKitti + " --out /tmp/x --no-pose-refinement --pose-refine-until 5",
+        "train --log " + kKitti + " --out /tmp/x --pose-refinement --pose-refine-until -2",
+        // Settings by name, presets and config files (issue 34).
+        "train --log " + kKitti + " --out /tmp/x --set warp=1",
+        "train --log " + kKitti + " --out /tmp/x --set iterations=many",
+        "train --log " + kKitti + " --out /tmp/x --set iterations",
+        "train --log " + kKitti + " --out /tmp/x --preset fastest",
+        "train --log " + kKitti + " --out /tmp/x --config /nonexistent/run.json"}) {
     const Result r = RunCli(args);
     EXPECT_EQ(r.code, 2) << args << ": " << r.err;
     EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << args << ": " << r.err;
@@ -184,23 +189,25 @@ TEST(CliTrain, PoseRefinementWritesCorrectionsThatEvalUses) {
   nlohmann::json run = nlohmann::json::parse(std::ifstream(dir + "/checkpoint.json"));
   EXPECT_DOUBLE_EQ(run["pose_rotation_lr"].get<double>(), 6e-4);  // its own schedule, kept
   EXPECT_EQ(run["pose_refine_from"], 5);
-  // So does one whose checkpoint.json predates the record of the schedule (the default schedule).
+  // So does one from before config.json whose checkpoint.json predates the record of the
+  // schedule (migrated: the checkpoint's corrections carry on).
   for (const char* key : {"pose_rotation_lr", "pose_translation_lr", "pose_refine_from", "pose_refine_until"}) {
     run.erase(key);
   }
   std::ofstream(dir + "/checkpoint.json") << run.dump();
+  std::filesystem::remove(dir + "/config.json");
   r = RunCli("train" + common + " --iterations 32 --resume");
   ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("predates config.json"), std::string::npos) << r.err;
   EXPECT_NE(r.err.find("the checkpoint refines its camera poses"), std::string::npos) << r.err;
   EXPECT_EQ(nlohmann::json::parse(std::ifstream(dir + "/pose_corrections.json"))["corrections"].size(), 59u);
-  // A damaged record is an error naming the file, not a run on some other schedule.
-  run = nlohmann::json::parse(std::ifstream(dir + "/checkpoint.json"));
-  run["pose_refine_from"] = -4;
-  std::ofstream(dir + "/checkpoint.json") << run.dump();
+  // A damaged config is an error naming the file, not a run on some other schedule.
+  std::ofstream(dir + "/config.json", std::ios::trunc) << R"({"schema_version": 1, "settings": {"pose-refine-from": -4}})";
   r = RunCli("train" + common + " --iterations 33 --resume");
   EXPECT_EQ(r.code, 2) << r.err;
-  EXPECT_NE(r.err.find("checkpoint.json: pose refinement schedule out of range"), std::string::npos) << r.err;
-  r = RunCli("train" + common + " --iterations 5");
+  EXPECT_NE(r.err.find("config.json: pose-refine-from must be an integer in 0..10000000, not '-4'"), std::string::npos)
+      << r.err;
+  r = RunCli("train" + common + " --iterations 5 --no-pose-refinement");
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_FALSE(std::filesystem::exists(dir + "/pose_corrections.json"));
 }
@@ -289,15 +296,12 @@ TEST(CliTrain, PositionLrDecayIsTheRunsAndAResumeKeepsIt) {
   EXPECT_EQ(slurp(c + "/scene.ply"), slurp(a + "/scene.ply"));
   EXPECT_EQ(nlohmann::json::parse(std::ifstream(c + "/checkpoint.json"))["position_lr_decay_iterations"], 3);
 
-  nlohmann::json run = nlohmann::json::parse(std::ifstream(c + "/checkpoint.json"));
-  run["position_lr_decay_iterations"] = 0;
-  std::ofstream(c + "/checkpoint.json") << run.dump();
-  r = RunCli("train --out " + c + common + " --iterations 12 --resume");
-  EXPECT_EQ(r.code, 2) << r.err;
-  EXPECT_NE(r.err.find("checkpoint.json: position learning-rate decay out of range"), std::string::npos) << r.err;
+  EXPECT_EQ(nlohmann::json::parse(std::ifstream(c + "/config.json"))["settings"]["position-lr-decay-iterations"], 3);
   r = RunCli("train --out " + c + common + " --iterations 12 --resume --position-lr-decay-iterations 0");
   EXPECT_EQ(r.code, 2) << r.err;
-  EXPECT_NE(r.err.find("--position-lr-decay-iterations must be an integer in 1..10000000"), std::string::npos)
+  EXPECT_NE(r.err.find("--position-lr-decay-iterations: position-lr-decay-iterations must be an integer in "
+                       "1..10000000, not '0'"),
+            std::string::npos)
       << r.err;
 }
 
@@ -321,16 +325,26 @@ TEST(CliTrain, DensifyUntilIsRecordedAndKeptByAResume) {
   EXPECT_EQ(recorded("checkpoint.json")["densify_until"], 0);
   EXPECT_EQ(recorded("train_meta.json")["iterations"], 8);
 
-  nlohmann::json run = recorded("checkpoint.json");
-  run["densify_until"] = -3;
-  std::ofstream(a + "/checkpoint.json") << run.dump();
+  // config.json records where the change began: the run's schedule has a stage from iteration 4.
+  const nlohmann::json config = recorded("config.json");
+  EXPECT_EQ(config["schedule"][1]["from"], 4) << config.dump();
+  EXPECT_EQ(config["schedule"][1]["set"]["densify-until"], 0) << config.dump();
+  // A damaged or future config.json is refused, naming the file.
+  std::ofstream(a + "/config.json", std::ios::trunc) << config.dump().substr(0, 40);
   r = RunCli("train" + common + " --iterations 10 --resume");
   EXPECT_EQ(r.code, 2) << r.err;
-  EXPECT_NE(r.err.find("checkpoint.json: densify_until out of range"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find(a + "/config.json is not valid JSON (damaged)"), std::string::npos) << r.err;
+  nlohmann::json future = config;
+  future["schema_version"] = 2;
+  std::ofstream(a + "/config.json", std::ios::trunc) << future.dump();
+  r = RunCli("train" + common + " --iterations 10 --resume");
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_NE(r.err.find("has schema_version 2, newer than this streetsim's 1"), std::string::npos) << r.err;
+  std::ofstream(a + "/config.json", std::ios::trunc) << config.dump();
   for (const char* bad : {"-1", "many", "10000001"}) {
     r = RunCli("train" + common + " --iterations 10 --resume --densify-until " + bad);
     EXPECT_EQ(r.code, 2) << r.err;
-    EXPECT_NE(r.err.find("--densify-until must be an integer in 0..10000000, not '" + std::string(bad) + "'"),
+    EXPECT_NE(r.err.find("densify-until must be an integer in 0..10000000, not '" + std::string(bad) + "'"),
               std::string::npos)
         << r.err;
   }
@@ -385,20 +399,20 @@ TEST(CliTrain, LowResolutionFirstThenTheRunsOwn) {
   // A recorded stage that does not fit the resumed run's flags is refused, with the way out.
   r = RunCli(common + " --iterations 13 --resume --resolution-scale 0.05");
   EXPECT_EQ(r.code, 2) << r.err;
-  EXPECT_NE(r.err.find("--low-res-iterations 0"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("(low-res-iterations 0: none)"), std::string::npos) << r.err;
   r = RunCli(common + " --iterations 13 --resume --resolution-scale 0.05 --low-res-iterations 0");
   ASSERT_EQ(r.code, 0) << r.err;
   meta = nlohmann::json::parse(std::ifstream(dir + "/train_meta.json"));
   EXPECT_FALSE(meta.contains("low_res_scale")) << meta.dump();
   EXPECT_DOUBLE_EQ(meta["resolution_scale"].get<double>(), 0.05);
   // A damaged record is refused, naming the file.
-  nlohmann::json damaged = nlohmann::json::parse(std::ifstream(dir + "/checkpoint.json"));
-  damaged["low_res_scale"] = -1;
-  damaged["low_res_iterations"] = 7;
-  std::ofstream(dir + "/checkpoint.json", std::ios::trunc) << damaged.dump();
+  nlohmann::json damaged = nlohmann::json::parse(std::ifstream(dir + "/config.json"));
+  damaged["settings"]["low-res-scale"] = -1;
+  std::ofstream(dir + "/config.json", std::ios::trunc) << damaged.dump();
   r = RunCli(common + " --resolution-scale 0.05 --iterations 14 --resume");
   EXPECT_EQ(r.code, 2) << r.err;
-  EXPECT_NE(r.err.find("checkpoint.json: low-resolution stage out of range"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("config.json: low-res-scale must be a number in (0, 1], not '-1'"), std::string::npos)
+      << r.err;
 }
 
 }  // namespace
@@ -448,7 +462,7 @@ TEST(CliTrain, ASignalStopsWithACheckpointThatResumes) {
 TEST(CliTrain, CommandHelpPrintsThatCommandsUsage) {
   for (const auto& [args, expect] : std::vector<std::pair<std::string, std::string>>{
            {"train --help", "streetsim train --log PATH --out DIR"},
-           {"train --log x -h", "--field-device auto|cpu|vulkan"},
+           {"train --log x -h", "--preset NAME"},
            {"eval -h", "streetsim eval --scene DIR --log PATH"},
            {"serve --help", "streetsim serve"},
            {"log info --help", "streetsim log poses PATH"}}) {
@@ -458,4 +472,48 @@ TEST(CliTrain, CommandHelpPrintsThatCommandsUsage) {
     EXPECT_EQ(r.out.find("  render "), std::string::npos) << args << ": more than its own part";
   }
   EXPECT_EQ(RunCli("bogus --help").code, 2);
+}
+
+// The divergence guard (docs/training.md "Divergence guard"), driven by a run forced to diverge:
+// absurd pose rates (x1000) set moving in the fine stage right after a checkpoint ruin the
+// training views. Deterministic runs: the guarded run rolls back to that checkpoint twice,
+// lowering the moving rates by 4 each time, says so in the log and config.json, and ends at
+// pose rates x62.5 with a usable scene; the same run without the guard ends ruined.
+TEST(CliTrain, ADivergingRunRollsBackAndLowersItsRates) {
+  const std::string dir = streetsim::testing::ScratchDir("streetsim_cli_train_diverge", "guarded");
+  const std::string plain = streetsim::testing::ScratchDir("streetsim_cli_train_diverge", "unguarded");
+  const std::string common = "train --log " + kKitti +
+                             " --iterations 1000 --static-iterations 300 --resolution-scale 0.12 --voxel 0.5"
+                             " --holdout-every 10 --checkpoint-every 600 --field-size small --no-lidar-loss"
+                             " --set field-motion-prior=0 --pose-refinement --pose-refine-until 0"
+                             " --pose-refine-from 600 --pose-lr-scale 1000 --deterministic";
+  Result r = RunCli(common + " --out " + dir);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("(fine stage): the training loss's running mean"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("rolled back to the checkpoint of iteration 600 with field-lr-scale 10 -> 2.5, "
+                       "pose-lr-scale 1000 -> 250"),
+            std::string::npos)
+      << r.err;
+  EXPECT_NE(r.err.find("rolled back to the checkpoint of iteration 600 with field-lr-scale 2.5 -> 0.625, "
+                       "pose-lr-scale 250 -> 62.5"),
+            std::string::npos)
+      << r.err;
+  EXPECT_EQ(nlohmann::json::parse(std::ifstream(dir + "/checkpoint.json"))["iteration"], 1000);
+  const nlohmann::json config = nlohmann::json::parse(std::ifstream(dir + "/config.json"));
+  ASSERT_EQ(config["notes"].size(), 2u) << config.dump();
+  bool stage_at_600 = false;
+  for (const auto& stage : config["schedule"]) {
+    if (stage["from"] != 600) continue;
+    stage_at_600 = true;
+    EXPECT_DOUBLE_EQ(stage["set"]["field-lr-scale"].get<double>(), 0.625) << config.dump();
+    EXPECT_DOUBLE_EQ(stage["set"]["pose-lr-scale"].get<double>(), 62.5) << config.dump();
+  }
+  EXPECT_TRUE(stage_at_600) << config.dump();
+  const double guarded = nlohmann::json::parse(std::ifstream(dir + "/heldout.json"))["mean"]["psnr"].get<double>();
+
+  r = RunCli(common + " --out " + plain + " --no-divergence-guard");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(r.err.find("rolled back"), std::string::npos) << r.err;
+  const double unguarded = nlohmann::json::parse(std::ifstream(plain + "/heldout.json"))["mean"]["psnr"].get<double>();
+  EXPECT_GT(guarded, unguarded + 3) << "guarded " << guarded << " dB, unguarded " << unguarded << " dB";
 }

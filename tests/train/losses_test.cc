@@ -72,5 +72,48 @@ TEST(Losses, L1AndDepthGradients) {
   EXPECT_EQ(gd[3], 0.0f);
 }
 
+// A grayscale camera beside colour ones is compared on the render's luminance: L1 + D-SSIM of the
+// luminance against the gray image, chained back to RGB, matches finite differences, and a render
+// whose colour differs only in chroma (same luminance) costs nothing.
+TEST(Losses, LuminanceChainsBackToRgb) {
+  ThreadPool pool(2);
+  const int w = 8, h = 6;
+  const size_t pixels = static_cast<size_t>(w) * h;
+  std::vector<float> rgb = RandomImage(11, pixels * 3), gray = RandomImage(12, pixels * 3);
+  for (size_t p = 0; p < pixels; ++p) gray[p * 3 + 1] = gray[p * 3 + 2] = gray[p * 3];
+  auto loss = [&](const std::vector<float>& x, float* d_rgb) {
+    std::vector<float> y(pixels * 3), d_y(pixels * 3, 0.0f);
+    LuminanceRgb(x.data(), pixels, y.data());
+    const double l = L1Loss(pool, y.data(), gray.data(), y.size(), 1.0f, d_rgb ? d_y.data() : nullptr) +
+                     0.2 * (1 - Ssim(pool, y.data(), gray.data(), w, h, d_rgb ? -0.2f : 0.0f,
+                                     d_rgb ? d_y.data() : nullptr));
+    if (d_rgb) LuminanceBackward(d_y.data(), pixels, d_rgb);
+    return l;
+  };
+  std::vector<float> g(pixels * 3, 0.0f);
+  loss(rgb, g.data());
+  double num = 0, den = 0;
+  for (size_t i = 0; i < rgb.size(); i += 5) {
+    const float eps = 1e-3f;
+    std::vector<float> a = rgb, b = rgb;
+    a[i] += eps;
+    b[i] -= eps;
+    const double fd = (loss(a, nullptr) - loss(b, nullptr)) / (2 * eps);
+    num += (g[i] - fd) * (g[i] - fd);
+    den += fd * fd;
+  }
+  EXPECT_LT(std::sqrt(num / den), 2e-2);
+  // Chroma alone is free: a colour render with the gray image's luminance has loss 0.
+  std::vector<float> tinted(pixels * 3);
+  for (size_t p = 0; p < pixels; ++p) {
+    const float y = gray[p * 3];
+    // R and B moved against each other so that 0.299 dR + 0.114 dB = 0.
+    tinted[p * 3] = y + 0.0114f;
+    tinted[p * 3 + 1] = y;
+    tinted[p * 3 + 2] = y - 0.0299f;
+  }
+  EXPECT_LT(loss(tinted, nullptr), 1e-5);
+}
+
 }  // namespace
 }  // namespace streetsim::train

@@ -4,7 +4,10 @@
 #include <cstdio>
 #include <filesystem>
 
+#include <opencv2/imgcodecs.hpp>
+
 #include "gtest/gtest.h"
+#include "scene/train/dataset.h"
 #include "tests/common/scratch_dir.h"
 #include "tests/train/field_stage_fixtures.h"
 #include "scene/log/open_log.h"
@@ -331,6 +334,70 @@ TEST(Trainer, LearnsAndWritesOutputs) {
   EXPECT_TRUE(std::filesystem::exists(dir + "/preview"));
   EXPECT_EQ(r->heldout.frames.size(), 2u);  // frames 3 and 7
   EXPECT_GT(r->heldout.mean.psnr, 10.0);
+}
+
+}  // namespace
+}  // namespace streetsim::train
+
+namespace streetsim::train {
+namespace {
+
+// A KITTI raw drive with grayscale image_00 beside colour image_02 (the bundled clip's first 8
+// frames, image_00 made from image_02's luminance at the same pose; only which views train how is
+// checked here): the grayscale views are luminance-only by default, left out with kSkip, plain
+// with kAsColour; a drive of grayscale cameras only trains them as they are.
+TEST(Dataset, GrayscaleCamerasBesideColourOnes) {
+  namespace fs = std::filesystem;
+  const fs::path root = testing::ScratchDir("streetsim_dataset_gray", "kitti");
+  const fs::path src = fs::path(kKitti), drive = root / "2011_09_26" / "2011_09_26_drive_sfnd_sync";
+  fs::create_directories(drive / "image_00" / "data");
+  fs::create_directories(drive / "image_02" / "data");
+  fs::create_directories(drive / "velodyne_points" / "data");
+  for (const char* f : {"calib_cam_to_cam.txt", "calib_imu_to_velo.txt", "calib_velo_to_cam.txt"}) {
+    fs::copy_file(src.parent_path() / f, root / "2011_09_26" / f);
+  }
+  for (int i = 0; i < 8; ++i) {
+    char name[32];
+    std::snprintf(name, sizeof(name), "%010d", i);
+    const fs::path png = src / "image_02" / "data" / (std::string(name) + ".png");
+    fs::copy_file(png, drive / "image_02" / "data" / png.filename());
+    cv::Mat gray = cv::imread(png.string(), cv::IMREAD_GRAYSCALE);
+    ASSERT_FALSE(gray.empty());
+    cv::imwrite((drive / "image_00" / "data" / png.filename()).string(), gray);
+    fs::copy_file(src / "velodyne_points" / "data" / (std::string(name) + ".bin"),
+                  drive / "velodyne_points" / "data" / (std::string(name) + ".bin"));
+  }
+  absl::StatusOr<DriveLog> log = OpenLog(drive.string());
+  ASSERT_TRUE(log.ok()) << log.status();
+  ASSERT_EQ(log->cameras.size(), 2u);
+  DatasetOptions o;
+  o.resolution_scale = 0.1;
+  o.holdout_every = 0;
+  o.load_depth = false;
+  auto count = [&](GrayscaleCameras g, int* luminance) {
+    o.grayscale = g;
+    absl::StatusOr<std::vector<View>> v = LoadViews(*log, o);
+    EXPECT_TRUE(v.ok()) << v.status();
+    *luminance = 0;
+    for (const View& view : *v) {
+      *luminance += view.luminance_only;
+      if (view.luminance_only) EXPECT_EQ(view.name.rfind("image_00/", 0), 0u) << view.name;
+    }
+    return static_cast<int>(v->size());
+  };
+  int luminance = 0;
+  EXPECT_EQ(count(GrayscaleCameras::kLuminance, &luminance), 16);
+  EXPECT_EQ(luminance, 8);
+  EXPECT_EQ(count(GrayscaleCameras::kSkip, &luminance), 8);
+  EXPECT_EQ(luminance, 0);
+  EXPECT_EQ(count(GrayscaleCameras::kAsColour, &luminance), 16);
+  EXPECT_EQ(luminance, 0);
+  // Grayscale cameras only: as they are.
+  fs::remove_all(drive / "image_02");
+  log = OpenLog(drive.string());
+  ASSERT_TRUE(log.ok()) << log.status();
+  EXPECT_EQ(count(GrayscaleCameras::kLuminance, &luminance), 8);
+  EXPECT_EQ(luminance, 0);
 }
 
 }  // namespace

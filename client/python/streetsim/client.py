@@ -350,22 +350,32 @@ class Client:
 
     # -- training -------------------------------------------------------------------------------
     def train(self, log_path: str, scene_name: str = "", request_id: str = "",
-              max_iterations: int = 0, **options) -> training_pb2.Job:
+              max_iterations: Optional[int] = None, preset: str = "",
+              settings: Optional[Dict[str, object]] = None, **options) -> training_pb2.Job:
         """A training job for a log under the server's data root.
 
-        ``options`` are TrainingConfig's training fields (proto/streetsim/v1/training.proto), i.e.
-        ``streetsim train``'s flags: ``seed``, ``field``, ``field_modules``, ``static_iterations``,
-        ``resolution_scale``, ``low_res_scale``, ``low_res_iterations``, ``holdout_every``,
-        ``clip_frames``, ``clip_overlap``, ``field_lr_scale``, ``field_lr_decay_iterations``,
-        ``position_lr_decay_iterations``, ``field_ext_lr_scale``, ``field_ext_lr_decay_iterations``,
-        ``field_motion_prior``, ``field_motion_prior_scans``, ``densify_until``, ``backend``,
-        ``pose_refinement``, ``pose_lr_scale``, and ``continue_from_scene`` (train on from a scene an
-        earlier job trained).
-        An unknown name raises ValueError here; a value the trainer would refuse is
-        INVALID_ARGUMENT from the server.
+        ``preset`` and ``settings`` are ``streetsim train``'s (docs/training.md "Settings"):
+        ``train(log)`` alone runs the default preset, the measured best, as ``streetsim train
+        --log LOG --out DIR`` does; ``settings={"iterations": 2000, "pose-refinement": True}``
+        sets any setting by its name (``streetsim train --help-all``). A value the trainer would
+        refuse is INVALID_ARGUMENT from the server, naming the setting.
+
+        Deprecated: ``max_iterations`` (the setting ``iterations``; 0 alone: init only) and
+        ``options``, TrainingConfig's older fields (proto/streetsim/v1/training.proto), each the
+        setting of its name; ``continue_from_scene`` (train on from a scene an earlier job trained)
+        stays. An unknown name raises ValueError here.
         """
+        text = {}
+        for name, value in (settings or {}).items():
+            if isinstance(value, bool):
+                value = "true" if value else "false"
+            text[str(name)] = str(value)
+        if max_iterations is None and not preset and not text and \
+                set(options) <= {"continue_from_scene"}:
+            preset = "quality" if "continue_from_scene" not in options else ""
         try:
-            config = training_pb2.TrainingConfig(scene_name=scene_name, max_iterations=max_iterations, **options)
+            config = training_pb2.TrainingConfig(scene_name=scene_name, max_iterations=max_iterations or 0,
+                                                 preset=preset, settings=text, **options)
         except (ValueError, TypeError) as e:
             raise ValueError(f"train(): {e}") from None
         req = training_pb2.CreateTrainingJobRequest(log_path=log_path, request_id=request_id, config=config)

@@ -1,0 +1,50 @@
+// What a `streetsim train` command line (or a training job's, which is one) asks for, resolved
+// against the run directory: a new run's config (preset, then a config file, then the settings
+// given) or a resumed run's (DIR/config.json plus the changes given; docs/training.md
+// "Resuming"). The one place that decides what a run trains with.
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "scene/train/config/run_config.h"
+
+namespace streetsim::train::config {
+
+struct CommandLineConfig {
+  std::optional<std::string> preset;       // --preset NAME
+  std::optional<std::string> config_path;  // --config FILE.json
+  // Settings given as flags (`--NAME VALUE`, `--NAME` / `--no-NAME` for a bool) and `--set
+  // NAME=VALUE`, in order (a later one wins): (name, text, how it was given, for messages).
+  struct Given {
+    std::string name, text, what;
+  };
+  std::vector<Given> values;
+};
+
+struct ResolvedRun {
+  RunConfig config;
+  bool resumes = false;             // a checkpoint or config.json of this run is there
+  int64_t done_iterations = 0;      // the checkpoint's iteration (0: none)
+  std::vector<std::string> changed;  // a resume's changes (settings that now differ)
+  // The directory predates config.json: its config was rebuilt from checkpoint.json
+  // (MigrateCheckpointRecord) and the defaults of the time.
+  bool migrated = false;
+};
+
+// InvalidArgument naming the setting or file for bad values, unknown settings, a missing or
+// unknown preset, a --preset that differs from a resumed run's, a schedule on a resume, and
+// contradicting settings; DataLoss naming DIR/config.json when it is damaged.
+absl::StatusOr<ResolvedRun> ResolveRun(const std::string& out_dir, bool resume, const CommandLineConfig& given);
+
+// A run directory from before config.json: its config from DIR/checkpoint.json's records (the
+// settings they name, under their own names with '-' for '_') on the trainer's defaults of the
+// time (the table's). Without checkpoint.json (older still): the field from the field
+// checkpoints present. DataLoss naming the file where it is damaged.
+absl::StatusOr<RunConfig> MigrateCheckpointRecord(const std::string& out_dir);
+
+}  // namespace streetsim::train::config
