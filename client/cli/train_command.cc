@@ -7,26 +7,20 @@
 #include <csignal>
 #include <cstdio>
 #include <filesystem>
-#include <set>
 
-#include "absl/strings/cord.h"
-#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "client/cli/args.h"
 #include "client/cli/commands.h"
 #include "client/cli/parent_server.h"
 #include "client/cli/train_flags.h"
+#include "client/cli/train_schedule_runner.h"
 #include "render/engine.h"
 #include "scene/log/open_log.h"
 #include "scene/log/scene_manifest.h"
-#include "scene/train/checkpoint_run.h"
 #include "scene/train/clip_training.h"
 #include "scene/train/config/run_config.h"
 #include "scene/train/config/run_resolution.h"
-#include "scene/train/config/train_settings.h"
-#include "scene/train/dynamic_stage.h"
 #include "scene/train/run_dir_lock.h"
-#include "scene/train/train_state.h"
 #include "scene/train/trainer.h"
 
 namespace streetsim {
@@ -83,106 +77,29 @@ void InstallStopHandlers() {
   sigaction(SIGHUP, &hup, nullptr);
 }
 
-// The trainer's options for one segment of the run (a schedule's stage; run_config.h).
-absl::StatusOr<train::config::TrainRunOptions> SegmentOptions(const train::config::Segment& segment,
-                                                             const std::string& out_dir, const DriveLog& log) {
-  absl::StatusOr<train::config::TrainRunOptions> o = train::config::ResolveTrainOptions(segment.settings, segment.end);
-  if (!o.ok()) return o.status();
-  train::TrainOptions& opt = o->train;
-  // The motion prior tracks objects in the scans: a preset's prior on a camera-only log is left
-  // out (the run says so once); one the user asked for is an error.
-  if (opt.motion_prior.weight > 0 && log.lidars.empty()) {
-    if (segment.settings.given("field-motion-prior")) {
-      return absl::InvalidArgumentError("field-motion-prior needs the log's LiDAR, and this log has none");
-    }
-    opt.motion_prior.weight = 0;
-  }
-  opt.motion_prior.optional = !segment.settings.given("field-motion-prior");
-  if (opt.field.extended && log.frames.size() >= 2) {
-    // The token window's Δ: one frame (the median interval of the log's frames).
-    std::vector<int64_t> dt;
-    for (size_t i = 1; i < log.frames.size(); ++i) dt.push_back(log.frames[i].time_us - log.frames[i - 1].time_us);
-    std::nth_element(dt.begin(), dt.begin() + dt.size() / 2, dt.end());
-    opt.field.frame_interval_us = std::max<int64_t>(0, dt[dt.size() / 2]);
-  }
-  // An extended stage after an S3Gaussian checkpoint grows its modules on the trained field (they
-  // join at their init; docs/training.md "Growing modules on a trained field"); an extended
-  // checkpoint records where they joined. Checkpoint state, not settings: checkpoint.json has it.
-  if (opt.field.extended && std::filesystem::exists(std::filesystem::path(out_dir) / "checkpoint.bin")) {
-    absl::StatusOr<std::string> recorded = train::ReadCheckpointField(out_dir);
-    if (!recorded.ok() && !absl::IsNotFound(recorded.status())) return recorded.status();
-    if (recorded.ok() && *recorded == "s3gaussian") {
-      opt.field.grow_extension = true;
-    } else if (recorded.ok() && *recorded == "extended") {
-      absl::StatusOr<int64_t> from = train::ReadCheckpointExtensionFrom(out_dir);
-      if (!from.ok()) return from.status();
-      opt.field.extension_from_fine_iteration = *from;
-    }
-  }
-  return o;
-}
-
-// The divergence guard's way out (docs/training.md "Divergence guard"): a fine stage that diverged
-// goes back to its last checkpoint (from before the divergence) with the rates that were moving
-// divided by 4 (the field's, and the pose corrections' where they were still moving), at most
-// kMaxRollbacks times; recorded in config.json's schedule and notes. Returns the note to print, or
-// the status to stop with (`diverged` itself when it is not a divergence).
-constexpr int kMaxRollbacks = 2;
-constexpr double kRollbackRateDivisor = 4;
-
-absl::StatusOr<std::string> RollBack(const absl::Status& diverged, const train::config::Settings& settings,
-                                     const std::string& out_dir, int rollbacks, train::config::RunConfig* config,
-                                     int64_t* from) {
-  const auto at_text = diverged.GetPayload(train::kDivergedAtPayload);  // absl::optional<absl::Cord>
-  int64_t at = 0;
-  if (!absl::IsAborted(diverged) || !at_text || !absl::SimpleAtoi(std::string(*at_text), &at)) return diverged;
-  const bool fine = settings.GetText("field") != "static" && at > settings.GetInt("static-iterations");
-  const double scale = settings.GetDouble("field-lr-scale");
-  if (!fine) {
-    return absl::AbortedError(absl::StrCat(diverged.message(), ". The guard lowers the field's rates only; the static "
-                                           "stage stops here (see the log; --resume goes on from the checkpoint)"));
-  }
-  if (rollbacks >= kMaxRollbacks) {
-    return absl::AbortedError(absl::StrCat(diverged.message(), ", after ", rollbacks,
-                                           " rollbacks that lowered the rates (field-lr-scale now ", scale,
-                                           "): stopping; --resume --set NAME=VALUE goes on from the checkpoint"));
-  }
-  absl::StatusOr<int64_t> checkpoint =
-      train::PeekCheckpointIteration((std::filesystem::path(out_dir) / "checkpoint.bin").string());
-  if (!checkpoint.ok()) return diverged;
-  std::vector<std::string> names = {"field-lr-scale"};
-  const int64_t pose_until = settings.GetInt("pose-refine-until") >= 0 ? settings.GetInt("pose-refine-until")
-                                                                       : settings.GetInt("static-iterations");
-  if (settings.GetBool("pose-refinement") && at > settings.GetInt("pose-refine-from") &&
-      (pose_until == 0 || at <= pose_until)) {
-    names.push_back("pose-lr-scale");
-  }
-  train::config::Settings lowered = settings;
-  std::string what;
-  for (const std::string& name : names) {
-    const double was = settings.GetDouble(name);
-    if (!lowered.Set(name, was / kRollbackRateDivisor, train::config::Origin::kGiven, "divergence guard").ok()) {
-      return diverged;
-    }
-    absl::StrAppend(&what, what.empty() ? "" : ", ", name, " ", was, " -> ", was / kRollbackRateDivisor);
-  }
-  absl::StatusOr<std::vector<std::string>> changed =
-      train::config::ChangeFrom(*checkpoint, lowered, std::set<std::string>(names.begin(), names.end()), config);
-  if (!changed.ok()) return changed.status();
-  const std::string note = absl::StrCat(
-      "iteration ", at, ": the training diverged; rolled back to the checkpoint of iteration ", *checkpoint, " with ", what);
-  config->notes.push_back(note);
-  if (absl::Status s = train::config::WriteRunConfig(out_dir, *config); !s.ok()) return s;
-  *from = *checkpoint;
-  return note;
-}
-
 int ExitCodeFor(const absl::Status& s) {
   const absl::StatusCode c = s.code();
   return c == absl::StatusCode::kInvalidArgument || c == absl::StatusCode::kNotFound ||
                  c == absl::StatusCode::kDataLoss || c == absl::StatusCode::kFailedPrecondition
              ? 2
              : 1;
+}
+
+// Which cameras train and how (docs/training.md "Grayscale cameras").
+std::string CamerasSummary(const DriveLog& log, const train::config::Settings& settings) {
+  bool rig_has_colour = false;
+  for (const CameraSensor& c : log.cameras) rig_has_colour = rig_has_colour || c.colour;
+  const std::string gray = settings.GetText("grayscale-cameras");
+  std::string cams;
+  for (const CameraSensor& c : log.cameras) {
+    const std::string how = c.colour            ? "colour"
+                            : !rig_has_colour   ? "grayscale, as it is"
+                            : gray == "luminance" ? "grayscale, luminance only"
+                            : gray == "skip"      ? "grayscale, left out"
+                                                  : "grayscale, as colour";
+    absl::StrAppend(&cams, cams.empty() ? "" : "; ", c.name, " ", how);
+  }
+  return cams;
 }
 
 std::string Describe(const train::config::ResolvedRun& run, const std::vector<train::config::Segment>& segments) {
@@ -230,35 +147,9 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   if (!lock.ok()) return Fail(2, lock.status());
   absl::StatusOr<DriveLog> log = OpenLog(*log_path);
   if (!log.ok()) return Fail(absl::IsInternal(log.status()) ? 1 : 2, log.status());
-  // A new run records its config at once. A resume's changes are recorded once the trainer has
-  // taken them (its first progress, or its end): a change it refuses (say, another clip plan)
-  // must not become the run's config.
-  bool config_pending = run->resumes && (!run->changed.empty() || run->migrated);
-  if (!run->resumes) {
-    if (absl::Status s = train::config::WriteRunConfig(*out, run->config); !s.ok()) return Fail(1, s);
-  }
-  auto record_config = [&] {
-    if (!config_pending) return absl::OkStatus();
-    config_pending = false;
-    return train::config::WriteRunConfig(*out, run->config);
-  };
   std::fprintf(stderr, "streetsim train: %s%s -> %s/config.json\n", run->resumes ? "resuming " : "",
                Describe(*run, segments).c_str(), out->c_str());
-  {  // Which cameras train and how (docs/training.md "Grayscale cameras").
-    bool rig_has_colour = false;
-    for (const CameraSensor& c : log->cameras) rig_has_colour = rig_has_colour || c.colour;
-    const std::string gray = segments.back().settings.GetText("grayscale-cameras");
-    std::string cams;
-    for (const CameraSensor& c : log->cameras) {
-      const std::string how = c.colour ? "colour"
-                              : !rig_has_colour ? "grayscale, as it is"
-                              : gray == "luminance" ? "grayscale, luminance only"
-                              : gray == "skip" ? "grayscale, left out"
-                                               : "grayscale, as colour";
-      absl::StrAppend(&cams, cams.empty() ? "" : "; ", c.name, " ", how);
-    }
-    std::fprintf(stderr, "streetsim train: cameras: %s\n", cams.c_str());
-  }
+  std::fprintf(stderr, "streetsim train: cameras: %s\n", CamerasSummary(*log, segments.back().settings).c_str());
   if (run->migrated) {
     std::fprintf(stderr, "streetsim train: %s predates config.json: its settings were read from checkpoint.json\n",
                  out->c_str());
@@ -274,9 +165,6 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   const int64_t total = segments.back().end;
   const bool tty = isatty(fileno(stderr));
   auto progress = [&](const train::Progress& p) {
-    if (absl::Status s = record_config(); !s.ok()) {
-      std::fprintf(stderr, "streetsim train: cannot record the config: %s\n", std::string(s.message()).c_str());
-    }
     const int width = 30;
     const int filled = static_cast<int>(width * p.iteration / std::max<int64_t>(1, total));
     std::string bar(filled, '#');
@@ -296,53 +184,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     std::fflush(stderr);
   };
   InstallStopHandlers();
-  absl::StatusOr<train::ClipTrainResult> clips;
-  bool resumes = run->resumes;
-  int64_t done = run->done_iterations;
-  int rollbacks = 0;
-  for (size_t k = 0; k < segments.size();) {
-    const train::config::Segment& segment = segments[k];
-    if (segment.end <= done && k + 1 < segments.size()) {  // done before the resume
-      ++k;
-      continue;
-    }
-    absl::StatusOr<train::config::TrainRunOptions> o = SegmentOptions(segment, *out, *log);
-    if (!o.ok()) return Fail(2, o.status());
-    o->train.stop_requested = &g_stop_requested;
-    // The first segment run by this process continues only a resumed run; each later one goes on
-    // from the checkpoint its predecessor wrote.
-    o->train.resume = resumes;
-    clips = train::TrainClips(*log, *out, o->train, o->clips, progress);
-    if (tty) std::fprintf(stderr, "\n");
-    if (!clips.ok()) {
-      int64_t from = 0;
-      absl::StatusOr<std::string> note = RollBack(clips.status(), segment.settings, *out, rollbacks, &run->config, &from);
-      if (!note.ok()) {
-        clips = note.status();
-        break;
-      }
-      std::fprintf(stderr, "streetsim train: %s\nstreetsim train: %s\n", std::string(clips.status().message()).c_str(),
-                   note->c_str());
-      ++rollbacks;
-      config_pending = false;  // RollBack wrote config.json with the change
-      segments = train::config::Segments(run->config);
-      done = from;
-      resumes = true;
-      k = 0;
-      continue;
-    }
-    const train::TrainResult& r = clips->runs.empty() ? train::TrainResult{} : clips->runs.back().result;
-    if (segments.size() > 1 && !r.heldout.frames.empty()) {
-      std::fprintf(stderr, "streetsim train: stage %zu of %zu ends at iteration %lld: held-out PSNR %.2f dB\n", k + 1,
-                   segments.size(), static_cast<long long>(segment.end), r.heldout.mean.psnr);
-    }
-    resumes = true;
-    done = segment.end;
-    ++k;
-  }
-  if (clips.ok()) {
-    if (absl::Status s = record_config(); !s.ok()) return Fail(1, s);
-  }
+  absl::StatusOr<train::ClipTrainResult> clips = RunSchedule(*log, *out, &g_stop_requested, progress, &*run);
   absl::StatusOr<train::TrainResult> r =
       !clips.ok() ? absl::StatusOr<train::TrainResult>(clips.status())
                   : clips->runs.empty() ? train::TrainResult{} : clips->runs.back().result;

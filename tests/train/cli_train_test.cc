@@ -517,3 +517,49 @@ TEST(CliTrain, ADivergingRunRollsBackAndLowersItsRates) {
   const double unguarded = nlohmann::json::parse(std::ifstream(plain + "/heldout.json"))["mean"]["psnr"].get<double>();
   EXPECT_GT(guarded, unguarded + 3) << "guarded " << guarded << " dB, unguarded " << unguarded << " dB";
 }
+
+// A schedule in a --config file runs its stages in one process, each stage end writing the
+// outputs as a run of that length would; deterministic runs: the same bytes as the two resumed
+// runs it stands for. Each stage end adds to DIR/heldout_history.json and its plot.
+TEST(CliTrain, AScheduleIsItsResumedSegmentsInOneRun) {
+  const std::string one = streetsim::testing::ScratchDir("streetsim_cli_train_schedule", "one");
+  const std::string two = streetsim::testing::ScratchDir("streetsim_cli_train_schedule", "two");
+  const std::string config = one + "/../schedule.json";
+  std::ofstream(config) << R"({"schema_version": 1, "settings": {"iterations": 16, "resolution-scale": 0.08,
+      "holdout-every": 4, "seed": 2, "deterministic": true, "lidar-loss": false},
+      "schedule": [{"from": 0}, {"from": 10, "set": {"position-lr-decay-iterations": 3}}]})";
+  Result r = RunCli("train --log " + kKitti + " --out " + one + " --preset preview --config " + config);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("stage 1 of 2 ends at iteration 10: held-out PSNR"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("stage 2 of 2 ends at iteration 16"), std::string::npos) << r.err;
+  const nlohmann::json history = nlohmann::json::parse(std::ifstream(one + "/heldout_history.json"));
+  ASSERT_EQ(history["stages"].size(), 2u) << history.dump();
+  EXPECT_EQ(history["stages"][0]["iteration"], 10);
+  EXPECT_EQ(history["stages"][1]["iteration"], 16);
+  EXPECT_GT(history["stages"][1]["seconds"].get<double>(), history["stages"][0]["seconds"].get<double>());
+  EXPECT_TRUE(std::filesystem::exists(one + "/heldout_curve.png"));
+
+  const std::string flags = " --preset preview --resolution-scale 0.08 --holdout-every 4 --seed 2"
+                            " --deterministic --no-lidar-loss";
+  r = RunCli("train --log " + kKitti + " --out " + two + flags + " --iterations 10");
+  ASSERT_EQ(r.code, 0) << r.err;
+  r = RunCli("train --log " + kKitti + " --out " + two + flags + " --resume --iterations 16"
+             " --position-lr-decay-iterations 3");
+  ASSERT_EQ(r.code, 0) << r.err;
+  auto slurp = [](const std::string& p) {
+    std::ifstream f(p, std::ios::binary);
+    std::stringstream s;
+    s << f.rdbuf();
+    return s.str();
+  };
+  EXPECT_EQ(slurp(one + "/scene.ply"), slurp(two + "/scene.ply"));
+  // A config file's schedule may not set the run's end, and a resume may not change a schedule.
+  std::ofstream(config, std::ios::trunc) << R"({"schedule": [{"from": 0}, {"from": 5, "set": {"iterations": 9}}]})";
+  r = RunCli("train --log " + kKitti + " --out " + one + "/x --config " + config);
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_NE(r.err.find("iterations is the run's end, not a stage's"), std::string::npos) << r.err;
+  std::ofstream(config, std::ios::trunc) << R"({"schedule": [{"from": 0}, {"from": 5}]})";
+  r = RunCli("train --log " + kKitti + " --out " + one + " --resume --config " + config);
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_NE(r.err.find("a resumed run keeps its schedule"), std::string::npos) << r.err;
+}

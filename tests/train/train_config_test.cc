@@ -11,6 +11,7 @@
 #include "scene/train/config/run_config.h"
 #include "scene/train/config/run_resolution.h"
 #include "scene/train/config/train_settings.h"
+#include "scene/train/stage_history.h"
 #include "tests/common/scratch_dir.h"
 
 namespace streetsim::train::config {
@@ -289,3 +290,31 @@ TEST(RunResolution, DirectoriesFromBeforeConfigJsonAreMigrated) {
 
 }  // namespace
 }  // namespace streetsim::train::config
+
+namespace streetsim::train {
+namespace {
+
+TEST(StageHistory, PointsAddUpTheirTimeAndARerunReplacesThem) {
+  const std::string dir = testing::ScratchDir("streetsim_train_config", "history");
+  EXPECT_TRUE(absl::IsNotFound(ReadStageHistory(dir).status()));
+  ASSERT_TRUE(AppendStagePoint(dir, 5000, 1200, 20.7, 0.71).ok());
+  ASSERT_TRUE(AppendStagePoint(dir, 6010, 1800, 24.1, 0.80).ok());
+  ASSERT_TRUE(AppendStagePoint(dir, 7510, 2000, 25.0, 0.83).ok());
+  // Rolled back to 6010 and run again: the later point is replaced, its time from 6010's on.
+  ASSERT_TRUE(AppendStagePoint(dir, 7510, 2100, 25.2, 0.84).ok());
+  absl::StatusOr<std::vector<StagePoint>> h = ReadStageHistory(dir);
+  ASSERT_TRUE(h.ok()) << h.status();
+  ASSERT_EQ(h->size(), 3u);
+  EXPECT_DOUBLE_EQ((*h)[2].seconds, 1200 + 1800 + 2100);
+  EXPECT_DOUBLE_EQ((*h)[2].psnr, 25.2);
+  const cv::Mat plot = PlotStageHistory(*h);
+  EXPECT_EQ(plot.cols, 900);
+  EXPECT_LT(cv::mean(plot)[0], 254.9) << "something was drawn";
+  std::ofstream(dir + "/heldout_history.json", std::ios::trunc) << "{\"stages\": [1]}";
+  EXPECT_EQ(ReadStageHistory(dir).status().code(), absl::StatusCode::kDataLoss);
+  // A damaged history is started again, never a reason to stop the run.
+  EXPECT_TRUE(AppendStagePoint(dir, 100, 10, 12, 0.4).ok());
+}
+
+}  // namespace
+}  // namespace streetsim::train
