@@ -39,7 +39,7 @@ Result RunCli(const std::string& args) {
 }
 
 const std::string kSmall =
-    " --field-size small --resolution-scale 0.12 --holdout-every 10 --voxel 0.5 --seed 3 --no-lidar-loss";
+    " --field-size small --field-motion-prior 0 --resolution-scale 0.12 --holdout-every 10 --voxel 0.5 --seed 3 --no-lidar-loss";
 
 TEST(CliExtendedField, TrainEvalRenderResume) {
   const std::string dir = Dir("scene");

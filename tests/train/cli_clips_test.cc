@@ -76,7 +76,7 @@ TEST_F(CliClips, TrainRenderEvalResume) {
   const std::string log = ShortLog(19);
   const std::string dir = (Scratch() / "set").string();
   const std::string train_args = "train --log " + log + " --out " + dir +
-                                 " --iterations 6 --field s3gaussian --static-iterations 3 --field-size small"
+                                 " --iterations 6 --field s3gaussian --static-iterations 3 --field-size small --field-motion-prior 0"
                                  " --resolution-scale 0.12 --voxel 0.5 --seed 3 --no-lidar-loss --clip-frames 8";
   Result r = RunCli(train_args);
   ASSERT_EQ(r.code, 0) << r.err;
@@ -216,7 +216,7 @@ TEST_F(CliClips, DefaultOverlapIsATenthOfAClip) {
   const std::string log = ShortLog(19);
   const std::string dir = (Scratch() / "set").string();
   const Result r = RunCli("train --log " + log + " --out " + dir +
-                          " --iterations 4 --field s3gaussian --static-iterations 2 --field-size small"
+                          " --iterations 4 --field s3gaussian --static-iterations 2 --field-size small --field-motion-prior 0"
                           " --resolution-scale 0.12 --voxel 0.5 --seed 3 --no-lidar-loss --clip-frames 10");
   ASSERT_EQ(r.code, 0) << r.err;
   const nlohmann::json clips = nlohmann::json::parse(Slurp(dir + "/clips.json"));
@@ -235,7 +235,7 @@ TEST_F(CliClips, DefaultOverlapIsATenthOfAClip) {
   for (auto& c : old["clips"]) c.erase("trained_frames");
   std::ofstream(dir + "/clips.json", std::ios::trunc) << old.dump();
   const std::string resume = "train --log " + log + " --out " + dir +
-                             " --iterations 4 --field s3gaussian --static-iterations 2 --field-size small"
+                             " --iterations 4 --field s3gaussian --static-iterations 2 --field-size small --field-motion-prior 0"
                              " --resolution-scale 0.12 --voxel 0.5 --seed 3 --no-lidar-loss --clip-frames 10 --resume";
   Result rr = RunCli(resume);
   EXPECT_EQ(rr.code, 0) << rr.err;
@@ -251,7 +251,7 @@ TEST_F(CliClips, EachClipTrainsLowResolutionFirst) {
   const std::string log = ShortLog(12);
   const std::string dir = (Scratch() / "set").string();
   const Result r = RunCli("train --log " + log + " --out " + dir +
-                          " --iterations 5 --field s3gaussian --static-iterations 2 --field-size small"
+                          " --iterations 5 --field s3gaussian --static-iterations 2 --field-size small --field-motion-prior 0"
                           " --resolution-scale 0.12 --low-res-scale 0.06 --low-res-iterations 3"
                           " --voxel 0.5 --seed 3 --no-lidar-loss --clip-frames 6");
   ASSERT_EQ(r.code, 0) << r.err;

@@ -78,7 +78,7 @@ class CliEvalOutputs : public ::testing::Test {
     const Result r = RunCli("train --log " + kKitti + " --out " + *scene_ +
                                 // spec init: AddMovingBand's plane change must reach Δx through heads that
                                 // 8 fine iterations have not yet grown from zero.
-                                " --iterations 16 --field s3gaussian --static-iterations 8 --field-size small"
+                                " --iterations 16 --field s3gaussian --static-iterations 8 --field-size small --field-motion-prior 0"
                                 " --field-init spec --resolution-scale 0.12 --holdout-every 10 --voxel 0.5 --seed 3 --checkpoint-every 0",
                             *root_);
     ASSERT_EQ(r.code, 0) << r.err;

@@ -24,7 +24,7 @@ TEST(CliFieldRepro, TwoDeterministicRunsWriteTheSameBytes) {
   for (int i = 0; i < 2; ++i) {
     setenv("STREETSIM_THREADS", threads[i], 1);  // inherited by the helper's shell
     const Result r = RunStreetsim("train --log " + kKitti + " --out " + dirs[i] +
-                                      " --iterations 24 --field s3gaussian --static-iterations 6 --field-size small"
+                                      " --iterations 24 --field s3gaussian --static-iterations 6 --field-size small --field-motion-prior 0"
                                       " --resolution-scale 0.12 --holdout-every 10 --voxel 0.5 --seed 5"
                                       " --deterministic",
                                   root + "/out" + std::to_string(i) + ".txt", root + "/err" + std::to_string(i) + ".txt");

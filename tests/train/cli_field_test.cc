@@ -37,7 +37,7 @@ Result RunCli(const std::string& args) {
 TEST(CliField, TrainWritesAFieldThatRenderAndEvalUse) {
   const std::string dir = streetsim::testing::ScratchDir("streetsim_cli_field_scene", "run");
   Result r = RunCli("train --log " + kKitti + " --out " + dir +
-                    " --iterations 16 --field s3gaussian --static-iterations 8 --field-size small"
+                    " --iterations 16 --field s3gaussian --static-iterations 8 --field-size small --field-motion-prior 0"
                     " --resolution-scale 0.12 --holdout-every 10 --voxel 0.5 --seed 3 --checkpoint-every 10");
   ASSERT_EQ(r.code, 0) << r.err;
   for (const char* f : {"scene.ply", "field.bin", "train_meta.json", "checkpoint.bin", "checkpoint_field_16.bin"}) {
@@ -134,7 +134,7 @@ TEST(CliField, FieldOptimizerOnTheDevice) {
   if (RunCli("devices").out.find("vulkan[0]") == std::string::npos) GTEST_SKIP() << "no Vulkan device";
   const std::string dir = streetsim::testing::ScratchDir("streetsim_cli_field_scene", "device_optimizer");
   const Result r = RunCli("train --log " + kKitti + " --out " + dir +
-                          " --iterations 12 --field s3gaussian --static-iterations 8 --field-size small"
+                          " --iterations 12 --field s3gaussian --static-iterations 8 --field-size small --field-motion-prior 0"
                           " --resolution-scale 0.12 --holdout-every 10 --voxel 0.5 --seed 3"
                           " --field-device vulkan --field-optimizer device");
   ASSERT_EQ(r.code, 0) << r.err;
@@ -151,7 +151,7 @@ TEST(CliField, ExtendedModulesGrowOnAnS3GaussianRunsResume) {
   const std::string dir = streetsim::testing::ScratchDir("streetsim_cli_field_grow", "run");
   const std::string train = "train --log " + kKitti + " --out " + dir + " --static-iterations 8 --checkpoint-every 10";
   const std::string kSmall =
-      " --field-size small --resolution-scale 0.12 --holdout-every 10 --voxel 0.5 --seed 3 --no-lidar-loss";
+      " --field-size small --field-motion-prior 0 --resolution-scale 0.12 --holdout-every 10 --voxel 0.5 --seed 3 --no-lidar-loss";
   Result r = RunCli(train + " --iterations 12 --field s3gaussian" + kSmall);
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_FALSE(std::filesystem::exists(dir + "/field_ext.bin"));

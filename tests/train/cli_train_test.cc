@@ -254,11 +254,11 @@ TEST(CliTrain, PoseRefinementStopsAtItsLastIteration) {
   // A field run freezes them at the end of its static stage unless told otherwise.
   const std::string f = streetsim::testing::ScratchDir("streetsim_cli_train_scene", "poses_field");
   r = RunCli("train --out " + f + common +
-             " --iterations 8 --field s3gaussian --field-size small --static-iterations 6 --checkpoint-every 0");
+             " --iterations 8 --field s3gaussian --field-size small --field-motion-prior 0 --static-iterations 6 --checkpoint-every 0");
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(nlohmann::json::parse(std::ifstream(f + "/checkpoint.json"))["pose_refine_until"], 6);
   r = RunCli("train --out " + f + common +
-             " --iterations 8 --field s3gaussian --field-size small --static-iterations 6 --checkpoint-every 0"
+             " --iterations 8 --field s3gaussian --field-size small --field-motion-prior 0 --static-iterations 6 --checkpoint-every 0"
              " --pose-refine-until 7");
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(nlohmann::json::parse(std::ifstream(f + "/checkpoint.json"))["pose_refine_until"], 7);
@@ -357,7 +357,7 @@ TEST(CliTrain, LowResolutionFirstThenTheRunsOwn) {
   const std::string dir = streetsim::testing::ScratchDir("streetsim_cli_train_lowres", "run");
   const std::string common = "train --log " + kKitti + " --out " + dir +
                              " --holdout-every 10 --voxel 0.5 --seed 3 --field s3gaussian"
-                             " --field-size small --static-iterations 4 --checkpoint-every 0";
+                             " --field-size small --field-motion-prior 0 --static-iterations 4 --checkpoint-every 0";
   Result r = RunCli(common + " --resolution-scale 0.12 --iterations 10 --low-res-scale 0.06 --low-res-iterations 7");
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_NE(r.err.find("low-resolution stage: iterations 1-7 at resolution scale 0.06, then 8-10 at 0.12"),
@@ -484,7 +484,7 @@ TEST(CliTrain, ADivergingRunRollsBackAndLowersItsRates) {
   const std::string plain = streetsim::testing::ScratchDir("streetsim_cli_train_diverge", "unguarded");
   const std::string common = "train --log " + kKitti +
                              " --iterations 1000 --static-iterations 300 --resolution-scale 0.12 --voxel 0.5"
-                             " --holdout-every 10 --checkpoint-every 600 --field-size small --no-lidar-loss"
+                             " --holdout-every 10 --checkpoint-every 600 --field-size small --field-motion-prior 0 --no-lidar-loss"
                              " --set field-motion-prior=0 --pose-refinement --pose-refine-until 0"
                              " --pose-refine-from 600 --pose-lr-scale 1000 --deterministic";
   Result r = RunCli(common + " --out " + dir);

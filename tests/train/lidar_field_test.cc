@@ -276,7 +276,7 @@ TEST(LidarField, EvalCommandDeformsAFieldScene) {
   };
   const std::string scene = (dir / "scene").string();
   ASSERT_EQ(run("train --log " + kKitti + " --out " + scene +
-                " --iterations 2 --field s3gaussian --static-iterations 1 --field-size small"
+                " --iterations 2 --field s3gaussian --static-iterations 1 --field-size small --field-motion-prior 0"
                 " --resolution-scale 0.12 --holdout-every 10 --voxel 0.8 --seed 3"),
             0)
       << Slurp(err);

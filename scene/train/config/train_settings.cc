@@ -225,7 +225,9 @@ absl::Status ResolveField(const Settings& s, TrainRunOptions* o) {
     t.field.config.time_resolution = static_cast<int>(s.GetInt("field-time-resolution"));
   }
   for (const char* name : kFieldOnly) {
-    if (s.given(name) && t.field.mode == FieldMode::kStatic) {
+    // Given at its default it asks for nothing (`--field-motion-prior 0` on a static run).
+    const SettingDef* def = s.Find(name);
+    if (s.given(name) && t.field.mode == FieldMode::kStatic && s.Get(name) != def->default_value) {
       return absl::InvalidArgumentError(absl::StrCat(name, " needs a field (this run is static)"));
     }
   }
