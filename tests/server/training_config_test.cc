@@ -99,7 +99,9 @@ TEST(TrainingConfig, BadValuesAreRefusedNamingTheFieldOrSetting) {
   ExpectRefused(Config(100, [](v1::TrainingConfig* c) { c->set_static_iterations(100); }),
                 "static-iterations (100) must be below iterations (100)");
   ExpectRefused(Config(3000, [](v1::TrainingConfig* c) { c->set_field("s3gaussian"); }), "must be below iterations");
-  ExpectRefused(Config(3000, [](v1::TrainingConfig* c) { c->set_field_lr_scale(10); }), "needs a field");
+  ExpectRefused(Config(3000, [](v1::TrainingConfig* c) { c->set_field_lr_scale(2); }), "needs a field");
+  // At its default it asks for nothing: no mistake in a static run.
+  EXPECT_TRUE(ValidateTrainingConfig(Config(3000, [](v1::TrainingConfig* c) { c->set_field_lr_scale(10); })).ok());
   ExpectRefused(Config(9000, [](v1::TrainingConfig* c) { c->set_field_lr_scale(NAN); }), "config.field_lr_scale");
   ExpectRefused(Config(9000, [](v1::TrainingConfig* c) { c->set_pose_lr_scale(1001); }), "config.pose_lr_scale");
   ExpectRefused(Config(9000, [](v1::TrainingConfig* c) { c->set_densify_until(-1); }),
