@@ -370,9 +370,8 @@ class Client:
             if isinstance(value, bool):
                 value = "true" if value else "false"
             text[str(name)] = str(value)
-        if max_iterations is None and not preset and not text and \
-                set(options) <= {"continue_from_scene"}:
-            preset = "quality" if "continue_from_scene" not in options else ""
+        if max_iterations is None and not preset and not text and not options:
+            preset = "quality"  # the default, as `streetsim train --log LOG --out DIR` runs it
         try:
             config = training_pb2.TrainingConfig(scene_name=scene_name, max_iterations=max_iterations or 0,
                                                  preset=preset, settings=text, **options)

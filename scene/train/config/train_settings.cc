@@ -304,7 +304,6 @@ Settings DefaultTrainSettings() { return Settings(&TrainSettingDefs()); }
 
 absl::StatusOr<TrainRunOptions> ResolveTrainOptions(const Settings& settings, int64_t segment_end) {
   TrainRunOptions o;
-  o.train.field.hyper.lr_scale = 10;  // overwritten below; FieldHyper's own 1 is S3Gaussian's
   for (const SettingDef& def : settings.defs()) {
     if (def.apply != nullptr) def.apply(settings.Get(def.name), &o);
   }
