@@ -1,6 +1,9 @@
 #include "server/render_service.h"
 
+#include <optional>
+
 #include "absl/strings/str_cat.h"
+#include "server/actor_edits.h"
 #include "server/admission.h"
 #include "server/request_validation.h"
 #include "server/status_mapping.h"
@@ -131,6 +134,8 @@ grpc::Status RenderServiceImpl::Render(grpc::ServerContext* ctx, const v1::Rende
     if (req->no_cameras() && !req->has_lidar()) {
       return absl::InvalidArgumentError("no_cameras needs a lidar request (nothing to render)");
     }
+    absl::StatusOr<std::vector<actors::ActorEdit>> edits = ActorEditsFromProto(req->actor_edits(), "actor_edits");
+    if (!edits.ok()) return edits.status();
     std::vector<CameraView> views;
     if (!req->no_cameras()) {
       absl::StatusOr<std::vector<RigCamera>> cams = ResolveSensors(**manifest, req->sensors(), deps_->limits);
@@ -157,8 +162,11 @@ grpc::Status RenderServiceImpl::Render(grpc::ServerContext* ctx, const v1::Rende
     const CancelCheck cancel = ContextCancelCheck(ctx);
     absl::StatusOr<SceneHandle> scene = deps_->scenes->Acquire(req->scene(), cancel);
     if (!scene.ok()) return scene.status();
-    absl::StatusOr<RenderResult> r =
-        deps_->core->Render(*scene->scene->field, req->time_us(), views, *outputs, cancel, extras);
+    if (absl::Status s = CheckActorEditsForScene(scene->scene->actors.get(), *edits); !s.ok()) return s;
+    std::optional<ActorEditedField> edited;
+    if (!edits->empty()) edited.emplace(*scene->scene->field, scene->scene->actors, std::move(*edits));
+    const SceneField& field = edited ? static_cast<const SceneField&>(*edited) : *scene->scene->field;
+    absl::StatusOr<RenderResult> r = deps_->core->Render(field, req->time_us(), views, *outputs, cancel, extras);
     if (!r.ok()) return r.status();
     FillResponse(std::move(*r), req->scene(), req->time_us(), resp);
     return CheckSize(*resp, deps_->limits);
@@ -179,6 +187,8 @@ grpc::Status RenderServiceImpl::RenderTrajectory(grpc::ServerContext* ctx, const
     }
     absl::StatusOr<v1::OutputSpec> outputs = ValidateOutputs(req->outputs());
     if (!outputs.ok()) return outputs.status();
+    absl::StatusOr<std::vector<actors::ActorEdit>> edits = ActorEditsFromProto(req->actor_edits(), "actor_edits");
+    if (!edits.ok()) return edits.status();
     absl::StatusOr<std::shared_ptr<const SceneManifest>> manifest = deps_->scenes->Manifest(req->scene());
     if (!manifest.ok()) return manifest.status();
     absl::StatusOr<std::vector<RigCamera>> cams = ResolveSensors(**manifest, req->sensors(), deps_->limits);
@@ -221,13 +231,17 @@ grpc::Status RenderServiceImpl::RenderTrajectory(grpc::ServerContext* ctx, const
     const CancelCheck cancel = ContextCancelCheck(ctx);
     absl::StatusOr<SceneHandle> scene = deps_->scenes->Acquire(req->scene(), cancel);
     if (!scene.ok()) return scene.status();
+    if (absl::Status s = CheckActorEditsForScene(scene->scene->actors.get(), *edits); !s.ok()) return s;
+    std::optional<ActorEditedField> edited;
+    if (!edits->empty()) edited.emplace(*scene->scene->field, scene->scene->actors, std::move(*edits));
+    const SceneField& field = edited ? static_cast<const SceneField&>(*edited) : *scene->scene->field;
     for (int i = 0; i < req->points_size(); ++i) {
       RenderExtras extras;
       extras.default_background = (*manifest)->background;
       extras.client = ctx->peer();
       if (lidar_jobs[i]) extras.lidar = &*lidar_jobs[i];
       absl::StatusOr<RenderResult> r =
-          deps_->core->Render(*scene->scene->field, req->points(i).time_us(), all_views[i], *outputs, cancel, extras);
+          deps_->core->Render(field, req->points(i).time_us(), all_views[i], *outputs, cancel, extras);
       if (!r.ok()) return r.status();
       v1::TrajectoryFrame frame;
       frame.set_index(i);

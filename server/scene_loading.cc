@@ -103,6 +103,20 @@ absl::StatusOr<std::shared_ptr<LoadedScene>> LoadSceneFile(const std::string& pa
   }
   absl::StatusOr<std::optional<std::vector<float>>> reflectance = train::ReadPlyReflectance(path, store->size());
   if (!reflectance.ok()) return reflectance.status();
+  // Its actors: a damaged set, or one of another scene.ply, is refused naming the file rather
+  // than edited with the wrong rows.
+  std::error_code actors_ec;
+  if (fs::path(path).filename() == "scene.ply" &&
+      fs::exists(fs::path(path).parent_path() / actors::kActorsJson, actors_ec)) {
+    absl::StatusOr<actors::ActorSet> set = actors::ReadActorSet(fs::path(path).parent_path().string());
+    if (!set.ok()) return set.status();
+    if (set->scene_gaussians != store->size()) {
+      return absl::DataLossError(absl::StrCat((fs::path(path).parent_path() / actors::kActorsJson).string(),
+                                              ": its scene had ", set->scene_gaussians, " Gaussians, scene.ply has ",
+                                              store->size()));
+    }
+    loaded->actors = std::make_shared<const actors::ActorSet>(std::move(*set));
+  }
   // A trained dynamic scene: DIR/field.bin beside DIR/scene.ply (bare .ply files are static).
   const fs::path field_path = fs::path(path).parent_path() / field::kFieldFileName;
   std::error_code ec;

@@ -12,6 +12,7 @@
 #include "scene/field/serving_form.h"
 #include "scene/field/static_skip.h"
 #include "scene/train/dynamic_stage.h"
+#include "scene/actors/actor_set.h"
 #include "server/scene_field.h"
 #include "server/scene_manifest.h"
 
@@ -22,6 +23,8 @@ struct LoadedScene {
   size_t num_gaussians = 0;
   Eigen::Vector3d min_m = Eigen::Vector3d::Zero(), max_m = Eigen::Vector3d::Zero();
   double load_time_s = 0;  // PLY, field.bin, static analysis and upload
+  // DIR/actors.json (docs/actors.md); null when the scene has none.
+  std::shared_ptr<const actors::ActorSet> actors;
 };
 
 struct SceneLoadOptions {

@@ -7,6 +7,7 @@
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
 #include "scene/train/clips.h"
+#include "server/actor_edits.h"
 #include "server/clip_set_scene_field.h"
 #include "server/echo.h"
 #include "server/path_confinement.h"
@@ -184,6 +185,7 @@ void SceneRegistry::FillScene(const Entry& e, bool with_trajectory, v1::Scene* o
     out->set_field_device(field_stats.device);
     out->set_field_serving(field_stats.serving);
     out->set_field_form_error_m(field_stats.form_error_m);
+    if (e.loaded->actors) ActorsToProto(*e.loaded->actors, with_trajectory, out);
   }
 }
 

@@ -1,9 +1,11 @@
 #include "server/session_manager.h"
 
+#include <optional>
 #include <random>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "server/actor_edits.h"
 #include "server/admission.h"
 #include "server/digest.h"
 #include "server/echo.h"
@@ -108,6 +110,8 @@ absl::StatusOr<v1::Session> SessionManager::Create(const v1::CreateSessionReques
     if (!job.ok()) return job.status();
     lidar = std::move(*job);
   }
+  absl::StatusOr<std::vector<actors::ActorEdit>> edits = ActorEditsFromProto(req.actor_edits(), "actor_edits");
+  if (!edits.ok()) return edits.status();
   // A session whose every step would be refused for its size is refused now.
   if (absl::Status s = AdmitRender(EstimateRenderCost(ViewsAt(*cams, Eigen::Isometry3d::Identity()), *outputs,
                                                       lidar ? &*lidar : nullptr),
@@ -153,6 +157,7 @@ absl::StatusOr<v1::Session> SessionManager::Create(const v1::CreateSessionReques
   s->seed = req.seed();
   s->state.time_us = start;
   s->state.T_world_from_ego = ego;
+  s->state.actor_edits = std::move(*edits);
   Renew(*s);
   sessions_[s->id] = s;
   if (!req.request_id().empty()) {
@@ -308,9 +313,19 @@ absl::StatusOr<std::shared_ptr<const v1::StepResponse>> SessionManager::Step(con
   if (absl::Status st = AdmitRender(EstimateRenderCost(views, outputs, extras.lidar), deps_->limits); !st.ok()) {
     return st;
   }
+  std::vector<actors::ActorEdit> actor_edits = state.actor_edits;
+  if (req.has_actor_edits()) {
+    absl::StatusOr<std::vector<actors::ActorEdit>> e = ActorEditsFromProto(req.actor_edits().edits(), "actor_edits.edits");
+    if (!e.ok()) return e.status();
+    actor_edits = std::move(*e);
+  }
   absl::StatusOr<SceneHandle> scene = deps_->scenes->Acquire(s->scene, cancel);
   if (!scene.ok()) return scene.status();
-  absl::StatusOr<RenderResult> r = deps_->core->Render(*scene->scene->field, time_us, views, outputs, cancel, extras);
+  if (absl::Status st = CheckActorEditsForScene(scene->scene->actors.get(), actor_edits); !st.ok()) return st;
+  std::optional<ActorEditedField> edited;
+  if (!actor_edits.empty()) edited.emplace(*scene->scene->field, scene->scene->actors, actor_edits);
+  const SceneField& field = edited ? static_cast<const SceneField&>(*edited) : *scene->scene->field;
+  absl::StatusOr<RenderResult> r = deps_->core->Render(field, time_us, views, outputs, cancel, extras);
   if (!r.ok()) return r.status();
   auto resp = std::make_shared<v1::StepResponse>();
   resp->set_session_id(s->id);
@@ -332,6 +347,7 @@ absl::StatusOr<std::shared_ptr<const v1::StepResponse>> SessionManager::Step(con
     s->state.time_us = time_us;
     s->state.T_world_from_ego = ego;
     s->state.last_response = resp;
+    s->state.actor_edits = std::move(actor_edits);
     Renew(*s);
   }
   return std::shared_ptr<const v1::StepResponse>(resp);

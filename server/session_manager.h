@@ -11,6 +11,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "scene/actors/actor_edits.h"
 #include "server/render_core.h"
 #include "server/scene_manifest.h"
 #include "server/service_deps.h"
@@ -38,6 +39,9 @@ class SessionManager {
     int64_t time_us = 0;
     Eigen::Isometry3d T_world_from_ego = Eigen::Isometry3d::Identity();
     std::shared_ptr<const v1::StepResponse> last_response;
+    // The actors' edits in force (CreateSession's, replaced by a step that sets its own);
+    // committed with the step that set them.
+    std::vector<actors::ActorEdit> actor_edits;
   };
   struct Session {
     std::string id;

@@ -22,5 +22,6 @@ int RunLogCommand(const std::vector<std::string>& args);  // log info|preview|po
 int RunInitCommand(const std::vector<std::string>& args);
 int RunTrainCommand(const std::vector<std::string>& args);
 int RunEvalCommand(const std::vector<std::string>& args);
+int RunActorsCommand(const std::vector<std::string>& args);  // actors extract|list (docs/actors.md)
 
 }  // namespace streetsim

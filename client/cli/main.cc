@@ -54,6 +54,8 @@ constexpr char kUsage[] =
                "               --log-poses: at the log's)\n"
                "              (JSON on stdout, a table on stderr; --served: rendered as streetsim serve\n"
                "              serves it, the static skip's Gaussians baked, docs/field.md \"Serving\")\n"
+               "  actors    a trained scene's actors (docs/actors.md): streetsim actors extract --scene DIR --log PATH\n"
+               "              streetsim actors list --scene DIR [--json]   (train extracts them at its end)\n"
                "\n"
                "streetsim <command> --help: that command's part of this text.\n";
 
@@ -108,6 +110,7 @@ int main(int argc, char** argv) {
   if (command == "init") return streetsim::RunInitCommand(args);
   if (command == "train") return streetsim::RunTrainCommand(args);
   if (command == "eval") return streetsim::RunEvalCommand(args);
+  if (command == "actors") return streetsim::RunActorsCommand(args);
   std::fprintf(stderr, "streetsim: unknown command '%s' (try streetsim --help)\n", command.c_str());
   return 2;
 }

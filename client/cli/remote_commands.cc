@@ -147,6 +147,83 @@ absl::StatusOr<Eigen::Isometry3d> MatrixFromJson(const json& j) {
   return T;
 }
 
+// A scenario's actor edits (docs/actors.md "Scenarios"): each {"edit": "remove"|"move"|"insert",
+// "actor_id": N, "from_step": K (0), "path": [...]}. A path pose is either {"step": K,
+// "ego_xyz_m": [x, y, z], "yaw_deg": Y} (in the frame of the replay's ego at step K: "15 m ahead,
+// one lane left"; z defaults to the height the log had the actor at above the ego) or
+// {"time_us": T, "T_world_from_actor": [16 numbers]}.
+struct ScenarioEdit {
+  int from_step = 0;
+  v1::ActorEdit edit;
+};
+
+absl::StatusOr<std::vector<ScenarioEdit>> ScenarioActorEdits(const json& list, const v1::Scene& scene,
+                                                            const std::vector<Eigen::Isometry3d>& ego, int64_t t0,
+                                                            int64_t dt) {
+  std::vector<ScenarioEdit> out;
+  if (!list.is_array()) return absl::InvalidArgumentError("\"actors\" is a list of edits");
+  for (size_t i = 0; i < list.size(); ++i) {
+    const json& j = list[i];
+    const std::string where = absl::StrCat("actors[", i, "]");
+    if (!j.is_object() || !j.contains("actor_id") || !j["actor_id"].is_number_integer()) {
+      return absl::InvalidArgumentError(absl::StrCat(where, " needs \"actor_id\""));
+    }
+    ScenarioEdit e;
+    e.from_step = j.value("from_step", 0);
+    const std::string kind = j.value("edit", "");
+    e.edit.set_kind(kind == "remove" ? v1::ACTOR_EDIT_REMOVE
+                    : kind == "move" ? v1::ACTOR_EDIT_MOVE
+                    : kind == "insert" ? v1::ACTOR_EDIT_INSERT
+                                       : v1::ACTOR_EDIT_KIND_UNSPECIFIED);
+    if (e.edit.kind() == v1::ACTOR_EDIT_KIND_UNSPECIFIED) {
+      return absl::InvalidArgumentError(absl::StrCat(where, ".edit must be remove, move or insert"));
+    }
+    e.edit.set_actor_id(j["actor_id"].get<int>());
+    const v1::Actor* actor = nullptr;
+    for (const v1::Actor& a : scene.actors()) {
+      if (a.actor_id() == e.edit.actor_id()) actor = &a;
+    }
+    if (actor == nullptr) {
+      return absl::InvalidArgumentError(absl::StrCat(where, ": the scene has no actor ", e.edit.actor_id(),
+                                                     " (streetsim scenes --info ", scene.name(), ")"));
+    }
+    for (const json& p : j.value("path", json::array())) {
+      v1::ActorPose* pose = e.edit.add_trajectory();
+      if (p.contains("T_world_from_actor")) {
+        absl::StatusOr<Eigen::Isometry3d> T = MatrixFromJson(p["T_world_from_actor"]);
+        if (!T.ok()) return absl::InvalidArgumentError(absl::StrCat(where, ".path: ", T.status().message()));
+        pose->set_time_us(p.value("time_us", int64_t{0}));
+        *pose->mutable_t_world_from_actor() = client::ToPose(*T);
+        continue;
+      }
+      const int step = p.value("step", -1);
+      const json xyz = p.value("ego_xyz_m", json::array());
+      if (step < 0 || step >= static_cast<int>(ego.size()) || !xyz.is_array() || xyz.size() < 2 ||
+          !xyz[0].is_number() || !xyz[1].is_number()) {
+        return absl::InvalidArgumentError(
+            absl::StrCat(where, ".path: a pose is {\"step\": K in the replay, \"ego_xyz_m\": [x, y(, z)], "
+                                "\"yaw_deg\": Y} or {\"time_us\", \"T_world_from_actor\"}"));
+      }
+      double z = 0;
+      if (xyz.size() > 2 && xyz[2].is_number()) {
+        z = xyz[2].get<double>();
+      } else if (actor->trajectory_size() > 0) {
+        // The log's height of the actor above the ego at its first scan.
+        const Eigen::Isometry3d first = client::FromPose(actor->trajectory(0).t_world_from_actor());
+        const Eigen::Isometry3d ego_then = ego.front();
+        z = (ego_then.inverse() * first).translation().z();
+      }
+      Eigen::Isometry3d local = Eigen::Isometry3d::Identity();
+      local.translation() = Eigen::Vector3d(xyz[0].get<double>(), xyz[1].get<double>(), z);
+      local.linear() = Eigen::AngleAxisd(p.value("yaw_deg", 0.0) * M_PI / 180, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+      pose->set_time_us(t0 + step * dt);
+      *pose->mutable_t_world_from_actor() = client::ToPose(ego[step] * local);
+    }
+    out.push_back(std::move(e));
+  }
+  return out;
+}
+
 }  // namespace
 
 int RunScenesCommand(const std::vector<std::string>& argv) {
@@ -426,6 +503,11 @@ int RunReplayCommand(const std::vector<std::string>& argv) {
   if (scene.empty() || num_steps <= 0 || num_steps > 100000) {
     return Fail("replay", 2, absl::InvalidArgumentError("scenario needs \"scene\" and \"num_steps\" in 1..100000"));
   }
+  // A scene lists its actors once loaded: a scenario that edits them loads it first.
+  if (sc.contains("actors")) {
+    absl::StatusOr<v1::Scene> loaded = (*c)->LoadScene(scene, true);
+    if (!loaded.ok()) return Fail("replay", CodeFor(loaded.status()), loaded.status());
+  }
   absl::StatusOr<v1::Scene> info = (*c)->GetScene(scene);
   if (!info.ok()) return Fail("replay", CodeFor(info.status()), info.status());
   v1::CreateSessionRequest create;
@@ -497,6 +579,20 @@ int RunReplayCommand(const std::vector<std::string>& argv) {
     return Fail("replay", 2, absl::InvalidArgumentError("ego.mode must be log, poses or straight"));
   }
   *create.mutable_initial_t_world_from_ego() = client::ToPose(poses[0]);
+  std::vector<ScenarioEdit> actor_edits;
+  if (sc.contains("actors")) {
+    absl::StatusOr<std::vector<ScenarioEdit>> e = ScenarioActorEdits(sc["actors"], *info, poses, t0, dt);
+    if (!e.ok()) return Fail("replay", 2, e.status());
+    actor_edits = std::move(*e);
+  }
+  // The edits in force at step k: those from a step at or before it.
+  const auto edits_at = [&](int k) {
+    v1::ActorEdits in_force;
+    for (const ScenarioEdit& e : actor_edits) {
+      if (e.from_step <= k) *in_force.add_edits() = e.edit;
+    }
+    return in_force;
+  };
 
   absl::StatusOr<v1::Session> session = (*c)->CreateSession(create);
   if (!session.ok()) return Fail("replay", CodeFor(session.status()), session.status());
@@ -512,6 +608,10 @@ int RunReplayCommand(const std::vector<std::string>& argv) {
     step.set_session_id(session->session_id());
     step.set_step_index(k);
     *step.mutable_t_world_from_ego() = client::ToPose(poses[k]);
+    if (!actor_edits.empty()) {
+      const v1::ActorEdits now = edits_at(k);
+      if (k == 0 || now.edits_size() != edits_at(k - 1).edits_size()) *step.mutable_actor_edits() = now;
+    }
     const auto t_start = std::chrono::steady_clock::now();
     absl::StatusOr<v1::StepResponse> r = (*c)->Step(step);
     if (!r.ok() && absl::IsUnavailable(r.status())) r = (*c)->Step(step);  // idempotent retry

@@ -15,6 +15,7 @@
 #include "client/cli/train_flags.h"
 #include "client/cli/train_schedule_runner.h"
 #include "render/engine.h"
+#include "scene/actors/scene_actors.h"
 #include "scene/log/open_log.h"
 #include "scene/log/scene_manifest.h"
 #include "scene/train/clip_training.h"
@@ -116,6 +117,30 @@ std::string Describe(const train::config::ResolvedRun& run, const std::vector<tr
   return absl::StrCat(run.config.preset.empty() ? "no preset" : "preset " + run.config.preset, " (", what, ")");
 }
 
+// The run's last stage (docs/actors.md): actors from the finished scene. Their failure costs the
+// run nothing: the scene is written, and `streetsim actors extract` can try again. A run without
+// them leaves no actors of an earlier scene behind (they would name another scene.ply's rows).
+void ExtractActorsAtTheEnd(const DriveLog& log, const std::string& dir, const train::config::Settings& settings) {
+  namespace fs = std::filesystem;
+  if (!settings.GetBool("actors") || log.lidars.empty()) {
+    std::error_code ec;
+    fs::remove(fs::path(dir) / actors::kActorsJson, ec);
+    fs::remove(fs::path(dir) / actors::kActorsPly, ec);
+    return;
+  }
+  // A resumed run that had nothing left to do keeps the actors of its unchanged scene.
+  if (actors::ReadActorSet(dir).ok()) return;
+  absl::StatusOr<actors::ActorSet> set = actors::ExtractSceneActors(log, dir);
+  if (!set.ok()) {
+    std::fprintf(stderr, "streetsim train: warning: no actors: %s\n", std::string(set.status().message()).c_str());
+    return;
+  }
+  size_t gaussians = 0;
+  for (const actors::Actor& a : set->actors) gaussians += a.body_rows.size();
+  std::fprintf(stderr, "streetsim train: %zu actors (%zu Gaussians) -> %s/%s\n", set->actors.size(), gaussians,
+               dir.c_str(), actors::kActorsJson);
+}
+
 }  // namespace
 
 int RunTrainCommand(const std::vector<std::string>& argv) {
@@ -215,6 +240,7 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
     std::fprintf(stderr, "streetsim train: %zu clips -> %s/clips.json\n", clips->set->clips.size(), out->c_str());
     return 0;
   }
+  ExtractActorsAtTheEnd(*log, *out, segments.back().settings);
   std::fprintf(stderr, "streetsim train: %lld iterations, %zu Gaussians, %.1f s -> %s/scene.ply\n",
                static_cast<long long>(r->iterations), r->gaussians, r->seconds, out->c_str());
   if (!r->heldout.frames.empty()) {

@@ -13,6 +13,7 @@
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 
+#include "tests/common/cli_runner.h"
 #include "tests/server/server_fixture.h"
 
 extern char** environ;
@@ -137,7 +138,7 @@ class CliServerTest : public ::testing::Test {
   }
   Result Exec(const std::string& args) {
     const std::string out = dir_ + "/cmd.stdout", err = dir_ + "/cmd.stderr";
-    const int status = std::system((kBinary + " " + args + " >" + out + " 2>" + err).c_str());
+    const int status = std::system((kBinary + " " + cli_test::WithoutActorsUnlessNamed(args) + " >" + out + " 2>" + err).c_str());
     return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, ReadAll(out), ReadAll(err)};
   }
   std::string Server() { return " --server " + serve_->address(); }

@@ -13,6 +13,7 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "gtest/gtest.h"
+#include "tests/common/cli_runner.h"
 #include "tests/common/scratch_dir.h"
 
 namespace {
@@ -29,7 +30,7 @@ Result RunCli(const std::string& args) {
   const auto dir = std::filesystem::temp_directory_path();
   const std::string out = (dir / ("streetsim_cli_train_out." + std::to_string(getpid()) + ".txt")).string();
   const std::string err = (dir / ("streetsim_cli_train_err." + std::to_string(getpid()) + ".txt")).string();
-  const int status = std::system((kBinary + " " + args + " >" + out + " 2>" + err).c_str());
+  const int status = std::system((kBinary + " " + streetsim::cli_test::WithoutActorsUnlessNamed(args) + " >" + out + " 2>" + err).c_str());
   auto slurp = [](const std::string& p) {
     std::ifstream f(p);
     std::stringstream s;
@@ -107,6 +108,38 @@ TEST(CliTrain, TrainThenEvalGivesTheJsonContract) {
   }
   EXPECT_GT(compared, sky.rows * sky.cols);
   EXPECT_EQ(off, 0) << "of " << compared;
+}
+
+// The run's last stage (docs/actors.md): the log's moving objects become actors beside the scene;
+// `actors list` reads them, a resume with nothing to do keeps them, and a run without them leaves
+// none of an earlier scene behind.
+TEST(CliTrain, ActorsAtTheEndOfTheRun) {
+  const std::string dir = streetsim::testing::ScratchDir("streetsim_cli_train_scene", "actors");
+  const std::string run = "train --log " + kKitti + " --out " + dir +
+                          " --iterations 10 --resolution-scale 0.12 --holdout-every 4 --field-motion-prior 0";
+  Result r = RunCli(run + " --actors");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find(" actors ("), std::string::npos) << r.err;
+  r = RunCli("actors list --scene " + dir + " --json");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const nlohmann::json list = nlohmann::json::parse(r.out);
+  // The clip's moving vehicles: the tanker, the cars behind and across (docs/actors.md).
+  EXPECT_GE(list["actors"].size(), 3u) << r.out;
+  for (const auto& a : list["actors"]) {
+    EXPECT_GT(a["half_extent_m"][0].get<double>(), 0.3);
+    EXPECT_LE(a["start_time_us"].get<int64_t>(), a["end_time_us"].get<int64_t>());
+  }
+  const auto written = std::filesystem::last_write_time(dir + "/actors.json");
+  r = RunCli(run + " --actors --resume");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(std::filesystem::last_write_time(dir + "/actors.json"), written) << "nothing changed: kept";
+  r = RunCli(run + " --no-actors");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_FALSE(std::filesystem::exists(dir + "/actors.json"));
+  EXPECT_EQ(RunCli("actors list --scene " + dir).code, 2);
+  EXPECT_EQ(RunCli("actors extract --scene /nonexistent --log " + kKitti).code, 2);
+  EXPECT_EQ(RunCli("actors extract --scene " + dir).code, 2) << "--log is required";
+  EXPECT_EQ(RunCli("actors bogus").code, 2);
 }
 
 TEST(CliTrain, BadArgumentsExitTwoWithOneLine) {

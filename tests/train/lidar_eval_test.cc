@@ -13,6 +13,7 @@
 #include <nlohmann/json.hpp>
 
 #include "gtest/gtest.h"
+#include "tests/common/cli_runner.h"
 #include "render/common/thread_pool.h"
 #include "scene/gaussians/ply_io.h"
 #include "scene/init/initial_scene.h"
@@ -175,7 +176,7 @@ Cli RunCli(const std::string& args) {
   const std::string out = (dir / ("streetsim_lidar_eval_out." + std::to_string(getpid()) + ".txt")).string();
   const std::string err = (dir / ("streetsim_lidar_eval_err." + std::to_string(getpid()) + ".txt")).string();
   const int status =
-      std::system((std::string(STREETSIM_BINARY_DIR) + "/bin/streetsim " + args + " >" + out + " 2>" + err).c_str());
+      std::system((std::string(STREETSIM_BINARY_DIR) + "/bin/streetsim " + cli_test::WithoutActorsUnlessNamed(args) + " >" + out + " 2>" + err).c_str());
   auto slurp = [](const std::string& p) {
     std::ifstream f(p);
     std::stringstream s;

@@ -17,6 +17,7 @@
 #include <nlohmann/json.hpp>
 
 #include "gtest/gtest.h"
+#include "tests/common/cli_runner.h"
 #include "render/common/thread_pool.h"
 #include "render/lidar/lidar_backward.h"
 #include "scene/field/deformed_scene.h"
@@ -271,7 +272,7 @@ TEST(LidarField, EvalCommandDeformsAFieldScene) {
   std::filesystem::create_directories(dir);
   const std::string out = (dir / "out.json").string(), err = (dir / "err.txt").string();
   auto run = [&](const std::string& args) {
-    const int status = std::system((bin + " " + args + " >" + out + " 2>" + err).c_str());
+    const int status = std::system((bin + " " + cli_test::WithoutActorsUnlessNamed(args) + " >" + out + " 2>" + err).c_str());
     return WEXITSTATUS(status);
   };
   const std::string scene = (dir / "scene").string();

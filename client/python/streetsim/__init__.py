@@ -17,8 +17,12 @@ from streetsim.client import (  # noqa: E402,F401
     StreetsimError,
     pose_from_matrix,
     matrix_from_pose,
+    remove_actor,
+    move_actor,
+    insert_actor,
 )
 from streetsim.replicas import ReplicaClient, replica_of  # noqa: E402,F401
 
 __all__ = ["Client", "Frame", "Lidar", "LidarOptions", "ReplicaClient", "Session", "StreetsimError",
-           "pose_from_matrix", "matrix_from_pose", "replica_of"]
+           "pose_from_matrix", "matrix_from_pose", "replica_of", "remove_actor", "move_actor",
+           "insert_actor"]

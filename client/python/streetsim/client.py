@@ -201,6 +201,29 @@ def _outputs(rgb=True, depth=False, alpha=False, encoding="raw", depth_encoding=
     )
 
 
+def remove_actor(actor_id: int) -> common_pb2.ActorEdit:
+    """An edit that takes actor ``actor_id`` (Scene.actors) out of the scene (docs/actors.md)."""
+    return common_pb2.ActorEdit(kind=common_pb2.ACTOR_EDIT_REMOVE, actor_id=int(actor_id))
+
+
+def move_actor(actor_id: int, trajectory: Sequence) -> common_pb2.ActorEdit:
+    """Actor ``actor_id`` follows ``trajectory``, [(time_us, 4x4 T_world_from_actor), ...], instead
+    of the log's path (it holds the first pose before the first time and the last after)."""
+    return _actor_edit(common_pb2.ACTOR_EDIT_MOVE, actor_id, trajectory)
+
+
+def insert_actor(actor_id: int, trajectory: Sequence) -> common_pb2.ActorEdit:
+    """A copy of actor ``actor_id`` on ``trajectory``; the original stays where the log has it."""
+    return _actor_edit(common_pb2.ACTOR_EDIT_INSERT, actor_id, trajectory)
+
+
+def _actor_edit(kind, actor_id, trajectory) -> common_pb2.ActorEdit:
+    e = common_pb2.ActorEdit(kind=kind, actor_id=int(actor_id))
+    for t, T in trajectory:
+        e.trajectory.add(time_us=int(t), T_world_from_actor=pose_from_matrix(T))
+    return e
+
+
 def _sensors(sensors, width=0, height=0) -> List[common_pb2.SensorRequest]:
     out = []
     for s in sensors or []:
@@ -279,14 +302,15 @@ class Client:
                sensors: Optional[Sequence] = None, width: int = 0, height: int = 0, rgb: bool = True,
                depth: bool = False, alpha: bool = False, encoding: str = "raw",
                depth_encoding: str = "f32", timeout_s: Optional[float] = None,
-               lidar: Optional[LidarOptions] = None, no_cameras: bool = False) -> Dict[str, Frame]:
+               lidar: Optional[LidarOptions] = None, no_cameras: bool = False,
+               actor_edits: Sequence = ()) -> Dict[str, Frame]:
         """Renders one instant. Poses are 4x4 matrices (T_world_from_ego / T_world_from_sensor);
         neither: the scene log's ego pose at time_us. With ``lidar`` the sweep is in
-        ``self.last_lidar``."""
+        ``self.last_lidar``. ``actor_edits``: remove_actor / move_actor / insert_actor edits."""
         req = render_pb2.RenderRequest(scene=scene, time_us=time_us,
                                        sensors=_sensors(sensors, width, height),
                                        outputs=_outputs(rgb, depth, alpha, encoding, depth_encoding),
-                                       no_cameras=no_cameras)
+                                       no_cameras=no_cameras, actor_edits=list(actor_edits))
         if lidar is not None:
             req.lidar.CopyFrom(lidar.to_proto())
         if ego_pose is not None:
@@ -310,13 +334,15 @@ class Client:
                           width: int = 0, height: int = 0, rgb: bool = True, depth: bool = False,
                           alpha: bool = False, encoding: str = "raw", depth_encoding: str = "f32",
                           lidar: Optional[LidarOptions] = None,
-                          timeout_s: Optional[float] = None) -> Iterator[Tuple[int, Dict[str, Frame], Optional[Lidar]]]:
+                          timeout_s: Optional[float] = None,
+                          actor_edits: Sequence = ()) -> Iterator[Tuple[int, Dict[str, Frame], Optional[Lidar]]]:
         """Renders a list of instants in one call, streamed in order: points are (time_us, 4x4
         T_world_from_ego or None for the log's pose). Yields (index, frames, lidar); with
         ``lidar`` every point also gets a sweep from its time (the server validates every point
         before rendering any)."""
         req = render_pb2.RenderTrajectoryRequest(scene=scene, sensors=_sensors(sensors, width, height),
-                                                 outputs=_outputs(rgb, depth, alpha, encoding, depth_encoding))
+                                                 outputs=_outputs(rgb, depth, alpha, encoding, depth_encoding),
+                                                 actor_edits=list(actor_edits))
         for time_us, ego_pose in points:
             p = req.points.add(time_us=int(time_us))
             if ego_pose is not None:
@@ -336,12 +362,13 @@ class Client:
                 sensors: Optional[Sequence] = None, width: int = 0, height: int = 0, rgb: bool = True,
                 depth: bool = False, alpha: bool = False, encoding: str = "raw",
                 initial_ego_pose=None, request_id: str = "",
-                lidar: Optional[LidarOptions] = None) -> "Session":
-        """With ``lidar`` every step also returns a sweep (``Session.last_lidar``)."""
+                lidar: Optional[LidarOptions] = None, actor_edits: Sequence = ()) -> "Session":
+        """With ``lidar`` every step also returns a sweep (``Session.last_lidar``);
+        ``actor_edits`` are in force from the first step (``Session.step`` can replace them)."""
         req = session_pb2.CreateSessionRequest(
             scene=scene, step_dt_us=step_dt_us, start_time_us=start_time_us, seed=seed,
             sensors=_sensors(sensors, width, height), outputs=_outputs(rgb, depth, alpha, encoding),
-            request_id=request_id)
+            request_id=request_id, actor_edits=list(actor_edits))
         if lidar is not None:
             req.lidar.CopyFrom(lidar.to_proto())
         if initial_ego_pose is not None:
@@ -425,12 +452,17 @@ class Session:
                 raise
 
     def step(self, ego_pose=None, trajectory: Optional[Sequence] = None, timeout_s: Optional[float] = None,
-             retries: int = 2, lidar: Optional[LidarOptions] = None) -> Dict[str, Frame]:
+             retries: int = 2, lidar: Optional[LidarOptions] = None,
+             actor_edits: Optional[Sequence] = None) -> Dict[str, Frame]:
         """Advances one step. ego_pose: 4x4 T_world_from_ego; trajectory: [(time_us, 4x4), ...]
         for the server to follow; neither: the ego stays. Retries (same step_index) are
         idempotent, so UNAVAILABLE / DEADLINE_EXCEEDED are retried ``retries`` times. lidar:
-        this step's sweep (replaces the session's); the sweep lands in ``self.last_lidar``."""
+        this step's sweep (replaces the session's); the sweep lands in ``self.last_lidar``.
+        actor_edits: the session's edits from this step on (a list, [] for none); None keeps them."""
         req = session_pb2.StepRequest(session_id=self.id, step_index=self.next_step)
+        if actor_edits is not None:
+            req.actor_edits.SetInParent()
+            req.actor_edits.edits.extend(list(actor_edits))
         if lidar is not None:
             req.lidar.CopyFrom(lidar.to_proto())
         if ego_pose is not None:

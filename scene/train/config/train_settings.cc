@@ -93,6 +93,10 @@ std::vector<SettingDef> MakeDefs() {
   add({.name = "deterministic", .type = T::kBool, .default_value = false,
        .help = "fixed-order gradient sums (the same bits run to run; slower)",
        .apply = [](const V& v, TrainRunOptions* o) { o->train.deterministic = B(v); }});
+  // Read by the run's end (client/cli/train_command.cc), not by the trainer: no apply.
+  add({.name = "actors", .type = T::kBool, .default_value = true, .group = G::kCommon,
+       .help = "at the end of the run, the log's moving objects (followed in its LiDAR) become actors a scenario can "
+               "remove, move or copy: DIR/actors.json (docs/actors.md); a log without LiDAR has none"});
   add({.name = "divergence-guard", .type = T::kBool, .default_value = true,
        .help = "when the training loss diverges, go back to the last good checkpoint and lower the field's rates "
                "(docs/training.md \"Divergence guard\")",
@@ -267,7 +271,7 @@ absl::Status ResolveLowResAndClips(const Settings& s, TrainRunOptions* o) {
       return absl::InvalidArgumentError(
           absl::StrCat("low-res-scale / low-res-iterations: ", st.message(), " (low-res-iterations 0: none)"));
     }
-  } else if (s.given("low-res-scale") && s.origin("low-res-iterations") == Origin::kDefault) {
+  } else if (s.given("low-res-scale")) {
     return absl::InvalidArgumentError("low-res-scale needs low-res-iterations > 0");
   }
   if (o->train.holdout_every == 1) {
