@@ -4,7 +4,7 @@
 // object (p50_ms, p99_ms, steps_per_s, rss_mib ...). Figures: docs/benchmarks.md "Server step latency".
 //
 //   step_bench [--field none|exact|served] [--gaussians N | --scene DIR] [--camera WxH] [--lidar BEAMSxCOLUMNS]
-//              [--steps K] [--sessions S]
+//              [--steps K] [--sessions S] [--actor-edit none|remove|move|insert]
 //
 // --gaussians N: a synthetic street whose field moves every Gaussian (its time planes vary over
 // the whole scene, as a trained KITTI field does: docs/benchmarks.md "On trained KITTI scenes").
@@ -12,6 +12,8 @@
 // its Gaussians without the field. --field exact: the field's network per step (serve
 // --field-serving exact); served: its serving form (scene/field/serving_form.h), built at the first
 // load (load_s includes it) and cached beside the scene. --lidar 0x0: no LiDAR.
+// --actor-edit: every step edits the scene's largest actor (--scene DIR with actors.json,
+// docs/actors.md): removes it, moves it 3.5 m to its left, or inserts a copy there.
 #include <unistd.h>
 
 #include <algorithm>
@@ -22,6 +24,7 @@
 #include <filesystem>
 #include <fstream>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <thread>
 #include <vector>
@@ -47,12 +50,13 @@ struct Args {
   int beams = 64, columns = 2048;
   int steps = 20;
   int sessions = 1;
+  std::string actor_edit = "none";
 };
 
 int Usage(const char* why) {
   std::fprintf(stderr,
                "step_bench: %s\nusage: step_bench [--field none|exact|served] [--gaussians N | --scene DIR] "
-               "[--camera WxH] [--lidar BEAMSxCOLUMNS] [--steps K] [--sessions S]\n",
+               "[--camera WxH] [--lidar BEAMSxCOLUMNS] [--steps K] [--sessions S] [--actor-edit none|remove|move|insert]\n",
                why);
   return 2;
 }
@@ -92,7 +96,8 @@ double RssMib() {
 // --field none.
 bool LinkScene(const std::string& from, const std::string& to, bool with_field) {
   fs::create_directories(to);
-  for (const char* name : {"scene.ply", "scene.json", "field.bin", "field_ext.bin", "field.serving", "train_meta.json"}) {
+  for (const char* name : {"scene.ply", "scene.json", "field.bin", "field_ext.bin", "field.serving", "train_meta.json",
+                           "actors.json", "actors.ply"}) {
     const fs::path src = fs::path(from) / name;
     if (!fs::exists(src) || (!with_field && std::string(name).rfind("field", 0) == 0)) continue;
     std::error_code ec;
@@ -118,9 +123,14 @@ int main(int argc, char** argv) {
     else if (flag == "--lidar") { if (!ParsePair(v, &a.beams, &a.columns)) return Usage("--lidar takes BEAMSxCOLUMNS"); }
     else if (flag == "--steps") a.steps = std::atoi(v);
     else if (flag == "--sessions") a.sessions = std::atoi(v);
+    else if (flag == "--actor-edit") a.actor_edit = v;
     else return Usage(("unknown flag " + flag).c_str());
   }
   if (a.field != "none" && a.field != "exact" && a.field != "served") return Usage("--field takes none, exact or served");
+  if (a.actor_edit != "none" && a.actor_edit != "remove" && a.actor_edit != "move" && a.actor_edit != "insert") {
+    return Usage("--actor-edit takes none, remove, move or insert");
+  }
+  if (a.actor_edit != "none" && a.scene_dir.empty()) return Usage("--actor-edit needs --scene DIR with actors");
   const bool with_field = a.field != "none";
   if (a.beams != 0 && a.beams != 64) return Usage("--lidar: the served LiDAR is the HDL-64E table (64 beams)");
   if (a.gaussians < 1 || a.steps < 1 || a.sessions < 1 || a.width < 1 || a.height < 1) {
@@ -167,6 +177,31 @@ int main(int argc, char** argv) {
   const double rss_loaded = RssMib();
   if (loaded->has_time_range()) end_us = loaded->end_time_us() - loaded->start_time_us();
 
+  // The edit every step makes: on the actor with the most Gaussians.
+  std::optional<v1::ActorEdit> edit;
+  if (a.actor_edit != "none") {
+    absl::StatusOr<v1::Scene> info = (*c)->GetScene("bench");
+    if (!info.ok() || info->actors().empty()) return Usage("--actor-edit: the scene has no actors (actors.json)");
+    const v1::Actor* big = &info->actors(0);
+    for (const v1::Actor& actor : info->actors()) {
+      if (actor.num_gaussians() > big->num_gaussians()) big = &actor;
+    }
+    edit.emplace();
+    edit->set_actor_id(big->actor_id());
+    edit->set_kind(a.actor_edit == "remove" ? v1::ACTOR_EDIT_REMOVE
+                   : a.actor_edit == "move" ? v1::ACTOR_EDIT_MOVE
+                                            : v1::ACTOR_EDIT_INSERT);
+    if (a.actor_edit != "remove") {
+      for (const v1::ActorPose& p : big->trajectory()) {
+        Eigen::Isometry3d T = client::FromPose(p.t_world_from_actor());
+        T.translation() += T.linear() * Eigen::Vector3d(0, 3.5, 0);
+        v1::ActorPose* q = edit->add_trajectory();
+        q->set_time_us(p.time_us());
+        *q->mutable_t_world_from_actor() = client::ToPose(T);
+      }
+    }
+  }
+
   std::mutex mu;
   std::vector<double> latencies_ms;
   int errors = 0;
@@ -187,6 +222,7 @@ int main(int argc, char** argv) {
       req.mutable_outputs()->set_rgb(true);
       req.mutable_outputs()->set_depth(true);
       if (a.beams > 0) req.mutable_lidar()->set_columns(a.columns);
+      if (edit) *req.add_actor_edits() = *edit;
       absl::StatusOr<v1::Session> session = mine.ok() ? (*mine)->CreateSession(req) : mine.status();
       if (!session.ok()) {
         std::fprintf(stderr, "step_bench: session %d: %s\n", s, std::string(session.status().message()).c_str());
@@ -219,16 +255,18 @@ int main(int argc, char** argv) {
   };
   const double rss = RssMib();
   const size_t n = loaded->num_gaussians();
-  std::printf("| field | Gaussians | moving | camera | LiDAR | sessions | steps | p50 ms | p99 ms | steps/s | errors | RSS MiB |\n");
-  std::printf("|---|---|---|---|---|---|---|---|---|---|---|---|\n");
-  std::printf("| %s | %zu | %llu | %dx%d | %dx%d | %d | %zu | %.1f | %.1f | %.2f | %d | %.0f |\n", a.field.c_str(), n,
+  std::printf("| field | actor edit | Gaussians | moving | camera | LiDAR | sessions | steps | p50 ms | p99 ms | steps/s | errors | RSS MiB |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+  std::printf("| %s | %s | %zu | %llu | %dx%d | %dx%d | %d | %zu | %.1f | %.1f | %.2f | %d | %.0f |\n", a.field.c_str(),
+              a.actor_edit.c_str(), n,
               static_cast<unsigned long long>(after.ok() ? after->num_dynamic_gaussians() : 0), a.width, a.height, a.beams,
               a.columns, a.sessions, latencies_ms.size(), pct(0.5), pct(0.99), latencies_ms.size() / wall_s, errors, rss);
-  std::printf("{\"field\": \"%s\", \"gaussians\": %zu, \"moving\": %llu, \"sessions\": %d, \"steps\": %zu, "
+  std::printf("{\"field\": \"%s\", \"actor_edit\": \"%s\", \"gaussians\": %zu, \"moving\": %llu, \"sessions\": %d, \"steps\": %zu, "
               "\"p50_ms\": %.2f, \"p99_ms\": %.2f, \"steps_per_s\": %.3f, \"errors\": %d, \"rss_mib\": %.1f, "
               "\"rss_loaded_mib\": %.1f, \"load_s\": %.2f, \"field_evaluations\": %lld}\n",
-              a.field.c_str(), n, static_cast<unsigned long long>(after.ok() ? after->num_dynamic_gaussians() : 0),
-              a.sessions, latencies_ms.size(), pct(0.5), pct(0.99), latencies_ms.size() / wall_s, errors, rss, rss_loaded,
+              a.field.c_str(), a.actor_edit.c_str(), n,
+              static_cast<unsigned long long>(after.ok() ? after->num_dynamic_gaussians() : 0), a.sessions,
+              latencies_ms.size(), pct(0.5), pct(0.99), latencies_ms.size() / wall_s, errors, rss, rss_loaded,
               loaded->load_time_s(), static_cast<long long>(after.ok() ? after->field_evaluations() : 0));
   c->reset();
   srv->reset();

@@ -76,11 +76,15 @@ std::vector<uint32_t> RowsInBox(const GaussianStore& g, const Eigen::Isometry3d&
   return rows;
 }
 
+// Below this share of followers the field is taken not to carry the actor at all.
+constexpr double kMinFollowingShare = 0.2;
+
 // Which of the Gaussians in the box at the reference scan move with the actor: compared at the
 // scan where the actor is farthest from there, a body Gaussian is where the actor's motion carries
 // it (within half that distance, at most 0.5 m), and smear the static stage left at the reference
-// place has stayed. A scene without a field moves nothing: all of them are the body then (the
-// best a static model has).
+// place has stayed. A scene without a field moves nothing, and a field may not carry the actor
+// (under kMinFollowingShare of them follow): all of them are the body then (the best a static
+// model has).
 absl::StatusOr<std::vector<uint8_t>> FollowsTheActor(const MovingObjectTrack& track, size_t ref, const std::vector<TimedPose>& poses,
                                      const std::vector<uint32_t>& rows, const GaussianStore& at_ref,
                                      const GaussiansAt& at) {
@@ -108,7 +112,12 @@ absl::StatusOr<std::vector<uint8_t>> FollowsTheActor(const MovingObjectTrack& tr
     any_moved = any_moved || (now - was).norm() > 1e-3;
     follows[j] = (now - carry * was).norm() <= tolerance_m;
   }
-  if (!any_moved) std::fill(follows.begin(), follows.end(), 1);
+  // A field that does not carry this actor (it recolours instead, or moves nothing): what stands
+  // in the box at the reference scan is all the body there is, as in a static scene.
+  const size_t following = static_cast<size_t>(std::count(follows.begin(), follows.end(), 1));
+  if (!any_moved || following < kMinFollowingShare * static_cast<double>(rows.size())) {
+    std::fill(follows.begin(), follows.end(), 1);
+  }
   return follows;
 }
 

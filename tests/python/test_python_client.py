@@ -118,6 +118,30 @@ class PythonClientTest(unittest.TestCase):
             self.client.render("nope", ego_pose=np.eye(4))
         self.assertEqual(e.exception.code, grpc.StatusCode.NOT_FOUND)
 
+    def test_actor_edits_reach_the_server(self):
+        # The helpers build the wire edits (docs/actors.md); a scene without actors refuses them
+        # through render, session creation and step alike.
+        T = np.eye(4)
+        T[1, 3] = 3.5
+        move = streetsim.move_actor(2, [(0, np.eye(4)), (100000, T)])
+        self.assertEqual(move.actor_id, 2)
+        self.assertEqual(len(move.trajectory), 2)
+        self.assertAlmostEqual(move.trajectory[1].T_world_from_actor.translation_m.y, 3.5)
+        self.assertEqual(len(streetsim.remove_actor(1).trajectory), 0)
+        self.assertEqual(len(streetsim.insert_actor(1, [(0, np.eye(4))]).trajectory), 1)
+        for call in (lambda: self.client.render("wall", ego_pose=np.eye(4), actor_edits=[streetsim.remove_actor(1)]),
+                     lambda: self.client.session("wall", actor_edits=[move]).step()):
+            with self.assertRaises(streetsim.StreetsimError) as e:
+                call()
+            self.assertEqual(e.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
+            self.assertIn("no actors", e.exception.details)
+        with self.client.session("wall", sensors=["cam_front"], width=32, height=16) as s:
+            s.step()
+            with self.assertRaises(streetsim.StreetsimError) as e:
+                s.step(actor_edits=[streetsim.remove_actor(1)])
+            self.assertEqual(e.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
+            s.step(actor_edits=[])  # none: fine
+
     def test_session_context_manager_and_fork(self):
         with self.client.session("wall", sensors=["cam_front"], width=96, height=32, depth=True) as s:
             digests = []
