@@ -143,6 +143,37 @@ TEST_F(ActorsTest, RenderAndTrajectoryTakeEdits) {
   EXPECT_EQ(RenderAt(500'000, {})->content_digest(), plain->content_digest());
 }
 
+// The LiDAR sees the same edited scene as the cameras: the block's returns go with it.
+TEST_F(ActorsTest, TheLidarSeesTheEdits) {
+  const auto sweep = [&](const std::vector<v1::ActorEdit>& edits) {
+    v1::RenderRequest req;
+    req.set_scene("timed");
+    req.set_time_us(500'000);
+    req.set_no_cameras(true);
+    // The LiDAR at the block's height, 7 m behind it (the default rig mounts it on the ground).
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    T.translation() = Eigen::Vector3d(0, 0, 0.7);
+    *req.mutable_t_world_from_sensor() = client::ToPose(T);
+    req.mutable_lidar()->set_columns(512);
+    for (const v1::ActorEdit& e : edits) *req.add_actor_edits() = e;
+    absl::StatusOr<v1::RenderResponse> r = client_->Render(req);
+    EXPECT_TRUE(r.ok()) << r.status();
+    absl::StatusOr<client::DecodedLidar> l = client::DecodeLidar(r->lidar());
+    EXPECT_TRUE(l.ok()) << l.status();
+    return l->range;
+  };
+  const std::vector<float> plain = sweep({}), removed = sweep({Remove(1)});
+  ASSERT_EQ(plain.size(), removed.size());
+  // Returns at the block (~7-9 m ahead) that end farther away, or none, once it is removed.
+  int near_before = 0, changed = 0;
+  for (size_t i = 0; i < plain.size(); ++i) {
+    near_before += plain[i] > 5 && plain[i] < 10;
+    changed += std::abs(plain[i] - removed[i]) > 0.5f;
+  }
+  EXPECT_GT(near_before, 20);
+  EXPECT_GT(changed, 20);
+}
+
 TEST_F(ActorsTest, SessionsChangeTheirEditsAtAnyStep) {
   v1::CreateSessionRequest create;
   create.set_scene("timed");
