@@ -291,6 +291,28 @@ absl::StatusOr<DecodedImage> DecodeImage(const v1::Image& image) {
   return out;
 }
 
+namespace {
+v1::ActorEdit ActorEditOf(v1::ActorEditKind kind, int actor_id, const ActorTrajectory& trajectory) {
+  v1::ActorEdit e;
+  e.set_kind(kind);
+  e.set_actor_id(actor_id);
+  for (const auto& [time_us, T] : trajectory) {
+    v1::ActorPose* p = e.add_trajectory();
+    p->set_time_us(time_us);
+    *p->mutable_t_world_from_actor() = ToPose(T);
+  }
+  return e;
+}
+}  // namespace
+
+v1::ActorEdit RemoveActor(int actor_id) { return ActorEditOf(v1::ACTOR_EDIT_REMOVE, actor_id, {}); }
+v1::ActorEdit MoveActor(int actor_id, const ActorTrajectory& trajectory) {
+  return ActorEditOf(v1::ACTOR_EDIT_MOVE, actor_id, trajectory);
+}
+v1::ActorEdit InsertActor(int actor_id, const ActorTrajectory& trajectory) {
+  return ActorEditOf(v1::ACTOR_EDIT_INSERT, actor_id, trajectory);
+}
+
 v1::Pose ToPose(const Eigen::Isometry3d& T) {
   v1::Pose p;
   Eigen::Quaterniond q(T.rotation());

@@ -108,4 +108,11 @@ absl::StatusOr<DecodedLidar> DecodeLidar(const v1::LidarResult& lidar);
 v1::Pose ToPose(const Eigen::Isometry3d& T);
 Eigen::Isometry3d FromPose(const v1::Pose& pose);
 
+// Actor edits (docs/actors.md) for RenderRequest / RenderTrajectoryRequest / CreateSessionRequest
+// .actor_edits and StepRequest.actor_edits: a timed pose is (time_us, T_world_from_actor).
+using ActorTrajectory = std::vector<std::pair<int64_t, Eigen::Isometry3d>>;
+v1::ActorEdit RemoveActor(int actor_id);
+v1::ActorEdit MoveActor(int actor_id, const ActorTrajectory& trajectory);    // instead of the log's path
+v1::ActorEdit InsertActor(int actor_id, const ActorTrajectory& trajectory);  // a copy; the original stays
+
 }  // namespace streetsim::client

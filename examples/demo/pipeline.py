@@ -45,7 +45,7 @@ PRESETS = {
     },
     "tiny": {
         "train": ["--preset", "preview", "--seed", "0", "--resolution-scale", "0.125", "--static-iterations", "20",
-                  "--iterations", "40", "--voxel", "0.6"],
+                  "--iterations", "40", "--voxel", "0.6", "--no-actors"],
         "camera_scale": 0.125, "lidar_columns": 256, "steps": 6, "report_frames": 3,
     },
 }

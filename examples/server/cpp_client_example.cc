@@ -1,9 +1,11 @@
 // C++ client example: server info, the scene list, then a 10-step closed loop that drives the
-// ego forward and prints each step's latency and the free depth straight ahead.
+// ego forward and prints each step's latency and the free depth straight ahead; from step 5 the
+// scene's first actor, if it has actors, is removed (docs/actors.md).
 //   build/bin/streetsim_client_example 127.0.0.1:50051 SCENE
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
+#include <optional>
 
 #include "client/cpp/streetsim_client.h"
 
@@ -37,11 +39,16 @@ int main(int argc, char** argv) {
   }
   Eigen::Isometry3d ego = Eigen::Isometry3d::Identity();
   ego.translation().z() = 1.65;
+  std::optional<v1::ActorEdits> pending_edits;
   for (int k = 0; k < 10; ++k) {
     v1::StepRequest step;
     step.set_session_id(session->session_id());
     step.set_step_index(k);
     *step.mutable_t_world_from_ego() = streetsim::client::ToPose(ego);
+    if (pending_edits) {
+      *step.mutable_actor_edits() = *pending_edits;  // replaces the session's edits from this step
+      pending_edits.reset();
+    }
     const auto t0 = std::chrono::steady_clock::now();
     auto r = (*client)->Step(step);
     const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
@@ -56,6 +63,14 @@ int main(int argc, char** argv) {
     const float free = alpha->f32[c] > 0.5f ? depth->f32[c] / alpha->f32[c] : -1.0f;
     std::printf("step %d: %.1f ms, free depth ahead %.2f m, %s\n", k, ms, free, r->content_digest().c_str());
     ego.translation().x() += 0.5;
+    // From step 5, the scene's first actor (docs/actors.md), if it has any, leaves the scene.
+    if (k == 4) {
+      auto scene = (*client)->GetScene(argv[2]);
+      if (scene.ok() && scene->actors_size() > 0) {
+        pending_edits.emplace();
+        *pending_edits->add_edits() = streetsim::client::RemoveActor(scene->actors(0).actor_id());
+      }
+    }
   }
   (void)(*client)->CloseSession(session->session_id());
   return 0;

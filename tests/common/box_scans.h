@@ -2,7 +2,9 @@
 // scene/actors/): surface samples on a grid fixed in the level frame.
 #pragma once
 
+#include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <vector>
 
 #include <Eigen/Core>
@@ -39,6 +41,32 @@ inline void AddBox(const Eigen::Vector3d& lo, const Eigen::Vector3d& hi, bool fl
     }
     for (double y : grid(lo.y(), hi.y())) add(x, y, hi.z(), false);
   }
+}
+
+// The street both tests use, 20 scans at 10 Hz from 1 s: a 12 m truck (x from TruckX(k)) at 10 m/s
+// in the right lane that stops after scan 12 (then nothing flags it), a car coming the other way at
+// 8 m/s (x from CarX(k)), a parked car and a 60 m wall.
+inline double StreetTruckX(int k) { return -10 + 1.0 * std::min(k, 12); }
+inline double StreetCarX(int k) { return 15 - 0.8 * k; }
+inline int64_t StreetScanTimeUs(int k) { return 1'000'000 + 100'000 * k; }
+inline std::vector<LevelScan> Street() {
+  std::vector<LevelScan> scans;
+  for (int k = 0; k < 20; ++k) {
+    LevelScan s;
+    s.frame = k;
+    s.time_us = StreetScanTimeUs(k);
+    AddBox({StreetTruckX(k), -4.25, 0.3}, {StreetTruckX(k) + 12, -1.75, 3.3}, k <= 12, false, &s);
+    AddBox({StreetCarX(k), 4.1, 0.3}, {StreetCarX(k) + 4.5, 5.9, 1.8}, false, true, &s);
+    AddBox({5, 9, 0.3}, {9.5, 10.8, 1.8}, false, false, &s);  // parked
+    for (double x = -30; x <= 30; x += 0.15) {
+      for (double z = 0.3; z <= 3; z += 0.3) {
+        s.points.emplace_back(x, 14, z);
+        s.dynamic.push_back(0);
+      }
+    }
+    scans.push_back(std::move(s));
+  }
+  return scans;
 }
 
 }  // namespace streetsim::testing

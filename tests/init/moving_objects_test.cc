@@ -14,31 +14,7 @@ namespace {
 
 const std::string kRaw = std::string(STREETSIM_DATA_DIR) + "/kitti_raw/2011_09_26/2011_09_26_drive_sfnd_sync";
 
-using testing::AddBox;
-
-// 20 scans at 10 Hz: a 12 m truck at 10 m/s in the right lane that stops after scan 12 (then
-// nothing flags it), a car coming the other way at 8 m/s, a parked car and a 60 m wall.
-std::vector<LevelScan> Street() {
-  std::vector<LevelScan> scans;
-  for (int k = 0; k < 20; ++k) {
-    LevelScan s;
-    s.frame = k;
-    s.time_us = 1'000'000 + 100'000 * k;
-    const double truck_x = -10 + 1.0 * std::min(k, 12);
-    AddBox({truck_x, -4.25, 0.3}, {truck_x + 12, -1.75, 3.3}, k <= 12, false, &s);
-    const double car_x = 15 - 0.8 * k;
-    AddBox({car_x, 4.1, 0.3}, {car_x + 4.5, 5.9, 1.8}, false, true, &s);
-    AddBox({5, 9, 0.3}, {9.5, 10.8, 1.8}, false, false, &s);  // parked
-    for (double x = -30; x <= 30; x += 0.15) {
-      for (double z = 0.3; z <= 3; z += 0.3) {
-        s.points.emplace_back(x, 14, z);
-        s.dynamic.push_back(0);
-      }
-    }
-    scans.push_back(std::move(s));
-  }
-  return scans;
-}
+using testing::Street;
 
 TEST(MovingObjects, FollowsEachMovingVehicleThroughAStop) {
   const std::vector<MovingObjectTrack> tracks = TrackObjectsInLevelScans(Street(), {});

@@ -50,6 +50,8 @@ CLIP_REL = os.path.join("kitti_raw", "2011_09_26", "2011_09_26_drive_sfnd_sync")
 SCENE = "wall"  # wall.ply in the data root
 # A training job that is small per iteration and long enough to be acted on.
 TINY_JOB = dict(resolution_scale=0.05, field="static", holdout_every=0)
+# The jobs here test the server around a trainer, not its scene: no actor extraction (~10 s each).
+NO_ACTORS = {"actors": False}
 
 
 # -- processes -------------------------------------------------------------------------------------
@@ -534,7 +536,8 @@ def check_kill_server(report, tmp, args):
     server = Server(data, state)
     try:
         client = server.client()
-        job = client.train(CLIP_REL, scene_name="killed", max_iterations=args.job_iterations, **TINY_JOB)
+        job = client.train(CLIP_REL, scene_name="killed", max_iterations=args.job_iterations, settings=NO_ACTORS,
+                           **TINY_JOB)
         work = os.path.join(state, "jobs", job.job_id, "work")
         wait_for(lambda: client.get_job(job.job_id).progress.iteration >= 20, 300, "iteration 20")
         pids = trainer_pids(work)
@@ -563,7 +566,7 @@ def check_kill_trainer(report, tmp, args):
     iterations = 1150
     try:
         client = server.client()
-        job = client.train(CLIP_REL, scene_name="trainer_killed", max_iterations=iterations, **TINY_JOB)
+        job = client.train(CLIP_REL, scene_name="trainer_killed", max_iterations=iterations, settings=NO_ACTORS, **TINY_JOB)
         work = os.path.join(state, "jobs", job.job_id, "work")
         wait_for(lambda: _checkpoint_iteration(work) >= 1000, 600, "the trainer's checkpoint at iteration 1000")
         pids = trainer_pids(work)
@@ -599,7 +602,8 @@ def check_replicas(report, tmp, args):
             for s in group:
                 by_replica.setdefault(streetsim.replica_of(s.id), []).append(s)
         notes.append("sessions per replica " + str({k: len(v) for k, v in sorted(by_replica.items())}))
-        job = rc.train(CLIP_REL, scene_name="shared", max_iterations=args.job_iterations, **TINY_JOB)
+        job = rc.train(CLIP_REL, scene_name="shared", max_iterations=args.job_iterations, settings=NO_ACTORS,
+                           **TINY_JOB)
         owner = streetsim.replica_of(job.job_id)
         wait_for(lambda: rc.get_job(job.job_id).progress.iteration >= 20, 300, "the job at iteration 20")
         # Traffic on every replica while the job's replica is killed and restarted.

@@ -20,33 +20,13 @@
 namespace streetsim::actors {
 namespace {
 
-// 20 scans at 10 Hz (as tests/init/moving_objects_test.cc's street): a 12 m truck at 10 m/s that
-// stops after scan 12, a car coming the other way at 8 m/s, a parked car and a wall.
+// The tracker tests' street (tests/common/box_scans.h): a truck that stops after scan 12, an
+// oncoming car, a parked car and a wall.
 constexpr int kScans = 20;
-int64_t ScanTimeUs(int k) { return 1'000'000 + 100'000 * k; }
-double TruckX(int k) { return -10 + 1.0 * std::min(k, 12); }
-double CarX(int k) { return 15 - 0.8 * k; }
+int64_t ScanTimeUs(int k) { return testing::StreetScanTimeUs(k); }
+double TruckX(int k) { return testing::StreetTruckX(k); }
+double CarX(int k) { return testing::StreetCarX(k); }
 const Eigen::Vector3d kTruckSize(12, 2.5, 3.0), kCarSize(4.5, 1.8, 1.5);
-
-std::vector<LevelScan> Scans() {
-  std::vector<LevelScan> scans;
-  for (int k = 0; k < kScans; ++k) {
-    LevelScan s;
-    s.frame = k;
-    s.time_us = ScanTimeUs(k);
-    testing::AddBox({TruckX(k), -4.25, 0.3}, {TruckX(k) + 12, -1.75, 3.3}, k <= 12, false, &s);
-    testing::AddBox({CarX(k), 4.1, 0.3}, {CarX(k) + 4.5, 5.9, 1.8}, false, true, &s);
-    testing::AddBox({5, 9, 0.3}, {9.5, 10.8, 1.8}, false, false, &s);
-    for (double x = -30; x <= 30; x += 0.15) {
-      for (double z = 0.3; z <= 3; z += 0.3) {
-        s.points.emplace_back(x, 14, z);
-        s.dynamic.push_back(0);
-      }
-    }
-    scans.push_back(std::move(s));
-  }
-  return scans;
-}
 
 // What each row of the synthetic scene is.
 enum class Part : uint8_t { kTruck, kCar, kTruckSmear, kParked, kWall, kGround };
@@ -125,7 +105,7 @@ Extracted Extract(bool static_scene = false) {
   Extracted e;
   MovingObjectOptions tracking;
   tracking.keep_points = true;
-  const std::vector<MovingObjectTrack> tracks = TrackObjectsInLevelScans(Scans(), tracking);
+  const std::vector<MovingObjectTrack> tracks = TrackObjectsInLevelScans(testing::Street(), tracking);
   GaussianStore current;
   const GaussiansAt at = [&](int64_t t) -> absl::StatusOr<const GaussianStore*> {
     if (static_scene) return &e.street.canonical;

@@ -57,21 +57,12 @@ class ActorsTest : public ServerTest {
     StartServer();
   }
 
-  static v1::ActorEdit Remove(int id) {
-    v1::ActorEdit e;
-    e.set_kind(v1::ACTOR_EDIT_REMOVE);
-    e.set_actor_id(id);
-    return e;
-  }
+  static v1::ActorEdit Remove(int id) { return client::RemoveActor(id); }
   static v1::ActorEdit MoveTo(int id, double y_m, v1::ActorEditKind kind = v1::ACTOR_EDIT_MOVE) {
-    v1::ActorEdit e;
-    e.set_kind(kind);
-    e.set_actor_id(id);
     Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
     T.translation() = Eigen::Vector3d(8, y_m, 1);
-    v1::ActorPose* p = e.add_trajectory();
-    p->set_time_us(0);
-    *p->mutable_t_world_from_actor() = client::ToPose(T);
+    v1::ActorEdit e = kind == v1::ACTOR_EDIT_INSERT ? client::InsertActor(id, {{0, T}}) : client::MoveActor(id, {{0, T}});
+    e.set_kind(kind);  // the bad-edit cases ask for other kinds with a trajectory
     return e;
   }
   absl::StatusOr<v1::RenderResponse> RenderAt(int64_t time_us, const std::vector<v1::ActorEdit>& edits,

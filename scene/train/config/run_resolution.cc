@@ -52,6 +52,11 @@ absl::Status ApplyGiven(const CommandLineConfig& given, const std::optional<std:
     if (absl::Status s = base->settings.SetText(g.name, g.text, Origin::kGiven, g.what); !s.ok()) return s;
     names->insert(g.name);
   }
+  // Checked on what this command names, not on the resolved run: a resume that ends a recorded
+  // low-resolution stage with low-res-iterations 0 keeps the recorded scale, and that is fine.
+  if (names->count("low-res-scale") && base->settings.GetInt("low-res-iterations") == 0) {
+    return absl::InvalidArgumentError("low-res-scale needs low-res-iterations > 0");
+  }
   return absl::OkStatus();
 }
 

@@ -271,8 +271,6 @@ absl::Status ResolveLowResAndClips(const Settings& s, TrainRunOptions* o) {
       return absl::InvalidArgumentError(
           absl::StrCat("low-res-scale / low-res-iterations: ", st.message(), " (low-res-iterations 0: none)"));
     }
-  } else if (s.given("low-res-scale")) {
-    return absl::InvalidArgumentError("low-res-scale needs low-res-iterations > 0");
   }
   if (o->train.holdout_every == 1) {
     return absl::InvalidArgumentError("holdout-every must be 0 (none) or >= 2, not 1");
