@@ -33,7 +33,7 @@
 #include "scene/field/static_skip.h"
 #include "scene/gaussians/ply_io.h"
 #include "scene/train/dynamic_stage.h"
-#include "scene/train/served_scene.h"
+#include "scene/eval/served_scene.h"
 
 using namespace streetsim;
 using namespace streetsim::field;

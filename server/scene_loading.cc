@@ -12,8 +12,8 @@
 #include "scene/field/extended/extended_io.h"
 #include "scene/field/field_io.h"
 #include "scene/gaussians/ply_io.h"
-#include "scene/train/lidar_eval.h"
-#include "scene/train/served_scene.h"
+#include "scene/eval/lidar_eval.h"
+#include "scene/eval/served_scene.h"
 #include "scene/train/trainer.h"
 #include "server/dynamic_scene_field.h"
 

@@ -14,7 +14,7 @@
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
 #include "scene/train/clips.h"
-#include "scene/train/metrics_json.h"
+#include "scene/eval/metrics_json.h"
 
 namespace streetsim::server {
 namespace fs = std::filesystem;

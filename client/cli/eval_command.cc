@@ -1,6 +1,6 @@
 // streetsim eval: PSNR, SSIM and LiDAR depth error of a trained scene on a log's held-out (or
 // training) frames, and LiDAR metrics of the scene's rendered sweeps against the real scans
-// (scene/train/lidar_eval.h; --no-lidar skips them). JSON on stdout (a contract other tools read),
+// (scene/eval/lidar_eval.h; --no-lidar skips them). JSON on stdout (a contract other tools read),
 // a table on stderr.
 #include <algorithm>
 #include <chrono>
@@ -24,11 +24,11 @@
 #include "scene/train/clips.h"
 #include "scene/train/dynamic_pixels.h"
 #include "scene/train/dynamic_stage.h"
-#include "scene/train/eval_outputs.h"
-#include "scene/train/lidar_eval.h"
-#include "scene/train/metrics_json.h"
+#include "scene/eval/eval_outputs.h"
+#include "scene/eval/lidar_eval.h"
+#include "scene/eval/metrics_json.h"
 #include "scene/train/pose_refinement.h"
-#include "scene/train/served_scene.h"
+#include "scene/eval/served_scene.h"
 #include "scene/train/trainer.h"
 
 namespace streetsim {
@@ -36,7 +36,7 @@ namespace {
 
 int Fail(int code, const absl::Status& status) { return ReportFailure("eval", code, status); }
 
-// --decomposition DIR / --video PATH [--video-fps F] (scene/train/eval_outputs.h); the options stay
+// --decomposition DIR / --video PATH [--video-fps F] (scene/eval/eval_outputs.h); the options stay
 // empty when neither is given.
 absl::StatusOr<train::EvalOutputOptions> ParseOutputOptions(const ParsedArgs& args) {
   train::EvalOutputOptions o;

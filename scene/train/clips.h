@@ -11,7 +11,7 @@
 
 #include "absl/status/statusor.h"
 #include "scene/train/dataset.h"
-#include "scene/train/lidar_eval.h"
+#include "scene/eval/lidar_eval.h"
 #include "scene/train/trainer.h"
 
 namespace streetsim::train {

@@ -26,6 +26,14 @@ bool IsHeldOut(int frame, int holdout_every) {
   return holdout_every > 0 && frame % holdout_every == holdout_every - 1;
 }
 
+DriveLog TrainingFramesLog(const DriveLog& log, int first_frame, int end_frame, int holdout_every) {
+  DriveLog train_log = log;
+  train_log.frames.clear();
+  for (int f = first_frame; f < end_frame; ++f)
+    if (!IsHeldOut(f, holdout_every)) train_log.frames.push_back(log.frames[f]);
+  return train_log;
+}
+
 namespace {
 
 // k: the pinhole intrinsics the view's image has after undistortion and cropping (CroppedPinhole).

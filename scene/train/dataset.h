@@ -38,6 +38,10 @@ enum class Split { kTrain, kTest, kAll };
 // Frame f is held out when holdout_every > 0 and f % holdout_every == holdout_every - 1.
 bool IsHeldOut(int frame, int holdout_every);
 
+// A copy of `log` with only frames [first_frame, end_frame) that are not held out: what scene init
+// and the motion prior may see.
+DriveLog TrainingFramesLog(const DriveLog& log, int first_frame, int end_frame, int holdout_every);
+
 // What a grayscale camera does in a log that also has colour cameras (docs/training.md
 // "Grayscale cameras"). In a log of grayscale cameras only, they train as they are (the scene
 // is gray, as every view it is measured on).

@@ -5,7 +5,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "render/lidar/lidar_sweep.h"
-#include "scene/train/lidar_eval.h"
+#include "scene/eval/lidar_eval.h"
 
 namespace streetsim::train {
 namespace {

@@ -14,6 +14,7 @@
 #include "render/engine.h"
 #include "scene/log/drive_log.h"
 #include "scene/train/checkpoint_run.h"
+#include "scene/eval/evaluate.h"
 #include "scene/train/dataset.h"
 #include "scene/train/dynamic_stage.h"
 #include "scene/train/lidar_stage.h"
@@ -83,20 +84,6 @@ struct Progress {
   double low_res_scale = 0;
 };
 
-struct FrameMetrics {
-  std::string name;
-  int frame = 0;
-  double psnr = 0, ssim = 0;
-  double depth_median_abs_m = -1, depth_within_5pct = -1;  // -1: no LiDAR
-  size_t depth_points = 0;
-  // PSNR* (dynamic_pixels.h): on the view's dynamic pixels / the others; -1: no mask or no pixel.
-  double psnr_dynamic = -1, psnr_static = -1;
-};
-struct EvalResult {
-  std::vector<FrameMetrics> frames;
-  FrameMetrics mean;
-};
-
 struct TrainResult {
   int64_t iterations = 0;
   size_t gaussians = 0;
@@ -123,22 +110,6 @@ absl::StatusOr<TrainResult> TrainOnViews(const std::vector<View>& views, const G
                                          const std::vector<View>& heldout, const std::string& out_dir,
                                          const TrainOptions& options,
                                          const std::function<void(const Progress&)>& progress = nullptr);
-
-// Called once per evaluated view after its render (eval outputs, eval_outputs.h: decomposition
-// images, video); `rgb` is the measured render, clamped to [0, 1] [H*W*3]. An error stops the eval.
-using EvalFrameSink = std::function<absl::Status(const View& view, const std::vector<float>& rgb)>;
-
-// Renders every view of `views` and measures it. background: the learned sky colour. The means
-// of psnr_dynamic / psnr_static are over the views that have such pixels.
-absl::StatusOr<EvalResult> Evaluate(Engine& engine, const GaussianStore& scene, const std::vector<View>& views,
-                                    const Eigen::Vector3f& background);
-// The same with a scene per view (a field scene deformed at each view's time).
-absl::StatusOr<EvalResult> EvaluateViews(Engine& engine, const SceneForView& scene, const std::vector<View>& views,
-                                         const Eigen::Vector3f& background, const EvalFrameSink& sink = nullptr);
-// A trained scene directory's Gaussians (`canonical`, its scene.ply) with DIR/field.bin if any.
-absl::StatusOr<EvalResult> EvaluateSceneDir(Engine& engine, const std::string& dir, const GaussianStore& canonical,
-                                            const std::vector<View>& views, const Eigen::Vector3f& background,
-                                            const EvalFrameSink& sink = nullptr);
 
 // DIR/train_meta.json written by Train: the background colour and the resolution scale.
 struct SceneMeta {

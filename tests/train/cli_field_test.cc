@@ -83,7 +83,7 @@ TEST(CliField, TrainWritesAFieldThatRenderAndEvalUse) {
   // --served: rendered as `streetsim serve` serves it. With the thresholds at 0 nothing is baked
   // and every view is the plain eval's up to float rounding; with huge ones every Gaussian is baked
   // at its time-mean deformation (the counts say so; the 8 fine iterations barely move anything, so
-  // PSNR is not compared there: tests/train/served_scene_test.cc checks the renders on a field that moves).
+  // PSNR is not compared there: tests/eval/served_scene_test.cc checks the renders on a field that moves).
   const size_t n = j["frames"].size();
   auto served = [&](const std::string& extra) {
     const Result rs = RunCli("eval --scene " + dir + " --log " + kKitti + " --no-lidar --served" + extra);

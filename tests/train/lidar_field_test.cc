@@ -26,7 +26,7 @@
 #include "scene/gaussians/ply_io.h"
 #include "scene/log/open_log.h"
 #include "scene/train/dynamic_stage.h"
-#include "scene/train/lidar_eval.h"
+#include "scene/eval/lidar_eval.h"
 #include "scene/train/lidar_stage.h"
 #include "scene/train/train_state.h"
 #include "tests/field/field_test_util.h"

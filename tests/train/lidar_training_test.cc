@@ -14,7 +14,7 @@
 #include "render/lidar/lidar_backward.h"
 #include "scene/gaussians/ply_io.h"
 #include "scene/log/open_log.h"
-#include "scene/train/lidar_eval.h"
+#include "scene/eval/lidar_eval.h"
 #include "scene/train/trainer.h"
 #include "tests/lidar/lidar_test_scenes.h"
 #include "tests/train/lidar_loss_reference.h"

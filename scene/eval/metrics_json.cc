@@ -1,4 +1,4 @@
-#include "scene/train/metrics_json.h"
+#include "scene/eval/metrics_json.h"
 
 #include <filesystem>
 #include <fstream>

@@ -1,4 +1,4 @@
-// Eval outputs (scene/train/decomposition.h, eval_video.h): the static/dynamic split and its
+// Eval outputs (scene/eval/decomposition.h, eval_video.h): the static/dynamic split and its
 // renders on a synthetic moving band, a static scene's decomposition, and the eval video read
 // back with OpenCV.
 #include <unistd.h>
@@ -15,9 +15,9 @@
 #include "gtest/gtest.h"
 #include "render/engine.h"
 #include "scene/field/static_skip.h"
-#include "scene/train/decomposition.h"
+#include "scene/eval/decomposition.h"
 #include "scene/train/dynamic_stage.h"
-#include "scene/train/eval_video.h"
+#include "scene/eval/eval_video.h"
 #include "tests/field/field_test_util.h"
 #include "tests/train/band_scene.h"
 

@@ -1,4 +1,4 @@
-#include "scene/train/decomposition.h"
+#include "scene/eval/decomposition.h"
 
 #include <algorithm>
 #include <cctype>

@@ -1,6 +1,6 @@
-// LiDAR evaluation (scene/train/lidar_eval.h) and `streetsim eval`'s LiDAR keys, on the shared
+// LiDAR evaluation (scene/eval/lidar_eval.h) and `streetsim eval`'s LiDAR keys, on the shared
 // KITTI clip with an initial scene from LiDAR.
-#include "scene/train/lidar_eval.h"
+#include "scene/eval/lidar_eval.h"
 
 #include <unistd.h>
 

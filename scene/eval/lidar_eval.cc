@@ -1,4 +1,4 @@
-#include "scene/train/lidar_eval.h"
+#include "scene/eval/lidar_eval.h"
 
 #include <algorithm>
 #include <cmath>

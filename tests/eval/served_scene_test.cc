@@ -1,4 +1,4 @@
-// The served scene (scene/train/served_scene.h, what `streetsim eval --served` renders): on a field
+// The served scene (scene/eval/served_scene.h, what `streetsim eval --served` renders): on a field
 // that moves a band of Gaussians, the served renders equal the full field's when nothing is baked,
 // stay within the skip's bound at the server's thresholds, and lose the band's motion when every
 // Gaussian is baked; the LiDAR path's stores are the served ones.
@@ -10,7 +10,7 @@
 #include "render/engine.h"
 #include "scene/field/static_skip.h"
 #include "scene/train/dynamic_stage.h"
-#include "scene/train/served_scene.h"
+#include "scene/eval/served_scene.h"
 #include "tests/train/band_scene.h"
 
 namespace streetsim::train {

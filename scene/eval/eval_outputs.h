@@ -1,7 +1,7 @@
 // The image outputs of `streetsim eval` beside its metrics (docs/training.md "Eval outputs"):
 // --decomposition DIR (decomposition.h: full / static / dynamic renders per view, and the
 // dynamic-pixel mask) and --video PATH (eval_video.h: rendered | ground truth [| dynamic only]).
-// Both hang off the evaluation as its EvalFrameSink (trainer.h), so the video shows exactly the
+// Both hang off the evaluation as its EvalFrameSink (evaluate.h), so the video shows exactly the
 // renders that were measured.
 #pragma once
 
@@ -15,9 +15,9 @@
 #include "render/engine.h"
 #include "scene/field/deformation_field.h"
 #include "scene/gaussians/gaussian_store.h"
-#include "scene/train/decomposition.h"
-#include "scene/train/eval_video.h"
-#include "scene/train/trainer.h"
+#include "scene/eval/decomposition.h"
+#include "scene/eval/eval_video.h"
+#include "scene/eval/evaluate.h"
 
 namespace streetsim::train {
 

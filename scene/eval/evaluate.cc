@@ -1,12 +1,11 @@
-// Held-out evaluation (trainer.h): PSNR, SSIM, depth error and PSNR* of rendered views, for a
-// static scene or a field scene deformed at each view's time.
+#include "scene/eval/evaluate.h"
+
 #include <algorithm>
 #include <cmath>
 
 #include "render/common/thread_pool.h"
 #include "scene/train/dynamic_pixels.h"
 #include "scene/train/losses.h"
-#include "scene/train/trainer.h"
 
 namespace streetsim::train {
 

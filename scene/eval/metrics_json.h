@@ -9,7 +9,7 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
-#include "scene/train/trainer.h"
+#include "scene/eval/evaluate.h"
 
 namespace streetsim::train {
 

@@ -1,6 +1,6 @@
-// Evaluation metrics as JSON (scene/train/metrics_json.h): DIR/heldout.json round-trips what the
+// Evaluation metrics as JSON (scene/eval/metrics_json.h): DIR/heldout.json round-trips what the
 // trainer measured, nulls stay "not measured", and a damaged file is DataLoss naming it.
-#include "scene/train/metrics_json.h"
+#include "scene/eval/metrics_json.h"
 
 #include <filesystem>
 #include <fstream>

@@ -1,4 +1,4 @@
-#include "scene/train/served_scene.h"
+#include "scene/eval/served_scene.h"
 
 #include <filesystem>
 #include <memory>

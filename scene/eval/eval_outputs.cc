@@ -1,4 +1,4 @@
-#include "scene/train/eval_outputs.h"
+#include "scene/eval/eval_outputs.h"
 
 #include <filesystem>
 

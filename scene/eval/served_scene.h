@@ -18,7 +18,7 @@
 #include "scene/field/static_skip.h"
 #include "scene/gaussians/gaussian_store.h"
 #include "scene/train/dynamic_stage.h"
-#include "scene/train/lidar_eval.h"
+#include "scene/eval/lidar_eval.h"
 
 namespace streetsim::train {
 

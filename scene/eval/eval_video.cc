@@ -1,4 +1,4 @@
-#include "scene/train/eval_video.h"
+#include "scene/eval/eval_video.h"
 
 #include <unistd.h>
 
