@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "absl/status/status.h"
+#include "absl/status/statusor.h"
 #include "absl/strings/str_cat.h"
 
 namespace streetsim::checked_file {
@@ -85,6 +86,24 @@ inline absl::Status WriteAtomically(const std::string& path, const std::string& 
   std::filesystem::rename(tmp, path, ec);
   if (ec) return absl::InternalError(absl::StrCat("cannot rename ", tmp, " to ", path, ": ", ec.message()));
   return absl::OkStatus();
+}
+
+// A small text file's whole content (a config, a record): NotFound when it is not a regular file,
+// OutOfRange when it is larger than `max_bytes` (read before its content, so that a huge or
+// hostile file costs nothing), DataLoss when it cannot be read. Messages name the path; callers
+// map the codes onto their own (a flag's file is InvalidArgument, a run's record DataLoss).
+inline absl::StatusOr<std::string> ReadBounded(const std::string& path, std::uintmax_t max_bytes) {
+  std::error_code ec;
+  if (!std::filesystem::is_regular_file(path, ec)) return absl::NotFoundError(absl::StrCat(path, ": no such file"));
+  const std::uintmax_t size = std::filesystem::file_size(path, ec);
+  if (ec) return absl::DataLossError(absl::StrCat(path, ": ", ec.message()));
+  if (size > max_bytes) return absl::OutOfRangeError(absl::StrCat(path, ": larger than ", max_bytes, " bytes"));
+  std::ifstream in(path, std::ios::binary);
+  std::string text(static_cast<size_t>(size), '\0');
+  in.read(text.data(), static_cast<std::streamsize>(size));
+  if (!in && !in.eof()) return absl::DataLossError(absl::StrCat(path, ": cannot be read"));
+  text.resize(static_cast<size_t>(in.gcount()));
+  return text;
 }
 
 }  // namespace streetsim::checked_file

@@ -8,7 +8,6 @@
 
 #include "absl/strings/str_cat.h"
 #include "scene/common/checked_file.h"
-#include "scene/train/motion_prior.h"
 
 namespace streetsim::train {
 
@@ -16,32 +15,7 @@ absl::Status WriteCheckpointRun(const std::string& dir, const CheckpointRun& run
   nlohmann::json j;
   j["iteration"] = run.iteration;
   j["field"] = run.field;
-  if (run.static_iterations) j["static_iterations"] = *run.static_iterations;
-  if (run.field_lr) {
-    j["field_lr_scale"] = run.field_lr->scale;
-    j["field_lr_decay_iterations"] = run.field_lr->decay_iterations;
-  }
-  if (run.low_res) {
-    j["low_res_scale"] = run.low_res->resolution_scale;
-    j["low_res_iterations"] = run.low_res->iterations;
-  }
-  if (run.pose_refinement) {
-    j["pose_rotation_lr"] = run.pose_refinement->rotation_lr;
-    j["pose_translation_lr"] = run.pose_refinement->translation_lr;
-    j["pose_refine_from"] = run.pose_refinement->from;
-    j["pose_refine_until"] = run.pose_refinement->until;
-  }
-  j["position_lr_decay_iterations"] = run.position_lr_decay_iterations;
-  j["densify_until"] = run.densify_until;
   if (run.field_extension_from > 0) j["field_extension_from"] = run.field_extension_from;
-  if (run.field_ext_lr) {
-    j["field_ext_lr_scale"] = run.field_ext_lr->scale;
-    j["field_ext_lr_decay_iterations"] = run.field_ext_lr->decay_iterations;
-  }
-  if (run.field_motion_prior) j["field_motion_prior"] = *run.field_motion_prior;
-  if (run.field_motion_prior_all_scans) {
-    j["field_motion_prior_scans"] = MotionPriorScansName(*run.field_motion_prior_all_scans);
-  }
   if (run.guard && run.guard->started) {
     j["guard"] = {{"baseline", run.guard->baseline}, {"mean", run.guard->mean}, {"best", run.guard->best},
                   {"psnr_mean", run.guard->psnr_mean}, {"psnr_best", run.guard->psnr_best},

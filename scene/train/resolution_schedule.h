@@ -9,7 +9,7 @@
 //
 // The switch is a checkpoint: the low-resolution stage ends with one at its last iteration and the
 // rest of the run resumes from it at the run's resolution, so a run killed in either stage
-// continues with --resume (checkpoint.json records the stage, and a resume keeps it).
+// continues with --resume (config.json records the stage, and a resume keeps it).
 #pragma once
 
 #include <functional>
@@ -27,7 +27,7 @@ absl::Status CheckLowResStage(const TrainOptions& options);
 
 // Trains the views of one resolution: `stage` is the run's options with resolution_scale,
 // iterations, resume and write_outputs set for the stage (stage.low_res is the run's, for its
-// checkpoint.json and train_meta.json).
+// train_meta.json).
 using TrainAtScale = std::function<absl::StatusOr<TrainResult>(const TrainOptions& stage,
                                                                 const std::function<void(const Progress&)>& progress)>;
 

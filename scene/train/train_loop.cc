@@ -251,14 +251,10 @@ absl::Status TrainLoop::SaveCheckpoint() {
   if (absl::Status s = field_->SaveCheckpoint(out_dir_, st_.iteration); !s.ok()) return s;
   if (absl::Status s = train::SaveCheckpoint(st_, ckpt_path_); !s.ok()) return s;
   field_->RemoveOlderCheckpoints(out_dir_, st_.iteration);
-  // The settings the checkpoint trained with, for a resume that does not say (checkpoint_run.h).
+  // The checkpoint's own state (checkpoint_run.h); the run's settings are config.json's.
   CheckpointRun run;
   run.iteration = st_.iteration;
   field_->Record(&run);
-  for (const IterationPart* p : parts_) p->Record(&run);
-  run.low_res = opt_.low_res;
-  run.position_lr_decay_iterations = opt_.hyper.lr_decay_steps;
-  run.densify_until = opt_.hyper.densify_until;
   run.guard = guard_.state(views_[0].camera.width);
   return WriteCheckpointRun(out_dir_, run);
 }

@@ -23,10 +23,17 @@
 
 namespace streetsim::train {
 
+// Low resolution first (resolution_schedule.h): iterations 1..iterations at resolution_scale,
+// the rest of the run at TrainOptions::resolution_scale.
+struct LowResStage {
+  double resolution_scale = 0.25;
+  int64_t iterations = 0;
+};
+
 struct TrainOptions {
   int iterations = 30000;
   double resolution_scale = 1.0;
-  // Low resolution first (LowResStage, checkpoint_run.h). Unset: the whole run at resolution_scale.
+  // Low resolution first (LowResStage above). Unset: the whole run at resolution_scale.
   // Train and TrainClip only (TrainOnViews takes views of one resolution).
   std::optional<LowResStage> low_res;
   int holdout_every = 4;

@@ -219,15 +219,14 @@ TEST(CliTrain, PoseRefinementWritesCorrectionsThatEvalUses) {
   r = RunCli("train" + common + " --iterations 31 --resume");
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(nlohmann::json::parse(std::ifstream(dir + "/pose_corrections.json"))["corrections"].size(), 59u);
-  nlohmann::json run = nlohmann::json::parse(std::ifstream(dir + "/checkpoint.json"));
-  EXPECT_DOUBLE_EQ(run["pose_rotation_lr"].get<double>(), 6e-4);  // its own schedule, kept
-  EXPECT_EQ(run["pose_refine_from"], 5);
+  const nlohmann::json settings = nlohmann::json::parse(std::ifstream(dir + "/config.json"))["settings"];
+  EXPECT_DOUBLE_EQ(settings["pose-lr-scale"].get<double>(), 2);  // its own schedule, kept
+  EXPECT_EQ(settings["pose-refine-from"], 5);
+  // checkpoint.json holds the checkpoint's state, not the settings (config.json has them).
+  const nlohmann::json run = nlohmann::json::parse(std::ifstream(dir + "/checkpoint.json"));
+  EXPECT_FALSE(run.contains("pose_refine_from")) << run.dump();
   // So does one from before config.json whose checkpoint.json predates the record of the
   // schedule (migrated: the checkpoint's corrections carry on).
-  for (const char* key : {"pose_rotation_lr", "pose_translation_lr", "pose_refine_from", "pose_refine_until"}) {
-    run.erase(key);
-  }
-  std::ofstream(dir + "/checkpoint.json") << run.dump();
   std::filesystem::remove(dir + "/config.json");
   r = RunCli("train" + common + " --iterations 32 --resume");
   ASSERT_EQ(r.code, 0) << r.err;
@@ -263,7 +262,7 @@ TEST(CliTrain, PoseRefinementStopsAtItsLastIteration) {
   EXPECT_GT(cb["max_rotation_deg"].get<double>(), 0.0);
   EXPECT_EQ(ca["corrections"], cb["corrections"]);
 
-  // A resume without the pose flags keeps the run's schedule (checkpoint.json records it): 6
+  // A resume without the pose flags keeps the run's schedule (config.json records it): 6
   // iterations, then resumed to 12 with none of the flags, end where the 8-iteration run ended.
   // The defaults instead (rates halved, refinement from 300, never frozen) would not.
   const std::string c = streetsim::testing::ScratchDir("streetsim_cli_train_scene", "poses_resumed");
@@ -271,10 +270,10 @@ TEST(CliTrain, PoseRefinementStopsAtItsLastIteration) {
       " --log " + kKitti + " --resolution-scale 0.08 --holdout-every 4 --deterministic --no-lidar-loss";
   r = RunCli("train --out " + c + common + " --iterations 6 --pose-refine-until 8");
   ASSERT_EQ(r.code, 0) << r.err;
-  const nlohmann::json run = nlohmann::json::parse(std::ifstream(c + "/checkpoint.json"));
-  EXPECT_EQ(run["pose_refine_from"], 2);
-  EXPECT_EQ(run["pose_refine_until"], 8);
-  EXPECT_DOUBLE_EQ(run["pose_rotation_lr"].get<double>(), 6e-4);
+  const nlohmann::json settings = nlohmann::json::parse(std::ifstream(c + "/config.json"))["settings"];
+  EXPECT_EQ(settings["pose-refine-from"], 2);
+  EXPECT_EQ(settings["pose-refine-until"], 8);
+  EXPECT_DOUBLE_EQ(settings["pose-lr-scale"].get<double>(), 2);
   r = RunCli("train --out " + c + plain + " --iterations 12 --resume");
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(nlohmann::json::parse(std::ifstream(c + "/pose_corrections.json"))["corrections"], cb["corrections"]);
@@ -289,16 +288,16 @@ TEST(CliTrain, PoseRefinementStopsAtItsLastIteration) {
   r = RunCli("train --out " + f + common +
              " --iterations 8 --field s3gaussian --field-size small --field-motion-prior 0 --static-iterations 6 --checkpoint-every 0");
   ASSERT_EQ(r.code, 0) << r.err;
-  EXPECT_EQ(nlohmann::json::parse(std::ifstream(f + "/checkpoint.json"))["pose_refine_until"], 6);
+  EXPECT_NE(r.err.find("camera poses refined at iterations 3-6"), std::string::npos) << r.err;
   r = RunCli("train --out " + f + common +
              " --iterations 8 --field s3gaussian --field-size small --field-motion-prior 0 --static-iterations 6 --checkpoint-every 0"
              " --pose-refine-until 7");
   ASSERT_EQ(r.code, 0) << r.err;
-  EXPECT_EQ(nlohmann::json::parse(std::ifstream(f + "/checkpoint.json"))["pose_refine_until"], 7);
+  EXPECT_EQ(nlohmann::json::parse(std::ifstream(f + "/config.json"))["settings"]["pose-refine-until"], 7);
 }
 
 // --position-lr-decay-iterations N: the Gaussian means' rate decays over N iterations instead of
-// 3DGS's 30 000. Deterministic runs: the flag changes the trained scene; checkpoint.json records
+// 3DGS's 30 000. Deterministic runs: the flag changes the trained scene; config.json records
 // it; a resume without the flag keeps it (ends bit for bit where the uninterrupted run ended), and
 // a damaged record or a bad value is exit 2.
 TEST(CliTrain, PositionLrDecayIsTheRunsAndAResumeKeepsIt) {
@@ -315,11 +314,11 @@ TEST(CliTrain, PositionLrDecayIsTheRunsAndAResumeKeepsIt) {
   };
   Result r = RunCli("train --out " + a + common + " --iterations 10 --position-lr-decay-iterations 3");
   ASSERT_EQ(r.code, 0) << r.err;
-  EXPECT_EQ(nlohmann::json::parse(std::ifstream(a + "/checkpoint.json"))["position_lr_decay_iterations"], 3);
+  EXPECT_EQ(nlohmann::json::parse(std::ifstream(a + "/config.json"))["settings"]["position-lr-decay-iterations"], 3);
   EXPECT_EQ(nlohmann::json::parse(std::ifstream(a + "/train_meta.json"))["position_lr_decay_iterations"], 3);
   r = RunCli("train --out " + b + common + " --iterations 10");
   ASSERT_EQ(r.code, 0) << r.err;
-  EXPECT_EQ(nlohmann::json::parse(std::ifstream(b + "/checkpoint.json"))["position_lr_decay_iterations"], 30000);
+  EXPECT_EQ(nlohmann::json::parse(std::ifstream(b + "/train_meta.json"))["position_lr_decay_iterations"], 30000);
   EXPECT_NE(slurp(a + "/scene.ply"), slurp(b + "/scene.ply"));
 
   r = RunCli("train --out " + c + common + " --iterations 6 --position-lr-decay-iterations 3");
@@ -327,7 +326,7 @@ TEST(CliTrain, PositionLrDecayIsTheRunsAndAResumeKeepsIt) {
   r = RunCli("train --out " + c + common + " --iterations 10 --resume");
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(slurp(c + "/scene.ply"), slurp(a + "/scene.ply"));
-  EXPECT_EQ(nlohmann::json::parse(std::ifstream(c + "/checkpoint.json"))["position_lr_decay_iterations"], 3);
+  EXPECT_EQ(nlohmann::json::parse(std::ifstream(c + "/train_meta.json"))["position_lr_decay_iterations"], 3);
 
   EXPECT_EQ(nlohmann::json::parse(std::ifstream(c + "/config.json"))["settings"]["position-lr-decay-iterations"], 3);
   r = RunCli("train --out " + c + common + " --iterations 12 --resume --position-lr-decay-iterations 0");
@@ -338,7 +337,7 @@ TEST(CliTrain, PositionLrDecayIsTheRunsAndAResumeKeepsIt) {
       << r.err;
 }
 
-// --densify-until N: checkpoint.json and train_meta.json record it, a resume without the flag
+// --densify-until N: config.json and train_meta.json record it, a resume without the flag
 // keeps it and one with the flag replaces it; a damaged record or a bad value is exit 2. (What it
 // does to the Gaussians: tests/train/trainer_test.cc, Trainer.DensifyUntilEndsDensificationAndResets.)
 TEST(CliTrain, DensifyUntilIsRecordedAndKeptByAResume) {
@@ -348,14 +347,13 @@ TEST(CliTrain, DensifyUntilIsRecordedAndKeptByAResume) {
   auto recorded = [&](const std::string& file) { return nlohmann::json::parse(std::ifstream(a + "/" + file)); };
   Result r = RunCli("train" + common + " --iterations 4");
   ASSERT_EQ(r.code, 0) << r.err;
-  EXPECT_EQ(recorded("checkpoint.json")["densify_until"], 25000);
+  EXPECT_EQ(recorded("train_meta.json")["densify_until"], 25000);
   r = RunCli("train" + common + " --iterations 6 --resume --densify-until 0");
   ASSERT_EQ(r.code, 0) << r.err;
-  EXPECT_EQ(recorded("checkpoint.json")["densify_until"], 0);
   EXPECT_EQ(recorded("train_meta.json")["densify_until"], 0);
   r = RunCli("train" + common + " --iterations 8 --resume");
   ASSERT_EQ(r.code, 0) << r.err;
-  EXPECT_EQ(recorded("checkpoint.json")["densify_until"], 0);
+  EXPECT_EQ(recorded("train_meta.json")["densify_until"], 0);
   EXPECT_EQ(recorded("train_meta.json")["iterations"], 8);
 
   // config.json records where the change began: the run's schedule has a stage from iteration 4.
@@ -385,7 +383,7 @@ TEST(CliTrain, DensifyUntilIsRecordedAndKeptByAResume) {
 
 // Low resolution first (docs/training.md "Low resolution first"): the first iterations at the low
 // scale, fine stage included, then the rest resumed at the run's; the outputs are the run's
-// resolution; a resume keeps the stage checkpoint.json records unless told otherwise.
+// resolution; a resume keeps the stage config.json records unless told otherwise.
 TEST(CliTrain, LowResolutionFirstThenTheRunsOwn) {
   const std::string dir = streetsim::testing::ScratchDir("streetsim_cli_train_lowres", "run");
   const std::string common = "train --log " + kKitti + " --out " + dir +
@@ -410,9 +408,9 @@ TEST(CliTrain, LowResolutionFirstThenTheRunsOwn) {
   EXPECT_EQ(meta["low_res_iterations"], 7);
   EXPECT_EQ(meta["field"], "s3gaussian");  // the field began at low resolution and carried on
   EXPECT_TRUE(std::filesystem::exists(dir + "/field.bin"));
-  const nlohmann::json run = nlohmann::json::parse(std::ifstream(dir + "/checkpoint.json"));
-  EXPECT_DOUBLE_EQ(run["low_res_scale"].get<double>(), 0.06);
-  EXPECT_EQ(run["low_res_iterations"], 7);
+  const nlohmann::json settings = nlohmann::json::parse(std::ifstream(dir + "/config.json"))["settings"];
+  EXPECT_DOUBLE_EQ(settings["low-res-scale"].get<double>(), 0.06);
+  EXPECT_EQ(settings["low-res-iterations"], 7);
   // The previews (render | ground truth) are at the run's scale: 375 rows x 0.12.
   int previews = 0;
   for (const auto& e : std::filesystem::directory_iterator(dir + "/preview")) {

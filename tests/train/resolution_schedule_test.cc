@@ -44,7 +44,7 @@ class ResolutionStages : public ::testing::Test {
         opt_, dir_, [&](const Progress& p) { progress_.push_back(p); },
         [&](const TrainOptions& stage, const std::function<void(const Progress&)>& progress) -> absl::StatusOr<TrainResult> {
           calls_.push_back({stage.resolution_scale, stage.iterations, stage.resume, stage.write_outputs});
-          EXPECT_EQ(stage.low_res.has_value(), true);  // recorded by both stages' checkpoint.json
+          EXPECT_EQ(stage.low_res.has_value(), true);  // both stages carry it (train_meta.json records it)
           if (calls_.size() == 1 && !fail_first.ok()) return fail_first;
           const int end = stop_at ? stop_at(stage) : stage.iterations;
           for (int it : {1, end}) {

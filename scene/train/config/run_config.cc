@@ -2,9 +2,7 @@
 
 #include <algorithm>
 #include <filesystem>
-#include <fstream>
 #include <nlohmann/json.hpp>
-#include <sstream>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
@@ -248,14 +246,13 @@ absl::StatusOr<RunConfig> ReadRunConfig(const std::string& dir) {
   const std::string path = (std::filesystem::path(dir) / kRunConfigFileName).string();
   std::error_code ec;
   if (!std::filesystem::exists(path, ec)) return absl::NotFoundError(absl::StrCat(path, " does not exist"));
-  const std::uintmax_t size = std::filesystem::file_size(path, ec);
-  if (ec || size > kMaxConfigBytes) {
-    return absl::DataLossError(absl::StrCat(path, " is damaged (", ec ? ec.message() : "larger than 1 MiB", ")"));
+  absl::StatusOr<std::string> text = checked_file::ReadBounded(path, kMaxConfigBytes);
+  if (!text.ok()) {
+    const bool large = absl::IsOutOfRange(text.status());
+    return absl::DataLossError(
+        absl::StrCat(path, " is damaged (", large ? "larger than 1 MiB" : text.status().message(), ")"));
   }
-  std::ifstream in(path, std::ios::binary);
-  std::stringstream text;
-  text << in.rdbuf();
-  absl::StatusOr<nlohmann::json> j = ParseJson(text.str(), path);
+  absl::StatusOr<nlohmann::json> j = ParseJson(*text, path);
   if (!j.ok()) return absl::DataLossError(absl::StrCat(j.status().message(), " (damaged)"));
   if (absl::Status s = CheckSchema(*j, path, /*required=*/true); !s.ok()) return s;
   RunConfig config;

@@ -4,10 +4,10 @@
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <set>
-#include <sstream>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_replace.h"
+#include "scene/common/checked_file.h"
 #include "scene/train/checkpoint_run.h"
 #include "scene/train/config/train_settings.h"
 #include "scene/train/dynamic_stage.h"
@@ -21,16 +21,15 @@ namespace fs = std::filesystem;
 constexpr std::uintmax_t kMaxConfigFileBytes = 1 << 20;
 
 absl::StatusOr<std::string> ReadConfigFile(const std::string& path) {
-  std::error_code ec;
-  if (!fs::is_regular_file(path, ec)) return absl::InvalidArgumentError(absl::StrCat("--config ", path, ": no such file"));
-  if (fs::file_size(path, ec) > kMaxConfigFileBytes) {
+  absl::StatusOr<std::string> text = checked_file::ReadBounded(path, kMaxConfigFileBytes);
+  if (absl::IsOutOfRange(text.status())) {
     return absl::InvalidArgumentError(absl::StrCat("--config ", path, ": larger than 1 MiB, not a config"));
   }
-  std::ifstream in(path, std::ios::binary);
-  std::stringstream text;
-  text << in.rdbuf();
-  if (!in.good() && !in.eof()) return absl::InvalidArgumentError(absl::StrCat("--config ", path, ": cannot be read"));
-  return text.str();
+  if (absl::IsNotFound(text.status())) {
+    return absl::InvalidArgumentError(absl::StrCat("--config ", path, ": no such file"));
+  }
+  if (!text.ok()) return absl::InvalidArgumentError(absl::StrCat("--config ", path, ": cannot be read"));
+  return text;
 }
 
 // The given settings (a config file's, then the flags') on `base`; their names into *names.

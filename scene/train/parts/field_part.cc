@@ -92,12 +92,7 @@ class StagedField : public FieldPart {
   }
   void Record(CheckpointRun* run) const override {
     run->field = opt_.extended ? "extended" : "s3gaussian";
-    run->static_iterations = static_its_;
-    run->field_lr = FieldLrSchedule{opt_.hyper.lr_scale, opt_.hyper.lr_decay_steps};
-    if (stage_ && stage_->extended()) {
-      run->field_extension_from = stage_->extension_from_fine_iteration();
-      run->field_ext_lr = FieldLrSchedule{opt_.ext_hyper.lr_scale, opt_.ext_hyper.lr_decay_steps};
-    }
+    if (stage_ && stage_->extended()) run->field_extension_from = stage_->extension_from_fine_iteration();
   }
   absl::Status WriteOutputs(const std::string& out_dir, nlohmann::json* meta) override;
   std::shared_ptr<const field::DeformationField> SceneField() const override {

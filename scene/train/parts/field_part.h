@@ -54,6 +54,7 @@ class FieldPart {
   // the two never pairs a field with the wrong Gaussians), the older files after.
   virtual absl::Status SaveCheckpoint(const std::string& out_dir, int64_t iteration) = 0;
   virtual void RemoveOlderCheckpoints(const std::string& out_dir, int64_t iteration) const = 0;
+  // Which field the checkpoint holds (checkpoint.json; a resume that changes the field is refused).
   virtual void Record(CheckpointRun* run) const = 0;
   // The run's end: field.bin (or its removal: a static run replaces an earlier field scene) and
   // the field's entries of train_meta.json.

@@ -20,7 +20,6 @@
 #include "absl/status/statusor.h"
 #include "render/common/thread_pool.h"
 #include "render/engine.h"
-#include "scene/train/checkpoint_run.h"
 #include "scene/train/dataset.h"
 #include "scene/train/train_state.h"
 
@@ -52,8 +51,7 @@ class IterationPart {
   virtual void AfterFieldBackward(const Iteration& i, GaussianGrads* grads) {}
   // The Gaussians' rows changed (densification, the field's reordering).
   virtual void RowsChanged() {}
-  // Its settings in checkpoint.json (checkpoint_run.h) and train_meta.json.
-  virtual void Record(CheckpointRun* run) const {}
+  // Its entries in train_meta.json (the trained scene's provenance).
   virtual void Meta(nlohmann::json* meta) const {}
   // A line for the end of the run's log (empty: none).
   virtual std::string Summary() const { return {}; }

@@ -65,11 +65,6 @@ void MotionPriorPart::AfterFieldBackward(const Iteration& i, GaussianGrads* grad
   for (size_t k = 0; k < grad_.size(); ++k) grads->means[k] -= grad_[k];
 }
 
-void MotionPriorPart::Record(CheckpointRun* run) const {
-  run->field_motion_prior = options_.weight;
-  run->field_motion_prior_all_scans = options_.all_scans;
-}
-
 void MotionPriorPart::Meta(nlohmann::json* meta) const {
   (*meta)["field_motion_prior"] = options_.weight;
   (*meta)["field_motion_prior_scans"] = MotionPriorScansName(options_.all_scans);

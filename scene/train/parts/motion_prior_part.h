@@ -25,7 +25,6 @@ class MotionPriorPart : public IterationPart {
                                       ThreadPool& pool) override;
   void AfterFieldBackward(const Iteration& i, GaussianGrads* grads) override;
   void RowsChanged() override { rows_changed_ = true; }
-  void Record(CheckpointRun* run) const override;
   void Meta(nlohmann::json* meta) const override;
 
  private:

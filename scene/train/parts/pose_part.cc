@@ -15,6 +15,11 @@ absl::StatusOr<std::unique_ptr<PosePart>> PosePart::Create(bool asked, int num_v
       LOG(INFO) << "the checkpoint refines its camera poses: so does this run";
     }
     if (absl::Status s = PreparePoseCorrections(num_views, st); !s.ok()) return s;
+    if (h.pose_refine_until > 0) {
+      LOG(INFO) << "camera poses refined at iterations " << h.pose_refine_from + 1 << "-" << h.pose_refine_until;
+    } else {
+      LOG(INFO) << "camera poses refined from iteration " << h.pose_refine_from + 1 << " to the run's end";
+    }
   }
   return std::unique_ptr<PosePart>(new PosePart(refining, h));
 }
@@ -29,13 +34,6 @@ absl::StatusOr<double> PosePart::AddGradients(const Iteration& i, TrainState* st
     StepPoseCorrection(*i.rendered, *grads, *i.camera, i.view_index, h_, pool, st);
   }
   return 0.0;  // it reads the gradient, it adds none
-}
-
-void PosePart::Record(CheckpointRun* run) const {
-  if (refining_) {
-    run->pose_refinement = PoseRefinementSchedule{h_.pose_rotation_lr, h_.pose_translation_lr, h_.pose_refine_from,
-                                                  h_.pose_refine_until};
-  }
 }
 
 absl::StatusOr<std::optional<std::vector<View>>> PosePart::Finish(const std::string& out_dir,

@@ -27,7 +27,6 @@ class PosePart : public IterationPart {
 
   absl::StatusOr<double> AddGradients(const Iteration& i, TrainState* st, GaussianGrads* grads,
                                       ThreadPool& pool) override;
-  void Record(CheckpointRun* run) const override;
 
   // At the run's end: writes (or, not refining, removes) DIR/pose_corrections.json and returns the
   // held-out views as evaluation renders them, with their interpolated corrections (nullopt: as
