@@ -84,9 +84,24 @@ void AddLidar(const train::LidarFrameMetrics& m, nlohmann::json* j) {
   (*j)["lidar_rays"] = m.rays;
 }
 
-}  // namespace
+// What the command line asks for, checked before any work.
+struct EvalRequest {
+  std::string split;
+  bool served = false, lidar = true, log_poses = false, exact_field = false;
+  field::StaticSkipOptions skip;
+  train::DatasetOptions dopt;
+  Backend backend = Backend::kCpu;
+  train::LidarEvalOptions lopt;
+  train::EvalOutputOptions outputs;
+  std::string log_path;
+  // A clip set (DIR/clips.json, docs/training.md "Clips"): each view is evaluated by the clip whose
+  // time range holds it (scene/train/clips.h PickClip); the settings come from the first clip.
+  std::optional<train::ClipSet> clip_set;
+  std::vector<std::string> scene_dirs;  // the scene, or each clip's
+};
 
-int RunEvalCommand(const std::vector<std::string>& argv) {
+// The request, or the exit code (2) after saying why.
+int ParseEvalRequest(const std::vector<std::string>& argv, EvalRequest* req) {
   std::vector<FlagSpec> flags = {{"scene"}, {"log"}, {"split"}, {"holdout-every"}, {"resolution-scale"}, {"backend"},
                                  {"no-lidar", false}, {"lidar-columns"}, {"lidar-static-sweep", false},
                                  {"decomposition"}, {"video"}, {"video-fps"}, {"served", false},
@@ -96,18 +111,20 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
   if (!args.ok()) return Fail(2, args.status());
   // --served: render a field scene as `streetsim serve` does (the static skip's Gaussians baked),
   // with the server's thresholds or --static-motion-m / --static-sh.
-  const bool served = args->Has("served");
-  if (!served && (args->Has("static-motion-m") || args->Has("static-sh") || args->Has("field-serving"))) {
+  req->served = args->Has("served");
+  if (!req->served && (args->Has("static-motion-m") || args->Has("static-sh") || args->Has("field-serving"))) {
     return Fail(2, absl::InvalidArgumentError("--static-motion-m / --static-sh / --field-serving need --served"));
   }
-  if (served && (args->Has("decomposition") || args->Has("video"))) {
+  if (req->served && (args->Has("decomposition") || args->Has("video"))) {
     // Their static/dynamic split is the server's default analysis, not the thresholds served here.
     return Fail(2, absl::InvalidArgumentError("--served does not combine with --decomposition or --video"));
   }
   absl::StatusOr<field::StaticSkipOptions> skip = StaticSkipFromFlags(*args);
   if (!skip.ok()) return Fail(2, skip.status());
+  req->skip = *skip;
   absl::StatusOr<bool> exact_field = ExactFieldFromFlags(*args);
   if (!exact_field.ok()) return Fail(2, exact_field.status());
+  req->exact_field = *exact_field;
   if (!args->positional().empty()) {
     return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
   }
@@ -115,24 +132,26 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
   if (!scene_dir.ok()) return Fail(2, scene_dir.status());
   absl::StatusOr<std::string> log_path = args->Required("log");
   if (!log_path.ok()) return Fail(2, log_path.status());
-  const std::string split = args->Get("split").value_or("test");
-  if (split != "test" && split != "train") return Fail(2, absl::InvalidArgumentError("--split must be test or train"));
-  // A clip set (DIR/clips.json, docs/training.md "Clips"): each view is evaluated by the clip whose
-  // time range holds it (scene/train/clips.h PickClip); the settings come from the first clip.
+  req->log_path = *log_path;
+  req->split = args->Get("split").value_or("test");
+  if (req->split != "test" && req->split != "train") {
+    return Fail(2, absl::InvalidArgumentError("--split must be test or train"));
+  }
   absl::StatusOr<std::optional<train::ClipSet>> clip_set = train::ReadClipSet(*scene_dir);
   if (!clip_set.ok()) return Fail(2, clip_set.status());
-  std::vector<std::string> scene_dirs = {*scene_dir};
-  if (*clip_set) {
-    scene_dirs.clear();
-    for (const train::ClipEntry& c : (*clip_set)->clips) {
+  req->clip_set = std::move(*clip_set);
+  req->scene_dirs = {*scene_dir};
+  if (req->clip_set) {
+    req->scene_dirs.clear();
+    for (const train::ClipEntry& c : req->clip_set->clips) {
       absl::StatusOr<std::string> d = train::ClipPath(*scene_dir, c);
       if (!d.ok()) return Fail(2, d.status());
-      scene_dirs.push_back(*d);
+      req->scene_dirs.push_back(*d);
     }
   }
-  absl::StatusOr<train::SceneMeta> meta = train::ReadSceneMeta(scene_dirs[0]);
+  absl::StatusOr<train::SceneMeta> meta = train::ReadSceneMeta(req->scene_dirs[0]);
   if (!meta.ok()) return Fail(2, meta.status());
-  train::DatasetOptions dopt;
+  train::DatasetOptions& dopt = req->dopt;
   dopt.holdout_every = meta->holdout_every;
   dopt.resolution_scale = meta->resolution_scale;
   if (auto v = args->Get("holdout-every"); v && (!absl::SimpleAtoi(*v, &dopt.holdout_every) || dopt.holdout_every < 0 ||
@@ -143,193 +162,177 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
                                                     !(dopt.resolution_scale > 0 && dopt.resolution_scale <= 1))) {
     return Fail(2, absl::InvalidArgumentError("--resolution-scale must be in (0, 1]"));
   }
-  Backend backend = Backend::kCpu;
   if (auto v = args->Get("backend")) {
     absl::StatusOr<Backend> b = ParseBackend(*v);
     if (!b.ok()) return Fail(2, b.status());
-    backend = *b;
+    req->backend = *b;
   }
-  const bool lidar = !args->Has("no-lidar");
-  train::LidarEvalOptions lopt;
+  req->lidar = !args->Has("no-lidar");
+  req->log_poses = args->Has("log-poses");
   if (auto v = args->Get("lidar-columns");
-      v && (!absl::SimpleAtoi(*v, &lopt.columns) || lopt.columns < 16 || lopt.columns > 65536)) {
+      v && (!absl::SimpleAtoi(*v, &req->lopt.columns) || req->lopt.columns < 16 || req->lopt.columns > 65536)) {
     return Fail(2, absl::InvalidArgumentError("--lidar-columns must be in 16..65536"));
   }
-  lopt.rolling_sweep = !args->Has("lidar-static-sweep");
-  dopt.split = split == "test" ? train::Split::kTest : train::Split::kTrain;
-  if (split == "test" && dopt.holdout_every == 0) {
+  req->lopt.rolling_sweep = !args->Has("lidar-static-sweep");
+  dopt.split = req->split == "test" ? train::Split::kTest : train::Split::kTrain;
+  if (req->split == "test" && dopt.holdout_every == 0) {
     return Fail(2, absl::InvalidArgumentError("--split test needs --holdout-every > 0"));
   }
   absl::StatusOr<train::EvalOutputOptions> output_options = ParseOutputOptions(*args);
   if (!output_options.ok()) return Fail(2, output_options.status());
-  absl::StatusOr<DriveLog> log = OpenLog(*log_path);
-  if (!log.ok()) return Fail(absl::IsInternal(log.status()) ? 1 : 2, log.status());
-  absl::StatusOr<std::vector<train::View>> all_views = train::LoadViews(*log, dopt);
-  if (!all_views.ok()) return Fail(2, all_views.status());
-  if (all_views->empty()) return Fail(2, absl::InvalidArgumentError(absl::StrCat("the log has no ", split, " views")));
-  absl::StatusOr<std::unique_ptr<Engine>> engine = CreateEngine(backend);
-  if (!engine.ok()) return Fail(1, engine.status());
-  if (absl::Status s = train::AttachDynamicPixels(*log, &*all_views); !s.ok()) return Fail(1, s);
-  // Decomposition images / video: fed by the evaluation's renders (UseScene once per scene).
-  std::unique_ptr<train::EvalOutputs> outputs;
-  if (!output_options->decomposition_dir.empty() || !output_options->video_path.empty()) {
-    absl::StatusOr<std::unique_ptr<train::EvalOutputs>> o = train::EvalOutputs::Create(**engine, *output_options);
-    if (!o.ok()) return Fail(2, o.status());
-    outputs = std::move(*o);
-  }
-  // The views of each scene directory: all of them, or for a clip set those of each clip's times.
-  std::vector<std::vector<size_t>> view_groups(1);
-  if (*clip_set) {
-    view_groups = train::GroupViewsByClip(**clip_set, *all_views);
-  } else {
-    for (size_t i = 0; i < all_views->size(); ++i) view_groups[0].push_back(i);
-  }
+  req->outputs = *output_options;
+  return 0;
+}
+
+// What the scene directories measured.
+struct EvalTotals {
   std::vector<train::EvalResult> parts;
+  std::vector<train::LidarEvalResult> lidar_parts;
   size_t served_static = 0, served_dynamic = 0;
   double served_analysis_s = 0;
   float served_form_position_max_m = 0;
   int served_by_form = 0;  // scenes (clips) served through their serving form
-  std::vector<train::LidarEvalResult> lidar_parts;
   int scenes_with_reflectance = 0, scenes_evaluated = 0, scenes_with_pose_corrections = 0;
-  // A clip set: how far the image jumps where a consumer crosses from one clip to the next,
-  // measured with the scenes this loop loads (each clip once).
-  std::optional<train::ClipSeamMeter> seam_meter;
-  if (*clip_set) {
-    absl::StatusOr<train::ClipSeamMeter> m = train::ClipSeamMeter::Create(**clip_set, *log, dopt.resolution_scale);
-    if (!m.ok()) return Fail(1, m.status());
-    seam_meter = std::move(*m);
+};
+
+// The scene as `streetsim serve` serves it (--served): by default its serving form (cached in
+// DIR/field.serving), or the exact field. Null for a static scene (served as it is).
+int ServedSceneOf(const EvalRequest& req, const std::string& dir,
+                  const std::shared_ptr<const field::DeformationField>& f, const GaussianStore& store,
+                  EvalTotals* totals, std::shared_ptr<field::ServedScene>* served_scene) {
+  if (!f) {
+    totals->served_static += store.size();
+    return 0;
   }
-  for (size_t k = 0; k < view_groups.size(); ++k) {
-    if (view_groups[k].empty() && !seam_meter) continue;
-    const std::string& dir = scene_dirs[k];
-    absl::StatusOr<train::SceneMeta> scene_meta = train::ReadSceneMeta(dir);  // its own learned sky
-    if (!scene_meta.ok()) return Fail(2, scene_meta.status());
-    const std::string ply = (std::filesystem::path(dir) / "scene.ply").string();
-    absl::StatusOr<GaussianStore> store = ReadGaussianPly(ply);
-    if (!store.ok()) return Fail(2, store.status());
-    std::vector<train::View> views;
-    for (size_t i : view_groups[k]) views.push_back(std::move((*all_views)[i]));
-    // A run that refined its poses is measured at them (held-out views: interpolated).
-    if (!args->Has("log-poses")) {
-      absl::StatusOr<std::vector<train::PoseCorrection>> corrections = train::ReadPoseCorrections(dir);
-      if (corrections.ok()) {
-        train::ApplyPoseCorrections(*corrections, &views);
-        ++scenes_with_pose_corrections;
-      } else if (!absl::IsNotFound(corrections.status())) {
-        return Fail(2, corrections.status());
-      }
-    }
-    // A field scene (DIR/field.bin) is deformed at each view's time.
-    absl::StatusOr<std::shared_ptr<const field::DeformationField>> f = train::LoadSceneField(dir);
-    if (!f.ok()) return Fail(2, f.status());
-    if (outputs) {
-      if (absl::Status s = outputs->UseScene(*store, *f, scene_meta->background); !s.ok()) return Fail(1, s);
-    }
-    std::shared_ptr<field::ServedScene> served_scene;
-    if (served && *f) {
-      const auto t0 = std::chrono::steady_clock::now();
-      // By default the serving form, as `streetsim serve` serves it (cached in DIR/field.serving).
-      auto make_exact = [&]() { return train::MakeExactServedScene(*f, *store, *skip); };
-      absl::StatusOr<std::shared_ptr<field::ServedScene>> ss =
-          *exact_field ? train::MakeServedScene(*f, *store, *skip)
-                       : absl::StatusOr<std::shared_ptr<field::ServedScene>>(
-                             train::LoadServedScene(dir, make_exact, field::ServingFormOptions{}, *skip));
-      if (!ss.ok()) return Fail(1, ss.status());
-      if (const auto* form = dynamic_cast<const field::ServingForm*>(ss->get())) {
-        served_form_position_max_m = std::max(served_form_position_max_m, form->error().max[0]);
-        ++served_by_form;
-      }
-      served_analysis_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-      served_scene = *ss;
-      served_dynamic += served_scene->num_dynamic();
-      served_static += served_scene->size() - served_scene->num_dynamic();
-    } else if (served) {
-      served_static += store->size();  // a static scene is served as it is
-    }
-    absl::StatusOr<train::SceneForView> sv = served_scene ? train::MakeServedSceneForView(**engine, served_scene)
-                                                          : train::MakeSceneForView(**engine, *store, *f);
-    if (!sv.ok()) return Fail(1, sv.status());
-    if (seam_meter) {
-      if (absl::Status s = seam_meter->AddClip(**engine, static_cast<int>(k), *sv, scene_meta->background); !s.ok()) {
-        return Fail(1, s);
-      }
-    }
-    if (views.empty()) continue;  // a clip with no views of this split still renders its seams
-    absl::StatusOr<train::EvalResult> r =
-        train::EvaluateViews(**engine, *sv, views, scene_meta->background,
-                             outputs && !served_scene ? outputs->sink() : train::EvalFrameSink());
-    if (!r.ok()) return Fail(1, r.status());
-    parts.push_back(std::move(*r));
-    ++scenes_evaluated;
-    // LiDAR: every evaluated frame with a scan, once per frame (a frame may have several views).
-    if (lidar) {
-      absl::StatusOr<std::optional<std::vector<float>>> refl = train::ReadPlyReflectance(ply, store->size());
-      if (!refl.ok()) return Fail(2, refl.status());
-      scenes_with_reflectance += refl->has_value();
-      std::set<int> frames;
-      for (const train::View& v : views) frames.insert(v.frame);
-      // A field scene's sweeps, like its views, are rendered deformed at the frame's time.
-      absl::StatusOr<train::LidarEvalResult> lr =
-          train::EvaluateLidar(*log, std::vector<int>(frames.begin(), frames.end()), *store,
-                               refl->has_value() ? &**refl : nullptr, lopt,
-                               served_scene ? train::MakeServedStoreAtTime(served_scene)
-                                            : train::MakeStoreAtTime(*f, *store));
-      if (!lr.ok()) return Fail(1, lr.status());
-      lidar_parts.push_back(std::move(*lr));
+  const auto t0 = std::chrono::steady_clock::now();
+  auto make_exact = [&]() { return train::MakeExactServedScene(f, store, req.skip); };
+  absl::StatusOr<std::shared_ptr<field::ServedScene>> ss =
+      req.exact_field ? train::MakeServedScene(f, store, req.skip)
+                      : absl::StatusOr<std::shared_ptr<field::ServedScene>>(
+                            train::LoadServedScene(dir, make_exact, field::ServingFormOptions{}, req.skip));
+  if (!ss.ok()) return Fail(1, ss.status());
+  if (const auto* form = dynamic_cast<const field::ServingForm*>(ss->get())) {
+    totals->served_form_position_max_m = std::max(totals->served_form_position_max_m, form->error().max[0]);
+    ++totals->served_by_form;
+  }
+  totals->served_analysis_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  *served_scene = *ss;
+  totals->served_dynamic += (*ss)->num_dynamic();
+  totals->served_static += (*ss)->size() - (*ss)->num_dynamic();
+  return 0;
+}
+
+// One scene directory (the scene, or clip `k` of a set) on its views: images, then LiDAR sweeps;
+// the decomposition / video outputs and the clip seams take its renders.
+int EvaluateScene(const EvalRequest& req, const DriveLog& log, Engine& engine, size_t k, std::vector<train::View> views,
+                  train::EvalOutputs* outputs, train::ClipSeamMeter* seam_meter, EvalTotals* totals) {
+  const std::string& dir = req.scene_dirs[k];
+  absl::StatusOr<train::SceneMeta> scene_meta = train::ReadSceneMeta(dir);  // its own learned sky
+  if (!scene_meta.ok()) return Fail(2, scene_meta.status());
+  const std::string ply = (std::filesystem::path(dir) / "scene.ply").string();
+  absl::StatusOr<GaussianStore> store = ReadGaussianPly(ply);
+  if (!store.ok()) return Fail(2, store.status());
+  // A run that refined its poses is measured at them (held-out views: interpolated).
+  if (!req.log_poses) {
+    absl::StatusOr<std::vector<train::PoseCorrection>> corrections = train::ReadPoseCorrections(dir);
+    if (corrections.ok()) {
+      train::ApplyPoseCorrections(*corrections, &views);
+      ++totals->scenes_with_pose_corrections;
+    } else if (!absl::IsNotFound(corrections.status())) {
+      return Fail(2, corrections.status());
     }
   }
-  const train::EvalResult merged = parts.size() == 1 ? std::move(parts[0]) : train::MergeEvalResults(parts);
-  const train::EvalResult* r = &merged;
-  train::EvalOutputSummary output_summary;
+  // A field scene (DIR/field.bin) is deformed at each view's time.
+  absl::StatusOr<std::shared_ptr<const field::DeformationField>> f = train::LoadSceneField(dir);
+  if (!f.ok()) return Fail(2, f.status());
   if (outputs) {
-    absl::StatusOr<train::EvalOutputSummary> os = outputs->Finish();
-    if (!os.ok()) return Fail(1, os.status());
-    output_summary = std::move(*os);
+    if (absl::Status s = outputs->UseScene(*store, *f, scene_meta->background); !s.ok()) return Fail(1, s);
   }
-  std::map<int, train::LidarFrameMetrics> lidar_by_frame;
-  const train::LidarEvalResult lidar_result =
-      lidar_parts.size() == 1 ? std::move(lidar_parts[0]) : train::MergeLidarEvalResults(lidar_parts);
-  for (const train::LidarFrameMetrics& m : lidar_result.frames) lidar_by_frame[m.frame] = m;
-  const std::string reflectance_source =
-      scenes_with_reflectance == scenes_evaluated ? "scene.ply reflectance"
-      : scenes_with_reflectance == 0 ? "constant 0.5 (scene.ply has no reflectance property)"
-                                     : "scene.ply reflectance where the clip's scene.ply has it, else constant 0.5";
-  const bool have_lidar = !lidar_by_frame.empty();
-  std::vector<train::ClipSeam> seams;
+  std::shared_ptr<field::ServedScene> served_scene;
+  if (req.served) {
+    if (int rc = ServedSceneOf(req, dir, *f, *store, totals, &served_scene)) return rc;
+  }
+  absl::StatusOr<train::SceneForView> sv = served_scene ? train::MakeServedSceneForView(engine, served_scene)
+                                                        : train::MakeSceneForView(engine, *store, *f);
+  if (!sv.ok()) return Fail(1, sv.status());
   if (seam_meter) {
-    absl::StatusOr<std::vector<train::ClipSeam>> s = seam_meter->Finish();
-    if (!s.ok()) return Fail(1, s.status());
-    seams = std::move(*s);
+    if (absl::Status s = seam_meter->AddClip(engine, static_cast<int>(k), *sv, scene_meta->background); !s.ok()) {
+      return Fail(1, s);
+    }
   }
+  if (views.empty()) return 0;  // a clip with no views of this split still renders its seams
+  absl::StatusOr<train::EvalResult> r =
+      train::EvaluateViews(engine, *sv, views, scene_meta->background,
+                           outputs && !served_scene ? outputs->sink() : train::EvalFrameSink());
+  if (!r.ok()) return Fail(1, r.status());
+  totals->parts.push_back(std::move(*r));
+  ++totals->scenes_evaluated;
+  if (!req.lidar) return 0;
+  // LiDAR: every evaluated frame with a scan, once per frame (a frame may have several views).
+  absl::StatusOr<std::optional<std::vector<float>>> refl = train::ReadPlyReflectance(ply, store->size());
+  if (!refl.ok()) return Fail(2, refl.status());
+  totals->scenes_with_reflectance += refl->has_value();
+  std::set<int> frames;
+  for (const train::View& v : views) frames.insert(v.frame);
+  // A field scene's sweeps, like its views, are rendered deformed at the frame's time.
+  absl::StatusOr<train::LidarEvalResult> lr = train::EvaluateLidar(
+      log, std::vector<int>(frames.begin(), frames.end()), *store, refl->has_value() ? &**refl : nullptr, req.lopt,
+      served_scene ? train::MakeServedStoreAtTime(served_scene) : train::MakeStoreAtTime(*f, *store));
+  if (!lr.ok()) return Fail(1, lr.status());
+  totals->lidar_parts.push_back(std::move(*lr));
+  return 0;
+}
+
+// What the report prints: the merged metrics and the outputs' and seams' summaries.
+struct EvalReport {
+  train::EvalResult images;
+  train::LidarEvalResult lidar;
+  train::EvalOutputSummary outputs;
+  std::vector<train::ClipSeam> seams;
+};
+
+// JSON on stdout (the contract other tools read) and the table on stderr.
+void PrintReport(const EvalRequest& req, const DriveLog& log, const EvalTotals& totals, const EvalReport& report) {
+  std::map<int, train::LidarFrameMetrics> lidar_by_frame;
+  for (const train::LidarFrameMetrics& m : report.lidar.frames) lidar_by_frame[m.frame] = m;
+  const int with_reflectance = totals.scenes_with_reflectance;
+  const std::string reflectance_source =
+      with_reflectance == totals.scenes_evaluated ? "scene.ply reflectance"
+      : with_reflectance == 0                     ? "constant 0.5 (scene.ply has no reflectance property)"
+                              : "scene.ply reflectance where the clip's scene.ply has it, else constant 0.5";
+  const bool have_lidar = !lidar_by_frame.empty();
+  const train::EvalResult* r = &report.images;
 
   nlohmann::json j;
   j["mean"] = train::FrameMetricsJson(r->mean);
   if (have_lidar) {
-    AddLidar(lidar_result.mean, &j["mean"]);
+    AddLidar(report.lidar.mean, &j["mean"]);
     j["lidar_reflectance"] = reflectance_source;
   }
-  j["split"] = split;
+  j["split"] = req.split;
   // Which camera poses the views were rendered at (pose_refinement.h).
-  j["poses"] = scenes_with_pose_corrections == 0 ? "log"
-               : scenes_with_pose_corrections == scenes_evaluated ? "corrected"
-                                                                  : "corrected where the clip has corrections";
-  const nlohmann::json outputs_json = OutputsJson(*output_options, output_summary);
+  const int corrected = totals.scenes_with_pose_corrections;
+  j["poses"] = corrected == 0                         ? "log"
+               : corrected == totals.scenes_evaluated ? "corrected"
+                                                      : "corrected where the clip has corrections";
+  const nlohmann::json outputs_json = OutputsJson(req.outputs, report.outputs);
   for (const auto& [key, value] : outputs_json.items()) j[key] = value;
-  if (served) {
-    j["served"] = {{"motion_threshold_m", skip->motion_threshold_m}, {"sh_threshold", skip->sh_threshold},
-                   {"static_gaussians", served_static}, {"dynamic_gaussians", served_dynamic},
-                   {"analysis_s", served_analysis_s},
-                   {"field_serving", *exact_field ? "exact" : "served"}};
-    if (!*exact_field) {
-      j["served"]["form_position_error_max_m"] = served_form_position_max_m;
-      j["served"]["scenes_served_by_form"] = served_by_form;
+  if (req.served) {
+    j["served"] = {{"motion_threshold_m", req.skip.motion_threshold_m}, {"sh_threshold", req.skip.sh_threshold},
+                   {"static_gaussians", totals.served_static}, {"dynamic_gaussians", totals.served_dynamic},
+                   {"analysis_s", totals.served_analysis_s},
+                   {"field_serving", req.exact_field ? "exact" : "served"}};
+    if (!req.exact_field) {
+      j["served"]["form_position_error_max_m"] = totals.served_form_position_max_m;
+      j["served"]["scenes_served_by_form"] = totals.served_by_form;
     }
-    std::fprintf(stderr, "served as by streetsim serve: %zu static / %zu dynamic Gaussians (skip below %g m, ΔSH %g)\n",
-                 served_static, served_dynamic, skip->motion_threshold_m, skip->sh_threshold);
+    std::fprintf(stderr,
+                 "served as by streetsim serve: %zu static / %zu dynamic Gaussians (skip below %g m, ΔSH %g)\n",
+                 totals.served_static, totals.served_dynamic, req.skip.motion_threshold_m, req.skip.sh_threshold);
   }
-  if (*clip_set) {
+  if (req.clip_set) {
     j["seams"] = nlohmann::json::array();
-    for (const train::ClipSeam& s : seams) {
+    for (const train::ClipSeam& s : report.seams) {
       j["seams"].push_back({{"clip", s.clip}, {"switch_time_us", s.switch_time_us}, {"frames", s.frames},
                             {"views", s.views}, {"psnr_between_clips", s.psnr_between_db},
                             {"psnr_before", s.psnr_before_db}, {"psnr_after", s.psnr_after_db}});
@@ -354,7 +357,7 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
     nlohmann::json f = train::FrameMetricsJson(m);
     f["name"] = m.name;
     f["frame"] = m.frame;
-    if (*clip_set) f["clip"] = train::PickClip(**clip_set, log->frames[m.frame].time_us);
+    if (req.clip_set) f["clip"] = train::PickClip(*req.clip_set, log.frames[m.frame].time_us);
     auto l = lidar_by_frame.find(m.frame);
     if (l != lidar_by_frame.end()) AddLidar(l->second, &f);
     j["frames"].push_back(f);
@@ -365,10 +368,75 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
   }
   std::fprintf(stderr, "%-34s %6s %8.2f %7.4f %12.3f %10.3f", "mean", "", r->mean.psnr, r->mean.ssim,
                r->mean.depth_median_abs_m, r->mean.depth_within_5pct);
-  if (have_lidar) lidar_columns(lidar_result.mean);
+  if (have_lidar) lidar_columns(report.lidar.mean);
   std::fprintf(stderr, "\n");
   if (have_lidar) std::fprintf(stderr, "lidar intensity: %s\n", reflectance_source.c_str());
   std::printf("%s\n", j.dump(2).c_str());
+}
+
+}  // namespace
+
+int RunEvalCommand(const std::vector<std::string>& argv) {
+  EvalRequest req;
+  if (int rc = ParseEvalRequest(argv, &req)) return rc;
+  absl::StatusOr<DriveLog> log = OpenLog(req.log_path);
+  if (!log.ok()) return Fail(absl::IsInternal(log.status()) ? 1 : 2, log.status());
+  absl::StatusOr<std::vector<train::View>> all_views = train::LoadViews(*log, req.dopt);
+  if (!all_views.ok()) return Fail(2, all_views.status());
+  if (all_views->empty()) {
+    return Fail(2, absl::InvalidArgumentError(absl::StrCat("the log has no ", req.split, " views")));
+  }
+  absl::StatusOr<std::unique_ptr<Engine>> engine = CreateEngine(req.backend);
+  if (!engine.ok()) return Fail(1, engine.status());
+  if (absl::Status s = train::AttachDynamicPixels(*log, &*all_views); !s.ok()) return Fail(1, s);
+  // Decomposition images / video: fed by the evaluation's renders (UseScene once per scene).
+  std::unique_ptr<train::EvalOutputs> outputs;
+  if (!req.outputs.decomposition_dir.empty() || !req.outputs.video_path.empty()) {
+    absl::StatusOr<std::unique_ptr<train::EvalOutputs>> o = train::EvalOutputs::Create(**engine, req.outputs);
+    if (!o.ok()) return Fail(2, o.status());
+    outputs = std::move(*o);
+  }
+  // The views of each scene directory: all of them, or for a clip set those of each clip's times.
+  std::vector<std::vector<size_t>> view_groups(1);
+  if (req.clip_set) {
+    view_groups = train::GroupViewsByClip(*req.clip_set, *all_views);
+  } else {
+    for (size_t i = 0; i < all_views->size(); ++i) view_groups[0].push_back(i);
+  }
+  // A clip set: how far the image jumps where a consumer crosses from one clip to the next,
+  // measured with the scenes the loop loads (each clip once).
+  std::optional<train::ClipSeamMeter> seam_meter;
+  if (req.clip_set) {
+    absl::StatusOr<train::ClipSeamMeter> m =
+        train::ClipSeamMeter::Create(*req.clip_set, *log, req.dopt.resolution_scale);
+    if (!m.ok()) return Fail(1, m.status());
+    seam_meter = std::move(*m);
+  }
+  EvalTotals totals;
+  for (size_t k = 0; k < view_groups.size(); ++k) {
+    if (view_groups[k].empty() && !seam_meter) continue;
+    std::vector<train::View> views;
+    for (size_t i : view_groups[k]) views.push_back(std::move((*all_views)[i]));
+    if (int rc = EvaluateScene(req, *log, **engine, k, std::move(views), outputs.get(),
+                               seam_meter ? &*seam_meter : nullptr, &totals)) {
+      return rc;
+    }
+  }
+  EvalReport report;
+  report.images = totals.parts.size() == 1 ? std::move(totals.parts[0]) : train::MergeEvalResults(totals.parts);
+  if (outputs) {
+    absl::StatusOr<train::EvalOutputSummary> os = outputs->Finish();
+    if (!os.ok()) return Fail(1, os.status());
+    report.outputs = std::move(*os);
+  }
+  report.lidar = totals.lidar_parts.size() == 1 ? std::move(totals.lidar_parts[0])
+                                                : train::MergeLidarEvalResults(totals.lidar_parts);
+  if (seam_meter) {
+    absl::StatusOr<std::vector<train::ClipSeam>> s = seam_meter->Finish();
+    if (!s.ok()) return Fail(1, s.status());
+    report.seams = std::move(*s);
+  }
+  PrintReport(req, *log, totals, report);
   return 0;
 }
 
