@@ -22,6 +22,7 @@
 #include "client/cli/camera_json.h"
 #include "client/cli/commands.h"
 #include "client/cli/image_io.h"
+#include "client/cli/replay_scenario.h"
 #include "client/cli/train_flags.h"
 #include "client/cpp/streetsim_client.h"
 #include "scene/common/checked_file.h"
@@ -134,94 +135,54 @@ double Percentile(std::vector<double> v, double q) {
   return v[std::min(v.size() - 1, static_cast<size_t>(std::ceil(q * v.size())) - (q > 0 ? 1 : 0))];
 }
 
-absl::StatusOr<Eigen::Isometry3d> MatrixFromJson(const json& j) {
-  if (!j.is_array() || j.size() != 16) return absl::InvalidArgumentError("a pose is 16 numbers (row-major 4x4)");
-  Eigen::Matrix4d m;
-  for (int i = 0; i < 16; ++i) {
-    if (!j[i].is_number()) return absl::InvalidArgumentError("a pose is 16 numbers");
-    m(i / 4, i % 4) = j[i].get<double>();
+// A step's images into DIR/frames (named by step and sensor) and each sensor's video; the
+// step's record of its frames (file, digest).
+absl::StatusOr<json> WriteStepFrames(const v1::StepResponse& r, int k, bool jpeg, const std::string& out_dir,
+                                     double fps, std::map<std::string, cv::VideoWriter>* videos) {
+  json frames = json::object();
+  for (const v1::SensorFrame& f : r.frames()) {
+    const std::string name = absl::StrCat("step_", std::string(5 - std::min<size_t>(5, std::to_string(k).size()), '0'),
+                                          k, "_", f.sensor_id(), jpeg ? ".jpg" : ".png");
+    if (absl::Status s = checked_file::WriteAtomically((fs::path(out_dir) / "frames" / name).string(), f.rgb().data());
+        !s.ok()) {
+      return s;
+    }
+    frames[f.sensor_id()] = {{"file", "frames/" + name}, {"digest", f.rgb().digest()}};
+    std::vector<uchar> buf(f.rgb().data().begin(), f.rgb().data().end());
+    cv::Mat bgr = cv::imdecode(buf, cv::IMREAD_COLOR);
+    cv::VideoWriter& vw = (*videos)[f.sensor_id()];
+    if (!vw.isOpened() && !bgr.empty()) {
+      vw.open((fs::path(out_dir) / (f.sensor_id() + ".avi")).string(), cv::VideoWriter::fourcc('M', 'J', 'P', 'G'),
+              fps, bgr.size());
+    }
+    if (vw.isOpened() && !bgr.empty()) vw.write(bgr);
   }
-  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
-  T.linear() = m.topLeftCorner<3, 3>();
-  T.translation() = m.topRightCorner<3, 1>();
-  return T;
+  return frames;
 }
 
-// A scenario's actor edits (docs/actors.md "Scenarios"): each {"edit": "remove"|"move"|"insert",
-// "actor_id": N, "from_step": K (0), "path": [...]}. A path pose is either {"step": K,
-// "ego_xyz_m": [x, y, z], "yaw_deg": Y} (in the frame of the replay's ego at step K: "15 m ahead,
-// one lane left"; z defaults to the height the log had the actor at above the ego) or
-// {"time_us": T, "T_world_from_actor": [16 numbers]}.
-struct ScenarioEdit {
-  int from_step = 0;
-  v1::ActorEdit edit;
-};
-
-absl::StatusOr<std::vector<ScenarioEdit>> ScenarioActorEdits(const json& list, const v1::Scene& scene,
-                                                            const std::vector<Eigen::Isometry3d>& ego, int64_t t0,
-                                                            int64_t dt) {
-  std::vector<ScenarioEdit> out;
-  if (!list.is_array()) return absl::InvalidArgumentError("\"actors\" is a list of edits");
-  for (size_t i = 0; i < list.size(); ++i) {
-    const json& j = list[i];
-    const std::string where = absl::StrCat("actors[", i, "]");
-    if (!j.is_object() || !j.contains("actor_id") || !j["actor_id"].is_number_integer()) {
-      return absl::InvalidArgumentError(absl::StrCat(where, " needs \"actor_id\""));
-    }
-    ScenarioEdit e;
-    e.from_step = j.value("from_step", 0);
-    const std::string kind = j.value("edit", "");
-    e.edit.set_kind(kind == "remove" ? v1::ACTOR_EDIT_REMOVE
-                    : kind == "move" ? v1::ACTOR_EDIT_MOVE
-                    : kind == "insert" ? v1::ACTOR_EDIT_INSERT
-                                       : v1::ACTOR_EDIT_KIND_UNSPECIFIED);
-    if (e.edit.kind() == v1::ACTOR_EDIT_KIND_UNSPECIFIED) {
-      return absl::InvalidArgumentError(absl::StrCat(where, ".edit must be remove, move or insert"));
-    }
-    e.edit.set_actor_id(j["actor_id"].get<int>());
-    const v1::Actor* actor = nullptr;
-    for (const v1::Actor& a : scene.actors()) {
-      if (a.actor_id() == e.edit.actor_id()) actor = &a;
-    }
-    if (actor == nullptr) {
-      return absl::InvalidArgumentError(absl::StrCat(where, ": the scene has no actor ", e.edit.actor_id(),
-                                                     " (streetsim scenes --info ", scene.name(), ")"));
-    }
-    for (const json& p : j.value("path", json::array())) {
-      v1::ActorPose* pose = e.edit.add_trajectory();
-      if (p.contains("T_world_from_actor")) {
-        absl::StatusOr<Eigen::Isometry3d> T = MatrixFromJson(p["T_world_from_actor"]);
-        if (!T.ok()) return absl::InvalidArgumentError(absl::StrCat(where, ".path: ", T.status().message()));
-        pose->set_time_us(p.value("time_us", int64_t{0}));
-        *pose->mutable_t_world_from_actor() = client::ToPose(*T);
-        continue;
-      }
-      const int step = p.value("step", -1);
-      const json xyz = p.value("ego_xyz_m", json::array());
-      if (step < 0 || step >= static_cast<int>(ego.size()) || !xyz.is_array() || xyz.size() < 2 ||
-          !xyz[0].is_number() || !xyz[1].is_number()) {
-        return absl::InvalidArgumentError(
-            absl::StrCat(where, ".path: a pose is {\"step\": K in the replay, \"ego_xyz_m\": [x, y(, z)], "
-                                "\"yaw_deg\": Y} or {\"time_us\", \"T_world_from_actor\"}"));
-      }
-      double z = 0;
-      if (xyz.size() > 2 && xyz[2].is_number()) {
-        z = xyz[2].get<double>();
-      } else if (actor->trajectory_size() > 0) {
-        // The log's height of the actor above the ego at its first scan.
-        const Eigen::Isometry3d first = client::FromPose(actor->trajectory(0).t_world_from_actor());
-        const Eigen::Isometry3d ego_then = ego.front();
-        z = (ego_then.inverse() * first).translation().z();
-      }
-      Eigen::Isometry3d local = Eigen::Isometry3d::Identity();
-      local.translation() = Eigen::Vector3d(xyz[0].get<double>(), xyz[1].get<double>(), z);
-      local.linear() = Eigen::AngleAxisd(p.value("yaw_deg", 0.0) * M_PI / 180, Eigen::Vector3d::UnitZ()).toRotationMatrix();
-      pose->set_time_us(t0 + step * dt);
-      *pose->mutable_t_world_from_actor() = client::ToPose(ego[step] * local);
-    }
-    out.push_back(std::move(e));
+// The session a scenario drives: its scene, step length, start, outputs and sensors.
+v1::CreateSessionRequest ScenarioSession(const ReplayScenario& sc, const v1::Scene& info,
+                                         std::vector<std::string>* sensor_ids) {
+  v1::CreateSessionRequest create;
+  create.set_scene(sc.scene);
+  create.set_step_dt_us(sc.step_dt_us);
+  create.set_start_time_us(sc.start_time_us);
+  create.set_seed(sc.seed);
+  create.mutable_outputs()->set_rgb(true);
+  create.mutable_outputs()->set_rgb_encoding(sc.jpeg ? v1::IMAGE_ENCODING_JPEG : v1::IMAGE_ENCODING_PNG);
+  create.mutable_outputs()->set_depth(sc.depth);
+  create.mutable_outputs()->set_depth_encoding(v1::DEPTH_ENCODING_PNG16);
+  *sensor_ids = sc.sensors;
+  if (sensor_ids->empty()) {
+    for (const auto& cam : info.rig().cameras()) sensor_ids->push_back(cam.sensor_id());
   }
-  return out;
+  for (const std::string& id : *sensor_ids) {
+    v1::SensorRequest* s = create.add_sensors();
+    s->set_sensor_id(id);
+    s->set_width(sc.width);
+    s->set_height(sc.height);
+  }
+  return create;
 }
 
 }  // namespace
@@ -481,107 +442,39 @@ int RunReplayCommand(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(argv, WithConnection({{"out"}}));
   if (!args.ok()) return Fail("replay", 2, args.status());
   if (args->positional().size() != 1) {
-    return Fail("replay", 2, absl::InvalidArgumentError("usage: streetsim replay SCENARIO.json --out DIR [--server HOST:PORT]"));
+    return Fail("replay", 2,
+                absl::InvalidArgumentError("usage: streetsim replay SCENARIO.json --out DIR [--server HOST:PORT]"));
   }
   const std::string out_dir = args->Get("out").value_or("replay-out");
-  std::ifstream in(args->positional()[0]);
-  if (!in) return Fail("replay", 2, absl::InvalidArgumentError(absl::StrCat(args->positional()[0], ": cannot open")));
-  std::stringstream ss;
-  ss << in.rdbuf();
-  json sc = json::parse(ss.str(), nullptr, false);
-  if (sc.is_discarded() || !sc.is_object()) return Fail("replay", 2, absl::InvalidArgumentError("scenario is not a JSON object"));
+  absl::StatusOr<ReplayScenario> sc = ReadReplayScenario(args->positional()[0]);
+  if (!sc.ok()) return Fail("replay", 2, sc.status());
   ParsedArgs conn = *args;
-  if (!args->Has("server") && sc.contains("server")) {
-    std::vector<std::string> a = {"--server", sc["server"].get<std::string>()};
-    conn = *ParsedArgs::Parse(a, kConnectionFlags);
+  if (!args->Has("server") && sc->server) {
+    std::vector<std::string> a = {"--server", *sc->server};
+    absl::StatusOr<ParsedArgs> parsed = ParsedArgs::Parse(a, kConnectionFlags);
+    if (!parsed.ok()) return Fail("replay", 2, parsed.status());
+    conn = *parsed;
   }
   absl::StatusOr<std::unique_ptr<client::Client>> c = ConnectFromFlags(conn);
   if (!c.ok()) return Fail("replay", 2, c.status());
-
-  const std::string scene = sc.value("scene", "");
-  const int num_steps = sc.value("num_steps", 0);
-  if (scene.empty() || num_steps <= 0 || num_steps > 100000) {
-    return Fail("replay", 2, absl::InvalidArgumentError("scenario needs \"scene\" and \"num_steps\" in 1..100000"));
-  }
   // A scene lists its actors once loaded: a scenario that edits them loads it first.
-  if (sc.contains("actors")) {
-    absl::StatusOr<v1::Scene> loaded = (*c)->LoadScene(scene, true);
+  if (!sc->actors.is_null()) {
+    absl::StatusOr<v1::Scene> loaded = (*c)->LoadScene(sc->scene, true);
     if (!loaded.ok()) return Fail("replay", CodeFor(loaded.status()), loaded.status());
   }
-  absl::StatusOr<v1::Scene> info = (*c)->GetScene(scene);
+  absl::StatusOr<v1::Scene> info = (*c)->GetScene(sc->scene);
   if (!info.ok()) return Fail("replay", CodeFor(info.status()), info.status());
-  v1::CreateSessionRequest create;
-  create.set_scene(scene);
-  create.set_step_dt_us(sc.value("step_dt_us", int64_t{100000}));
-  create.set_start_time_us(sc.value("start_time_us", int64_t{0}));
-  create.set_seed(sc.value("seed", uint64_t{0}));
-  const bool jpeg = sc.value("jpeg", false);
-  create.mutable_outputs()->set_rgb(true);
-  create.mutable_outputs()->set_rgb_encoding(jpeg ? v1::IMAGE_ENCODING_JPEG : v1::IMAGE_ENCODING_PNG);
-  create.mutable_outputs()->set_depth(sc.value("depth", false));
-  create.mutable_outputs()->set_depth_encoding(v1::DEPTH_ENCODING_PNG16);
   std::vector<std::string> sensor_ids;
-  if (sc.contains("sensors")) sensor_ids = sc["sensors"].get<std::vector<std::string>>();
-  if (sensor_ids.empty()) {
-    for (const auto& cam : info->rig().cameras()) sensor_ids.push_back(cam.sensor_id());
-  }
-  for (const std::string& id : sensor_ids) {
-    v1::SensorRequest* s = create.add_sensors();
-    s->set_sensor_id(id);
-    s->set_width(sc.value("width", 0));
-    s->set_height(sc.value("height", 0));
-  }
-  // Ego poses per step.
-  const json ego = sc.value("ego", json{{"mode", "log"}});
-  const std::string mode = ego.value("mode", "log");
-  std::vector<Eigen::Isometry3d> poses;
+  v1::CreateSessionRequest create = ScenarioSession(*sc, *info, &sensor_ids);
   const int64_t dt = create.step_dt_us();
-  int64_t t0 = create.start_time_us() == 0 && info->has_time_range() ? info->start_time_us() : create.start_time_us();
-  if (mode == "log") {
-    if (info->ego_trajectory_size() == 0) {
-      return Fail("replay", 2, absl::InvalidArgumentError("ego mode \"log\" needs a scene with an ego trajectory"));
-    }
-    const double lat = ego.value("lateral_offset_m", 0.0), lon = ego.value("longitudinal_offset_m", 0.0);
-    const auto& traj = info->ego_trajectory();
-    for (int k = 0; k < num_steps; ++k) {
-      const int64_t t = t0 + k * dt;
-      int i = 0;
-      while (i + 1 < traj.size() && traj[i + 1].time_us() <= t) ++i;
-      Eigen::Isometry3d T = client::FromPose(traj[i].t_world_from_ego());
-      if (i + 1 < traj.size() && t > traj[i].time_us()) {
-        const double a = double(t - traj[i].time_us()) / double(traj[i + 1].time_us() - traj[i].time_us());
-        const Eigen::Isometry3d B = client::FromPose(traj[i + 1].t_world_from_ego());
-        T.translation() = (1 - a) * T.translation() + a * B.translation();
-        T.linear() = Eigen::Quaterniond(T.rotation()).slerp(a, Eigen::Quaterniond(B.rotation())).toRotationMatrix();
-      }
-      T.translation() += T.linear() * Eigen::Vector3d(lon, lat, 0);  // offsets in the ego frame (FLU)
-      poses.push_back(T);
-    }
-  } else if (mode == "poses") {
-    for (const json& p : ego.value("poses", json::array())) {
-      absl::StatusOr<Eigen::Isometry3d> T = MatrixFromJson(p);
-      if (!T.ok()) return Fail("replay", 2, T.status());
-      poses.push_back(*T);
-    }
-    if (static_cast<int>(poses.size()) < num_steps) {
-      return Fail("replay", 2, absl::InvalidArgumentError("ego.poses has fewer poses than num_steps"));
-    }
-  } else if (mode == "straight") {
-    absl::StatusOr<Eigen::Isometry3d> start = MatrixFromJson(ego.value("start", json::array()));
-    if (!start.ok()) return Fail("replay", 2, start.status());
-    const double v = ego.value("speed_mps", 5.0);
-    for (int k = 0; k < num_steps; ++k) {
-      Eigen::Isometry3d T = *start;
-      T.translation() += start->linear() * Eigen::Vector3d(v * k * dt * 1e-6, 0, 0);
-      poses.push_back(T);
-    }
-  } else {
-    return Fail("replay", 2, absl::InvalidArgumentError("ego.mode must be log, poses or straight"));
-  }
-  *create.mutable_initial_t_world_from_ego() = client::ToPose(poses[0]);
+  const int64_t t0 =
+      create.start_time_us() == 0 && info->has_time_range() ? info->start_time_us() : create.start_time_us();
+  absl::StatusOr<std::vector<Eigen::Isometry3d>> poses = ScenarioEgoPoses(*sc, *info, t0);
+  if (!poses.ok()) return Fail("replay", 2, poses.status());
+  *create.mutable_initial_t_world_from_ego() = client::ToPose((*poses)[0]);
   std::vector<ScenarioEdit> actor_edits;
-  if (sc.contains("actors")) {
-    absl::StatusOr<std::vector<ScenarioEdit>> e = ScenarioActorEdits(sc["actors"], *info, poses, t0, dt);
+  if (!sc->actors.is_null()) {
+    absl::StatusOr<std::vector<ScenarioEdit>> e = ScenarioActorEdits(sc->actors, *info, *poses, t0, dt);
     if (!e.ok()) return Fail("replay", 2, e.status());
     actor_edits = std::move(*e);
   }
@@ -600,14 +493,14 @@ int RunReplayCommand(const std::vector<std::string>& argv) {
   fs::create_directories(fs::path(out_dir) / "frames", ec);
   if (ec) return Fail("replay", 2, absl::InvalidArgumentError(absl::StrCat("--out ", out_dir, ": ", ec.message())));
   std::map<std::string, cv::VideoWriter> videos;
-  const double fps = sc.value("video_fps", 1e6 / dt);
+  const double fps = sc->video_fps.value_or(1e6 / dt);
   json steps = json::array();
   std::vector<double> latencies;
-  for (int k = 0; k < num_steps; ++k) {
+  for (int k = 0; k < sc->num_steps; ++k) {
     v1::StepRequest step;
     step.set_session_id(session->session_id());
     step.set_step_index(k);
-    *step.mutable_t_world_from_ego() = client::ToPose(poses[k]);
+    *step.mutable_t_world_from_ego() = client::ToPose((*poses)[k]);
     if (!actor_edits.empty()) {
       const v1::ActorEdits now = edits_at(k);
       if (k == 0 || now.edits_size() != edits_at(k - 1).edits_size()) *step.mutable_actor_edits() = now;
@@ -621,45 +514,31 @@ int RunReplayCommand(const std::vector<std::string>& argv) {
       return Fail("replay", CodeFor(r.status()), r.status());
     }
     latencies.push_back(ms);
-    json frames = json::object();
-    for (const v1::SensorFrame& f : r->frames()) {
-      const std::string name = absl::StrCat("step_", std::string(5 - std::min<size_t>(5, std::to_string(k).size()), '0'),
-                                            k, "_", f.sensor_id(), jpeg ? ".jpg" : ".png");
-      if (absl::Status s = checked_file::WriteAtomically((fs::path(out_dir) / "frames" / name).string(), f.rgb().data());
-          !s.ok()) {
-        return Fail("replay", 1, s);
-      }
-      frames[f.sensor_id()] = {{"file", "frames/" + name}, {"digest", f.rgb().digest()}};
-      std::vector<uchar> buf(f.rgb().data().begin(), f.rgb().data().end());
-      cv::Mat bgr = cv::imdecode(buf, cv::IMREAD_COLOR);
-      cv::VideoWriter& vw = videos[f.sensor_id()];
-      if (!vw.isOpened() && !bgr.empty()) {
-        vw.open((fs::path(out_dir) / (f.sensor_id() + ".avi")).string(), cv::VideoWriter::fourcc('M', 'J', 'P', 'G'),
-                fps, bgr.size());
-      }
-      if (vw.isOpened() && !bgr.empty()) vw.write(bgr);
-    }
+    absl::StatusOr<json> frames = WriteStepFrames(*r, k, sc->jpeg, out_dir, fps, &videos);
+    if (!frames.ok()) return Fail("replay", 1, frames.status());
     const auto& tr = r->t_world_from_ego().translation_m();
     steps.push_back({{"step_index", r->step_index()}, {"time_us", r->time_us()},
                      {"ego_xyz_m", {tr.x(), tr.y(), tr.z()}}, {"latency_ms", ms},
                      {"server_total_ms", r->timings().total_ms()}, {"content_digest", r->content_digest()},
-                     {"frames", frames}});
+                     {"frames", *frames}});
   }
   for (auto& [id, vw] : videos) vw.release();
   (void)(*c)->CloseSession(session->session_id());
   double mean = 0;
   for (double l : latencies) mean += l / latencies.size();
-  json summary = {{"scenario", args->positional()[0]}, {"scene", scene}, {"session", session->session_id()},
-                  {"num_steps", num_steps}, {"step_dt_us", dt}, {"sensors", sensor_ids},
+  json summary = {{"scenario", args->positional()[0]}, {"scene", sc->scene}, {"session", session->session_id()},
+                  {"num_steps", sc->num_steps}, {"step_dt_us", dt}, {"sensors", sensor_ids},
                   {"step_latency_ms", {{"mean", mean}, {"p50", Percentile(latencies, 0.5)},
                                        {"p99", Percentile(latencies, 0.99)}}},
                   {"videos", json::array()}, {"steps", steps}};
   for (auto& [id, vw] : videos) summary["videos"].push_back(id + ".avi");
-  if (absl::Status s = checked_file::WriteAtomically((fs::path(out_dir) / "summary.json").string(), summary.dump(1)); !s.ok()) {
+  if (absl::Status s = checked_file::WriteAtomically((fs::path(out_dir) / "summary.json").string(), summary.dump(1));
+      !s.ok()) {
     return Fail("replay", 1, s);
   }
-  std::fprintf(stderr, "streetsim replay: %d steps of %s, step latency p50 %.1f ms p99 %.1f ms; wrote %s/\n", num_steps,
-               scene.c_str(), Percentile(latencies, 0.5), Percentile(latencies, 0.99), out_dir.c_str());
+  std::fprintf(stderr, "streetsim replay: %d steps of %s, step latency p50 %.1f ms p99 %.1f ms; wrote %s/\n",
+               sc->num_steps, sc->scene.c_str(), Percentile(latencies, 0.5), Percentile(latencies, 0.99),
+               out_dir.c_str());
   return 0;
 }
 

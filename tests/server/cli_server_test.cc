@@ -254,6 +254,26 @@ TEST_F(CliServerTest, ReplayWritesFramesVideosAndSummary) {
   std::ofstream(dir_ + "/static.json") << R"({"scene": "street", "num_steps": 2})";
   ExpectRefused("replay " + dir_ + "/static.json --out " + out + Server(), 2, "ego trajectory");
   ExpectRefused("replay " + dir_ + "/missing.json" + Server(), 2, "cannot open");
+  // A value of the wrong type or range names its field (it once ended the process on an exception).
+  const std::vector<std::pair<std::string, std::string>> ill_typed = {
+      {R"({"scene": "timed", "num_steps": 2, "server": 5})", "\"server\" must be a string"},
+      {R"({"scene": "timed", "num_steps": "three"})", "\"num_steps\" must be an integer"},
+      {R"({"scene": "timed", "num_steps": 1e12})", "\"num_steps\" must be an integer"},
+      {R"({"scene": ["timed"], "num_steps": 2})", "\"scene\" must be a string"},
+      {R"({"scene": "timed", "num_steps": 2, "sensors": [0]})", "\"sensors\" must be a list of strings"},
+      {R"({"scene": "timed", "num_steps": 2, "step_dt_us": 0})", "step_dt_us"},
+      {R"({"scene": "timed", "num_steps": 2, "seed": -1})", "\"seed\" must be a non-negative integer"},
+      {R"({"scene": "timed", "num_steps": 2, "video_fps": 0})", "video_fps"},
+      {R"({"scene": "timed", "num_steps": 2, "ego": {"mode": "log", "lateral_offset_m": "left"}})",
+       "ego.\"lateral_offset_m\" must be a number"},
+      {R"({"scene": "timed", "num_steps": 2, "ego": {"mode": 3}})", "ego.\"mode\" must be a string"},
+      {R"({"scene": "timed", "num_steps": 2, "ego": {"mode": "straight", "start": [1, 2]}})", "ego.start"},
+      {R"({"scene": "timed", "num_steps": 2, "actors": [{"actor_id": 1, "edit": 7}]})", "\"edit\" must be a string"},
+      {R"([1, 2])", "not a JSON object"}};
+  for (const auto& [text, needle] : ill_typed) {
+    std::ofstream(dir_ + "/typed.json", std::ios::trunc) << text;
+    ExpectRefused("replay " + dir_ + "/typed.json --out " + out + Server(), 2, needle);
+  }
   ExpectRefused("replay" + Server(), 2, "usage: streetsim replay");
 }
 
