@@ -1,8 +1,9 @@
 // Held-out evaluation (docs/training.md "Evaluation"): PSNR, SSIM, LiDAR depth error and PSNR* of
 // rendered views, for a static scene or a field scene deformed at each view's time. A training run
-// ends with it (train_loop.h), `streetsim eval` runs it on a trained scene directory. The eval/
-// folder is built into the training library and shares its namespace: evaluation renders views
-// and field scenes the way training does.
+// ends with it (train_loop.h), `streetsim eval` runs it on a trained scene directory. Library
+// streetsim_eval, between streetsim_train_core (views, metrics, a scene at a view's time: what it
+// measures with) and streetsim_train (the loop, which ends with it); it keeps the train namespace
+// its callers use.
 #pragma once
 
 #include <functional>
