@@ -67,7 +67,8 @@ TrainLoop::TrainLoop(const std::vector<View>& views, const std::vector<View>& he
       ckpt_path_((fs::path(out_dir) / "checkpoint.bin").string()),
       opt_(options),
       progress_(progress),
-      appearance_(options.exposure, options.sky, options.hyper) {}
+      appearance_(options.exposure, options.sky, options.hyper),
+      densification_(options.hyper, options.iterations, options.write_outputs) {}
 
 absl::Status TrainLoop::LoadOrInitState(const GaussianStore* init) {
   const int num_views = static_cast<int>(views_.size());
@@ -140,7 +141,6 @@ absl::Status TrainLoop::AssembleParts() {
     owned_parts_.push_back(std::move(*prior));
   }
   for (const std::unique_ptr<IterationPart>& p : owned_parts_) parts_.push_back(p.get());
-  densification_.emplace(opt_.hyper, opt_.iterations, opt_.write_outputs);
   return absl::OkStatus();
 }
 
@@ -234,7 +234,7 @@ absl::StatusOr<double> TrainLoop::Iterate(int64_t it, double* psnr) {
   for (IterationPart* p : parts_) p->AfterFieldBackward(i, &grads_);
 
   const DensifyEvents ev =
-      densification_->Step(it, i.stage_it, grads_, view.camera.width, view.camera.height, &st_);
+      densification_.Step(it, i.stage_it, grads_, view.camera.width, view.camera.height, &st_);
   if (ev.rows_changed) {
     if (absl::Status s = field_->RowsChanged(&st_, pool_); !s.ok()) return s;
     for (IterationPart* p : parts_) p->RowsChanged();

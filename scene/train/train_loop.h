@@ -69,7 +69,7 @@ class TrainLoop {
   Appearance appearance_;
   std::unique_ptr<PosePart> poses_;
   std::unique_ptr<FieldPart> field_;
-  std::optional<Densification> densification_;
+  const Densification densification_;
   // In the order they run: pose refinement (the camera's gradient alone), LiDAR, the gradient
   // guard, the motion prior.
   std::vector<std::unique_ptr<IterationPart>> owned_parts_;
