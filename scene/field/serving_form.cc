@@ -23,26 +23,16 @@ struct TargetOf {
   F* data;
   int stride, offset;
 };
-using Target = TargetOf<float>;
 using Source = TargetOf<const float>;
 
 // The modelled channels of `groups` in table order (a const store gives read-only Sources).
 template <typename Store, typename F = std::conditional_t<std::is_const_v<Store>, const float, float>>
 std::vector<TargetOf<F>> Targets(uint32_t groups, Store* s) {
   std::vector<TargetOf<F>> t;
-  const int K3 = s->sh_coeffs() * 3;
   for (int g = 0; g < kFormGroups; ++g) {
     if (!(groups & (1u << g))) continue;
-    for (int c = 0; c < kFormGroupChannels[g]; ++c) {
-      switch (static_cast<FormGroup>(g)) {
-        case FormGroup::kPosition: t.push_back({s->means.data(), 3, c}); break;
-        case FormGroup::kColour: t.push_back({s->sh.data(), K3, c}); break;
-        case FormGroup::kLogScale: t.push_back({s->log_scales.data(), 3, c}); break;
-        case FormGroup::kRotation: t.push_back({s->rotations.data(), 4, c}); break;
-        case FormGroup::kOpacity: t.push_back({s->opacity_logits.data(), 1, c}); break;
-        case FormGroup::kShBands: t.push_back({s->sh.data(), K3, 3 + c}); break;
-      }
-    }
+    const GroupSpan<F> span = SpanOf(static_cast<FormGroup>(g), s);
+    for (int c = 0; c < kFormGroupChannels[g]; ++c) t.push_back({span.data, span.stride, span.offset + c});
   }
   return t;
 }
@@ -73,6 +63,10 @@ absl::Status ServingFormOptions::Validate() const {
   if (samples_per_segment < 2 || samples_per_segment > 64) {
     return absl::InvalidArgumentError(
         absl::StrCat("serving form: ", samples_per_segment, " samples per segment, want 2..64"));
+  }
+  if (appearance_rank < 1 || appearance_rank > kMaxAppearanceRank) {
+    return absl::InvalidArgumentError(absl::StrCat("serving form: appearance rank ", appearance_rank, ", want 1..",
+                                                   kMaxAppearanceRank));
   }
   if (!(max_position_error_m > 0)) {
     return absl::InvalidArgumentError(absl::StrCat("serving form: max_position_error_m ", max_position_error_m,
@@ -113,60 +107,13 @@ int ServingForm::Weights(double tau, float w[4]) const {
   return k;
 }
 
-template <int kTaps>
-void ServingForm::EvaluateTaps(double tau, GaussianStore* out, ThreadPool& pool) const {
+void ServingForm::EvaluateInto(double tau, GaussianStore* out, ThreadPool& pool) const {
   float w[4];
   const int k = Weights(tau, w);
-  const int M = control_points_, Co = modelled_channels(), C = 3 + Co;
-  // The channels after position as runs that are contiguous in the store (S3Gaussian's DC colour
-  // and SH bands are one run of 48 floats), so that the inner loop vectorises.
-  struct Run {
-    float* data;
-    int stride, offset, first, count;  // first: channel index among the non-position ones
-  };
-  std::vector<Run> runs;
-  const std::vector<Target> all = Targets(groups_, out);
-  for (int c = 0; c < Co; ++c) {
-    const Target& t = all[3 + c];
-    if (!runs.empty() && runs.back().data == t.data && runs.back().stride == t.stride &&
-        runs.back().offset + runs.back().count == t.offset) {
-      ++runs.back().count;
-    } else {
-      runs.push_back({t.data, t.stride, t.offset, c, 1});
-    }
-  }
-  pool.ParallelFor(static_cast<int64_t>(rows_.size()), 4096, [&](int64_t b, int64_t e, int) {
-    for (int64_t r = b; r < e; ++r) {
-      const size_t i = rows_[r];
-      const float* off = &offset_[r * C];
-      const float* step = &step_[r * C];
-      const int16_t* qp = &q_position_[(static_cast<size_t>(r) * M + k) * 3];
-      for (int c = 0; c < 3; ++c) {
-        float s = 0;
-        for (int j = 0; j < kTaps; ++j) s += w[j] * qp[3 * j + c];
-        out->means[i * 3 + c] = off[c] + step[c] * s;
-      }
-      const int8_t* qo = q_other_.data() + (static_cast<size_t>(r) * M + k) * Co;
-      for (const Run& run : runs) {
-        float* dst = run.data + i * run.stride + run.offset;
-        const float* o = off + 3 + run.first;
-        const float* st = step + 3 + run.first;
-        const int8_t* q = qo + run.first;
-        for (int c = 0; c < run.count; ++c) {
-          float s = 0;
-          for (int j = 0; j < kTaps; ++j) s += w[j] * q[Co * j + c];
-          dst[c] = o[c] + st[c] * s;
-        }
-      }
-    }
-  });
-}
-
-void ServingForm::EvaluateInto(double tau, GaussianStore* out, ThreadPool& pool) const {
   if (degree_ == 1) {
-    EvaluateTaps<2>(tau, out, pool);
+    tables_.Evaluate<2>(k, w, rows_.data(), out, pool);
   } else {
-    EvaluateTaps<4>(tau, out, pool);
+    tables_.Evaluate<4>(k, w, rows_.data(), out, pool);
   }
 }
 
@@ -189,47 +136,6 @@ ParamsChange ServingForm::changes() const {
   c.rotations = models(FormGroup::kRotation);
   c.opacity = models(FormGroup::kOpacity);
   return c;
-}
-
-size_t ServingForm::table_bytes() const {
-  return rows_.size() * sizeof(uint32_t) + (offset_.size() + step_.size()) * sizeof(float) +
-         q_position_.size() * sizeof(int16_t) + q_other_.size() * sizeof(int8_t);
-}
-
-void ServingForm::Quantise(const std::vector<float>& coef, const float* rest_mean, ThreadPool& pool) {
-  const size_t nd = rows_.size();
-  const int M = control_points_, Co = modelled_channels(), C = 3 + Co;
-  // Quantise: per Gaussian and channel, the coefficients' midrange as the offset and a step that spans them.
-  offset_.assign(nd * C, 0.0f);
-  step_.assign(nd * C, 0.0f);
-  q_position_.assign(nd * M * 3, 0);
-  q_other_.assign(nd * M * Co, 0);
-  pool.ParallelFor(static_cast<int64_t>(nd), 2048, [&](int64_t b, int64_t e, int) {
-    for (int64_t r = b; r < e; ++r) {
-      for (int c = 0; c < C; ++c) {
-        float lo = std::numeric_limits<float>::max(), hi = std::numeric_limits<float>::lowest();
-        for (int m = 0; m < M; ++m) {
-          lo = std::min(lo, coef[(r * M + m) * C + c]);
-          hi = std::max(hi, coef[(r * M + m) * C + c]);
-        }
-        const float qmax = c < 3 ? 32767.0f : 127.0f;
-        const float off = 0.5f * (lo + hi), step = 0.5f * (hi - lo) / qmax;
-        offset_[r * C + c] = off;
-        step_[r * C + c] = step;
-        for (int m = 0; m < M; ++m) {
-          const float q = step > 0 ? std::round((coef[(r * M + m) * C + c] - off) / step) : 0.0f;
-          const float qc = std::clamp(q, -qmax, qmax);
-          if (c < 3) {
-            q_position_[(r * M + m) * 3 + c] = static_cast<int16_t>(qc);
-          } else {
-            q_other_[(r * M + m) * Co + (c - 3)] = static_cast<int8_t>(qc);
-          }
-        }
-      }
-      const size_t i = rows_[r];
-      if (rest_mean) std::copy_n(&rest_mean[r * kRestShValues], kRestShValues, &current_.sh[i * kShOutputs + 3]);
-    }
-  });
 }
 
 absl::Status ServingForm::Check(ServedScene& exact, const std::vector<int64_t>& fit_us, ThreadPool& pool) {
@@ -278,7 +184,8 @@ absl::StatusOr<std::unique_ptr<ServingForm>> ServingForm::Build(ServedScene& exa
   const int cells = std::max(1, exact.time_cells());
   double previous_p99 = 0;
   for (int per_cell = o.segments_per_cell;; per_cell = std::min(2 * per_cell, o.max_segments_per_cell)) {
-    absl::StatusOr<std::unique_ptr<ServingForm>> f = Fit(exact, o.degree, cells * per_cell, o.samples_per_segment, pool);
+    absl::StatusOr<std::unique_ptr<ServingForm>> f =
+        Fit(exact, o.degree, cells * per_cell, o.samples_per_segment, pool, o.appearance_rank);
     if (!f.ok()) return f;
     const double p99 = (*f)->error_.position_p99_m;
     if (p99 <= o.max_position_error_m || per_cell >= o.max_segments_per_cell) return f;
@@ -296,11 +203,13 @@ absl::StatusOr<std::unique_ptr<ServingForm>> ServingForm::Build(ServedScene& exa
 }
 
 absl::StatusOr<std::unique_ptr<ServingForm>> ServingForm::Fit(ServedScene& exact, int degree, int segments,
-                                                              int samples_per_segment, ThreadPool& pool) {
+                                                              int samples_per_segment, ThreadPool& pool,
+                                                              int appearance_rank) {
   if ((degree != 1 && degree != 3) || segments < 1 || segments > 1024 || samples_per_segment < 2 ||
-      samples_per_segment > 64) {
+      samples_per_segment > 64 || appearance_rank < 1 || appearance_rank > kMaxAppearanceRank) {
     return absl::InvalidArgumentError(absl::StrCat("serving form: degree ", degree, ", ", segments, " segments, ",
-                                                   samples_per_segment, " samples per segment"));
+                                                   samples_per_segment, " samples per segment, appearance rank ",
+                                                   appearance_rank));
   }
   std::unique_ptr<ServingForm> f(new ServingForm());
   f->time_range_ = exact.time_range();
@@ -415,9 +324,14 @@ absl::StatusOr<std::unique_ptr<ServingForm>> ServingForm::Fit(ServedScene& exact
     }
   });
 
-  f->rows_ = std::move(rows);
-  f->Quantise(coef, bands ? nullptr : rest_mean.data(), pool);
+  f->tables_ = FormTables::Quantise(coef, nd, M, f->groups_, appearance_rank, pool);
   std::vector<float>().swap(coef);
+  if (!bands) {
+    for (size_t r = 0; r < nd; ++r) {
+      std::copy_n(&rest_mean[r * kRestShValues], kRestShValues, &f->current_.sh[rows[r] * kShOutputs + 3]);
+    }
+  }
+  f->rows_ = std::move(rows);
   std::vector<float>().swap(rest_mean);
 
   if (absl::Status st = f->Check(exact, fit_us, pool); !st.ok()) return st;

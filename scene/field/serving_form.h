@@ -3,10 +3,10 @@
 // (position, DC colour, SH bands 1-3 and, for the extended field, log-scale, rotation and opacity:
 // whichever the field changes) are fitted over the log's time range by a uniform spline
 // (piecewise linear by default, knots on the field's time grid), least squares on samples of the
-// exact field; the coefficients are stored quantised (position int16, the rest int8, each with
-// its own offset and step per Gaussian and channel). Gaussians that do not move keep one value.
-// Evaluating a timestamp is then a 2-tap blend (4 for the cubic) per channel of the moving
-// Gaussians: memory-bound, no network.
+// exact field; the control points are stored compactly (serving_form_tables.h: position as a line
+// plus an int8 residual, the appearance as its time-mean plus a rank-1 change over time).
+// Gaussians that do not move keep one value. Evaluating a timestamp is then a 2-tap blend (4 for
+// the cubic) per moving Gaussian and a few multiply-adds per channel: memory-bound, no network.
 //
 // Build() measures what the form costs: after the fit it compares the form with the exact field at
 // the midpoints between the fit samples and records each moving Gaussian's largest position error
@@ -20,6 +20,7 @@
 
 #include "absl/status/statusor.h"
 #include "render/common/thread_pool.h"
+#include "scene/field/serving_form_tables.h"
 #include "scene/field/static_skip.h"
 #include "scene/gaussians/gaussian_store.h"
 
@@ -42,22 +43,10 @@ struct ServingFormOptions {
   // measurable: the bound is a guard against fields the form cannot follow at all.
   double max_position_error_m = 0.1;
   int max_segments_per_cell = 2;
+  // Rank of the appearance's change over time (serving_form_tables.h), 1..kMaxAppearanceRank.
+  int appearance_rank = kDefaultAppearanceRank;
   absl::Status Validate() const;
 };
-
-// The channel groups a form can model, in table order.
-// kColour is the DC term, kShBands the SH bands 1-3 (S3Gaussian's field changes all of them, and on
-// a trained KITTI scene their change over time is worth 1.2 dB of held-out PSNR).
-enum class FormGroup : uint8_t {
-  kPosition = 0,
-  kColour = 1,
-  kLogScale = 2,
-  kRotation = 3,
-  kOpacity = 4,
-  kShBands = 5
-};
-inline constexpr int kFormGroups = 6;
-inline constexpr int kFormGroupChannels[kFormGroups] = {3, 3, 3, 4, 1, 45};
 
 // The largest difference between the form and the exact field over the check samples, per group,
 // modelled or not (position in metres, the others in their raw units: SH, log-scale, quaternion
@@ -76,7 +65,8 @@ class ServingForm : public ServedScene {
                                                             ThreadPool& pool);
   // One fit with `segments` uniform segments of `degree` (1 or 3) over the time range (Build's step).
   static absl::StatusOr<std::unique_ptr<ServingForm>> Fit(ServedScene& exact, int degree, int segments,
-                                                          int samples_per_segment, ThreadPool& pool);
+                                                          int samples_per_segment, ThreadPool& pool,
+                                                          int appearance_rank = kDefaultAppearanceRank);
 
   absl::StatusOr<const GaussianStore*> At(int64_t time_us, ThreadPool& pool) override;
   size_t size() const override { return current_.size(); }
@@ -96,7 +86,8 @@ class ServingForm : public ServedScene {
   // Only after Build (a form read from a cache has its summary, error(), not this).
   const std::vector<float>& position_error_m() const { return position_error_m_; }
   // Host bytes of the per-Gaussian tables beyond the Gaussians themselves.
-  size_t table_bytes() const;
+  size_t table_bytes() const { return rows_.size() * sizeof(uint32_t) + tables_.bytes(); }
+  int appearance_rank() const { return tables_.appearance_rank(); }
 
  private:
   friend class ServingFormCodec;  // serving_form_io.cc
@@ -105,15 +96,11 @@ class ServingForm : public ServedScene {
   // Spline weights at normalised time tau in [0, 1]: the first control point and degree_ + 1
   // weights (the rest of w is 0).
   int Weights(double tau, float w[4]) const;
-  template <int kTaps>
-  void EvaluateTaps(double tau, GaussianStore* out, ThreadPool& pool) const;
   // Writes the form at tau into `out` (only the moving rows' modelled channels).
   void EvaluateInto(double tau, GaussianStore* out, ThreadPool& pool) const;
   double Tau(int64_t time_us) const;
-  // Fit's steps: the least-squares coefficients [rows][control points][channels] into the quantised
-  // tables (and, when the SH bands do not change, rest_mean [rows][45] into current_); then the
-  // form against `exact` halfway between the fit samples (error_, position_error_m_).
-  void Quantise(const std::vector<float>& coef, const float* rest_mean, ThreadPool& pool);
+  // Fit's last step: the form against `exact` halfway between the fit samples (error_,
+  // position_error_m_).
   absl::Status Check(ServedScene& exact, const std::vector<int64_t>& fit_us, ThreadPool& pool);
 
   FieldTimeRange time_range_;
@@ -122,11 +109,7 @@ class ServingForm : public ServedScene {
   uint32_t groups_ = 0;          // bit per FormGroup
   GaussianStore current_;        // the Gaussians at last_tau_ (time-invariant values already in place)
   std::vector<uint32_t> rows_;   // moving Gaussians, ascending
-  // Per moving Gaussian and channel (position first, then the other modelled groups in order):
-  // value = offset + step * sum_j w_j q_j.
-  std::vector<float> offset_, step_;
-  std::vector<int16_t> q_position_;  // [rows][control_points][3]
-  std::vector<int8_t> q_other_;      // [rows][control_points][modelled_channels]
+  FormTables tables_;            // the moving Gaussians' control points, row r for rows_[r]
   ServingFormError error_;
   std::vector<float> position_error_m_;
   double last_tau_ = -1;

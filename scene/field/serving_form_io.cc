@@ -1,5 +1,6 @@
 #include "scene/field/serving_form_io.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstring>
@@ -19,7 +20,7 @@ using checked_file::Reader;
 using checked_file::Writer;
 
 constexpr char kMagic[8] = {'S', 'T', 'S', 'F', 'O', 'R', 'M', '\n'};
-constexpr uint32_t kVersion = 3;
+constexpr uint32_t kVersion = 4;  // 4: compact tables (serving_form_tables.h)
 constexpr uint64_t kPrime = 1099511628211ull;
 
 uint64_t Mix(uint64_t h, uint64_t v) { return (h ^ v) * kPrime; }
@@ -56,11 +57,21 @@ std::string ServingFormCodec::Encode(const ServingForm& f, uint64_t key) {
     w.Raw(a->data(), a->size() * sizeof(float));
   }
   w.Pod<uint64_t>(f.rows_.size());
-  w.Raw(f.rows_.data(), f.rows_.size() * sizeof(uint32_t));
-  w.Raw(f.offset_.data(), f.offset_.size() * sizeof(float));
-  w.Raw(f.step_.data(), f.step_.size() * sizeof(float));
-  w.Raw(f.q_position_.data(), f.q_position_.size() * sizeof(int16_t));
-  w.Raw(f.q_other_.data(), f.q_other_.size() * sizeof(int8_t));
+  const FormTables& t = f.tables_;
+  w.Pod<int32_t>(t.appearance_rank());
+  auto raw = [&w](const auto& v) { w.Raw(v.data(), v.size() * sizeof(v[0])); };
+  raw(f.rows_);
+  raw(t.position_ends_);
+  raw(t.position_step_);
+  raw(t.q_position_);
+  for (const FormTables::Block& b : t.blocks_) {
+    raw(b.base_offset);
+    raw(b.base_step);
+    raw(b.q_base);
+    raw(b.scale);
+    raw(b.q_u);
+    raw(b.q_v);
+  }
   w.Raw(f.error_.max.data(), sizeof(float) * kFormGroups);
   w.Pod(f.error_.position_p99_m);
   w.Pod<int32_t>(f.error_.check_samples);
@@ -112,29 +123,46 @@ absl::StatusOr<std::unique_ptr<ServingForm>> ServingFormCodec::Decode(const std:
       !r.Floats(&g.opacity_logits, n) || !r.Floats(&g.sh, n * K3) || !r.Pod(&nd) || nd > n) {
     return corrupt("truncated Gaussians");
   }
-  const size_t C = 3 + static_cast<size_t>(f->modelled_channels());
-  const size_t table_bytes = nd * (sizeof(uint32_t) + 2 * C * sizeof(float) + m * 3 * sizeof(int16_t) + m * (C - 3));
-  if (table_bytes > body - r.pos()) return corrupt("truncated tables");  // before allocating them
+  int32_t rank = 0;
+  if (!r.Pod(&rank) || rank < 0 || rank > kMaxAppearanceRank) return corrupt("bad appearance rank");
+  FormTables& t = f->tables_;
+  t.rows_ = nd;
+  t.control_points_ = m;
+  t.groups_ = groups;
+  t.blocks_ = FormTables::BlocksOf(groups, rank, m);
+  if (t.appearance_rank() != rank) return corrupt("bad appearance rank");
+  // Every table's size follows from the header: checked against the file before allocating.
+  size_t per_row = sizeof(uint32_t) + 6 * sizeof(float) + 3 * sizeof(uint16_t) + size_t(m) * 3;
+  for (const FormTables::Block& b : t.blocks_) {
+    per_row += b.group_count() * (sizeof(float) + sizeof(uint16_t)) + b.channels + b.rank * sizeof(uint16_t) +
+               size_t(b.rank) * (m + b.channels);
+  }
+  if (nd * per_row > body - r.pos()) return corrupt("truncated tables");
   f->rows_.resize(nd);
-  f->offset_.resize(nd * C);
-  f->step_.resize(nd * C);
-  f->q_position_.resize(nd * m * 3);
-  f->q_other_.resize(nd * m * (C - 3));
-  // Sizes are bounded by n (itself bounded by the file's length through the Gaussians above).
-  if (!r.Raw(f->rows_.data(), nd * sizeof(uint32_t)) || !r.Raw(f->offset_.data(), nd * C * sizeof(float)) ||
-      !r.Raw(f->step_.data(), nd * C * sizeof(float)) ||
-      !r.Raw(f->q_position_.data(), f->q_position_.size() * sizeof(int16_t)) ||
-      !r.Raw(f->q_other_.data(), f->q_other_.size()) || !r.Raw(f->error_.max.data(), sizeof(float) * kFormGroups) ||
-      !r.Pod(&f->error_.position_p99_m) || !r.Pod(&f->error_.check_samples)) {
+  t.position_ends_.resize(nd * 6);
+  t.position_step_.resize(nd * 3);
+  t.q_position_.resize(nd * m * 3);
+  for (FormTables::Block& b : t.blocks_) b.Resize(nd, m);
+  auto raw = [&r](auto& v) { return r.Raw(v.data(), v.size() * sizeof(v[0])); };
+  bool ok = raw(f->rows_) && raw(t.position_ends_) && raw(t.position_step_) && raw(t.q_position_);
+  for (FormTables::Block& b : t.blocks_) {
+    ok = ok && raw(b.base_offset) && raw(b.base_step) && raw(b.q_base) && raw(b.scale) && raw(b.q_u) && raw(b.q_v);
+  }
+  if (!ok || !r.Raw(f->error_.max.data(), sizeof(float) * kFormGroups) || !r.Pod(&f->error_.position_p99_m) ||
+      !r.Pod(&f->error_.check_samples)) {
     return corrupt("truncated tables");
   }
   if (r.pos() != body) return corrupt("trailing bytes");
   for (size_t r2 = 0; r2 < nd; ++r2) {
     if (f->rows_[r2] >= n || (r2 > 0 && f->rows_[r2] <= f->rows_[r2 - 1])) return corrupt("bad row index");
   }
-  for (size_t k = 0; k < nd * C; ++k) {
-    if (!std::isfinite(f->offset_[k]) || !std::isfinite(f->step_[k])) return corrupt("non-finite table value");
-  }
+  auto finite = [](const std::vector<float>& v) { return std::all_of(v.begin(), v.end(), [](float x) { return std::isfinite(x); }); };
+  auto finite16 = [](const std::vector<uint16_t>& v) {
+    return std::all_of(v.begin(), v.end(), [](uint16_t x) { return std::isfinite(FromBf16(x)); });
+  };
+  ok = finite(t.position_ends_) && finite16(t.position_step_);
+  for (const FormTables::Block& b : t.blocks_) ok = ok && finite(b.base_offset) && finite16(b.base_step) && finite16(b.scale);
+  if (!ok) return corrupt("non-finite table value");
   if (absl::Status s = g.Validate(); !s.ok()) return corrupt(std::string(s.message()));
   return f;
 }
@@ -149,7 +177,8 @@ absl::StatusOr<std::unique_ptr<ServingForm>> DecodeServingForm(const std::string
 absl::StatusOr<uint64_t> ServingFormSourceKey(const std::vector<std::string>& files, const ServingFormOptions& form,
                                               const StaticSkipOptions& skip) {
   uint64_t h = Mix(1469598103934665603ull, kVersion);
-  for (int v : {form.degree, form.segments_per_cell, form.max_segments_per_cell, form.samples_per_segment}) {
+  for (int v : {form.degree, form.segments_per_cell, form.max_segments_per_cell, form.samples_per_segment,
+                form.appearance_rank}) {
     h = Mix(h, static_cast<uint64_t>(v));
   }
   h = MixDouble(h, form.max_position_error_m);

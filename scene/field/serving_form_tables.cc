@@ -1,0 +1,271 @@
+#include "scene/field/serving_form_tables.h"
+
+#include <algorithm>
+#include <bit>
+#include <cmath>
+
+namespace streetsim::field {
+
+namespace {
+
+constexpr uint32_t kAppearance =
+    (1u << static_cast<int>(FormGroup::kColour)) | (1u << static_cast<int>(FormGroup::kShBands));
+constexpr int kPowerIterations = 30;
+
+template <typename F, typename Store>
+GroupSpan<F> SpanIn(FormGroup g, Store* s) {
+  const int K3 = s->sh_coeffs() * 3;
+  switch (g) {
+    case FormGroup::kPosition: return {s->means.data(), 3, 0};
+    case FormGroup::kColour: return {s->sh.data(), K3, 0};
+    case FormGroup::kLogScale: return {s->log_scales.data(), 3, 0};
+    case FormGroup::kRotation: return {s->rotations.data(), 4, 0};
+    case FormGroup::kOpacity: return {s->opacity_logits.data(), 1, 0};
+    case FormGroup::kShBands: return {s->sh.data(), K3, 3};
+  }
+  return {nullptr, 0, 0};
+}
+
+// Symmetric int8 quantisation of n values with a bfloat16 step: returns the step.
+float QuantiseSymmetric(const float* x, int n, int stride, int8_t* q, int q_stride) {
+  float m = 0;
+  for (int i = 0; i < n; ++i) m = std::max(m, std::abs(x[i * stride]));
+  const float step = m > 0 ? FromBf16(Bf16AtLeast(m / 127.0f)) : 0.0f;
+  for (int i = 0; i < n; ++i) {
+    q[i * q_stride] = static_cast<int8_t>(step > 0 ? std::clamp(std::round(x[i * stride] / step), -127.0f, 127.0f) : 0.0f);
+  }
+  return step;
+}
+
+}  // namespace
+
+GroupSpan<float> SpanOf(FormGroup g, GaussianStore* s) { return SpanIn<float>(g, s); }
+GroupSpan<const float> SpanOf(FormGroup g, const GaussianStore* s) { return SpanIn<const float>(g, s); }
+
+uint16_t ToBf16(float x) {
+  uint32_t b = std::bit_cast<uint32_t>(x);
+  b += 0x7fff + ((b >> 16) & 1);  // round to nearest even
+  return static_cast<uint16_t>(b >> 16);
+}
+
+uint16_t Bf16AtLeast(float x) {
+  uint16_t b = static_cast<uint16_t>(std::bit_cast<uint32_t>(x) >> 16);  // truncation: <= x for x >= 0
+  if (FromBf16(b) < x) ++b;
+  return b;
+}
+
+float FromBf16(uint16_t b) { return std::bit_cast<float>(static_cast<uint32_t>(b) << 16); }
+
+int FormTables::Block::group_count() const { return std::popcount(groups); }
+
+void FormTables::Block::Resize(size_t rows, int control_points) {
+  base_offset.assign(rows * group_count(), 0.0f);
+  base_step.assign(rows * group_count(), 0);
+  q_base.assign(rows * channels, 0);
+  scale.assign(rows * rank, 0);
+  q_u.assign(rows * rank * control_points, 0);
+  q_v.assign(rows * rank * channels, 0);
+}
+
+std::vector<FormTables::Block> FormTables::BlocksOf(uint32_t groups, int appearance_rank, int control_points) {
+  std::vector<Block> blocks;
+  if (groups & kAppearance) {
+    Block b;
+    b.groups = groups & kAppearance;
+    for (int g = 0; g < kFormGroups; ++g) b.channels += (b.groups & (1u << g)) ? kFormGroupChannels[g] : 0;
+    b.rank = std::clamp(appearance_rank, 1, std::min(b.channels, control_points));
+    blocks.push_back(b);
+  }
+  for (FormGroup g : {FormGroup::kLogScale, FormGroup::kRotation, FormGroup::kOpacity}) {
+    const uint32_t bit = 1u << static_cast<int>(g);
+    if (!(groups & bit)) continue;
+    Block b;
+    b.groups = bit;
+    b.channels = kFormGroupChannels[static_cast<int>(g)];
+    b.rank = std::min(b.channels, control_points);
+    blocks.push_back(b);
+  }
+  return blocks;
+}
+
+int FormTables::appearance_rank() const {
+  return !blocks_.empty() && (blocks_[0].groups & kAppearance) ? blocks_[0].rank : 0;
+}
+
+size_t FormTables::bytes() const {
+  size_t n = position_ends_.size() * sizeof(float) + position_step_.size() * sizeof(uint16_t) + q_position_.size();
+  for (const Block& b : blocks_) {
+    n += b.base_offset.size() * sizeof(float) + (b.base_step.size() + b.scale.size()) * sizeof(uint16_t) +
+         b.q_base.size() + b.q_u.size() + b.q_v.size();
+  }
+  return n;
+}
+
+FormTables FormTables::Quantise(const std::vector<float>& coef, size_t rows, int control_points, uint32_t groups,
+                                int appearance_rank, ThreadPool& pool) {
+  FormTables t;
+  t.rows_ = rows;
+  t.control_points_ = control_points;
+  t.groups_ = groups;
+  const int M = control_points;
+  t.position_ends_.assign(rows * 6, 0.0f);
+  t.position_step_.assign(rows * 3, 0);
+  t.q_position_.assign(rows * M * 3, 0);
+  t.blocks_ = BlocksOf(groups, appearance_rank, M);
+  for (Block& b : t.blocks_) b.Resize(rows, M);
+  // Each block's columns in coef: its groups' channels, in group order like coef's.
+  int C = 3;
+  std::vector<int> start(kFormGroups, 0);
+  for (int g = 1; g < kFormGroups; ++g) {
+    if (!(groups & (1u << g))) continue;
+    start[g] = C;
+    C += kFormGroupChannels[g];
+  }
+  std::vector<std::vector<int>> cols(t.blocks_.size());
+  for (size_t bi = 0; bi < t.blocks_.size(); ++bi) {
+    for (int g = 1; g < kFormGroups; ++g) {
+      if (!(t.blocks_[bi].groups & (1u << g))) continue;
+      for (int c = 0; c < kFormGroupChannels[g]; ++c) cols[bi].push_back(start[g] + c);
+    }
+  }
+  pool.ParallelFor(static_cast<int64_t>(rows), 512, [&](int64_t b, int64_t e, int) {
+    std::vector<float> z, u, v, residual(M);
+    for (int64_t r = b; r < e; ++r) {
+      const float* x = &coef[static_cast<size_t>(r) * M * C];
+      // Position: the line between the ends and the residual from it.
+      for (int c = 0; c < 3; ++c) {
+        const float p0 = x[c], p1 = x[(M - 1) * C + c];
+        t.position_ends_[r * 6 + c] = p0;
+        t.position_ends_[r * 6 + 3 + c] = p1;
+        for (int m = 0; m < M; ++m) residual[m] = x[m * C + c] - (p0 + (p1 - p0) * static_cast<float>(m) / (M - 1));
+        const float step = QuantiseSymmetric(residual.data(), M, 1, &t.q_position_[r * M * 3 + c], 3);
+        t.position_step_[r * 3 + c] = ToBf16(step);  // exact: step is a bfloat16 already
+      }
+      for (size_t bi = 0; bi < t.blocks_.size(); ++bi) {
+        Block& bl = t.blocks_[bi];
+        const int n = bl.channels;
+        // Z: the block's control points less their time-mean [M][n].
+        z.assign(static_cast<size_t>(M) * n, 0.0f);
+        std::vector<float> mean(n, 0.0f);
+        for (int m = 0; m < M; ++m)
+          for (int c = 0; c < n; ++c) mean[c] += x[m * C + cols[bi][c]] / M;
+        for (int m = 0; m < M; ++m)
+          for (int c = 0; c < n; ++c) z[m * n + c] = x[m * C + cols[bi][c]] - mean[c];
+        // The time-mean: int8 per channel, an offset and step per group.
+        int c0 = 0, gi = 0;
+        for (int g = 1; g < kFormGroups; ++g) {
+          if (!(bl.groups & (1u << g))) continue;
+          const int ng = kFormGroupChannels[g];
+          const auto [lo, hi] = std::minmax_element(&mean[c0], &mean[c0] + ng);
+          const float off = 0.5f * (*lo + *hi);
+          const float step = *hi > *lo ? FromBf16(Bf16AtLeast(0.5f * (*hi - *lo) / 127.0f)) : 0.0f;
+          bl.base_offset[r * bl.group_count() + gi] = off;
+          bl.base_step[r * bl.group_count() + gi] = ToBf16(step);
+          for (int c = c0; c < c0 + ng; ++c) {
+            bl.q_base[r * n + c] = static_cast<int8_t>(
+                step > 0 ? std::clamp(std::round((mean[c] - off) / step), -127.0f, 127.0f) : 0.0f);
+          }
+          c0 += ng;
+          ++gi;
+        }
+        // The change over time, one rank-1 term at a time by power iteration on Z (deflated):
+        // u = Z v, v = Z^T u. Started from the control point that changes most.
+        for (int j = 0; j < bl.rank; ++j) {
+          u.assign(M, 0.0f);
+          v.assign(n, 0.0f);
+          int best = 0;
+          float best_norm = -1;
+          for (int m = 0; m < M; ++m) {
+            float s = 0;
+            for (int c = 0; c < n; ++c) s += z[m * n + c] * z[m * n + c];
+            if (s > best_norm) best_norm = s, best = m;
+          }
+          if (!(best_norm > 0)) break;  // nothing left to model: the term stays zero
+          for (int c = 0; c < n; ++c) v[c] = z[best * n + c];
+          for (int it = 0; it < kPowerIterations; ++it) {
+            double norm = 0;
+            for (float a : v) norm += double(a) * a;
+            const float inv = static_cast<float>(1.0 / std::sqrt(std::max(norm, 1e-300)));
+            for (float& a : v) a *= inv;
+            for (int m = 0; m < M; ++m) {
+              float s = 0;
+              for (int c = 0; c < n; ++c) s += z[m * n + c] * v[c];
+              u[m] = s;
+            }
+            if (it + 1 == kPowerIterations) break;  // v unit, u = Z v: u v^T is the term
+            std::fill(v.begin(), v.end(), 0.0f);
+            for (int m = 0; m < M; ++m)
+              for (int c = 0; c < n; ++c) v[c] += z[m * n + c] * u[m];
+          }
+          for (int m = 0; m < M; ++m)
+            for (int c = 0; c < n; ++c) z[m * n + c] -= u[m] * v[c];
+          const float su = QuantiseSymmetric(u.data(), M, 1, &bl.q_u[(r * bl.rank + j) * M], 1);
+          const float sv = QuantiseSymmetric(v.data(), n, 1, &bl.q_v[(r * bl.rank + j) * n], 1);
+          bl.scale[r * bl.rank + j] = ToBf16(su * sv);
+        }
+      }
+    }
+  });
+  return t;
+}
+
+template <int kTaps>
+void FormTables::Evaluate(int k, const float* w, const uint32_t* rows, GaussianStore* out, ThreadPool& pool) const {
+  const int M = control_points_;
+  // Where on the line between the ends the taps fall.
+  float line = 0;
+  for (int j = 0; j < kTaps; ++j) line += w[j] * static_cast<float>(k + j);
+  line /= static_cast<float>(M - 1);
+  struct Run {
+    GroupSpan<float> span;
+    int count;
+  };
+  std::vector<std::vector<Run>> runs(blocks_.size());
+  for (size_t bi = 0; bi < blocks_.size(); ++bi) {
+    for (int g = 1; g < kFormGroups; ++g) {
+      if (blocks_[bi].groups & (1u << g)) runs[bi].push_back({SpanOf(static_cast<FormGroup>(g), out), kFormGroupChannels[g]});
+    }
+  }
+  pool.ParallelFor(static_cast<int64_t>(rows_), 4096, [&](int64_t b, int64_t e, int) {
+    float ut[kMaxAppearanceRank + 4];
+    for (int64_t r = b; r < e; ++r) {
+      const size_t i = rows[r];
+      const float* ends = &position_ends_[r * 6];
+      const int8_t* qp = &q_position_[(static_cast<size_t>(r) * M + k) * 3];
+      for (int c = 0; c < 3; ++c) {
+        float s = 0;
+        for (int j = 0; j < kTaps; ++j) s += w[j] * qp[3 * j + c];
+        out->means[i * 3 + c] = ends[c] + (ends[3 + c] - ends[c]) * line + FromBf16(position_step_[r * 3 + c]) * s;
+      }
+      for (size_t bi = 0; bi < blocks_.size(); ++bi) {
+        const Block& bl = blocks_[bi];
+        const int n = bl.channels, R = bl.rank, G = bl.group_count();
+        for (int j = 0; j < R; ++j) {
+          const int8_t* qu = &bl.q_u[(r * R + j) * M + k];
+          float s = 0;
+          for (int t = 0; t < kTaps; ++t) s += w[t] * qu[t];
+          ut[j] = FromBf16(bl.scale[r * R + j]) * s;
+        }
+        const int8_t* qb = &bl.q_base[r * n];
+        const int8_t* qv = &bl.q_v[r * R * n];
+        int c0 = 0;
+        for (int gi = 0; gi < G; ++gi) {
+          const Run& run = runs[bi][gi];
+          float* dst = run.span.data + i * run.span.stride + run.span.offset;
+          const float off = bl.base_offset[r * G + gi], step = FromBf16(bl.base_step[r * G + gi]);
+          for (int c = 0; c < run.count; ++c) {
+            float v = off + step * qb[c0 + c];
+            for (int j = 0; j < R; ++j) v += ut[j] * qv[j * n + c0 + c];
+            dst[c] = v;
+          }
+          c0 += run.count;
+        }
+      }
+    }
+  });
+}
+
+template void FormTables::Evaluate<2>(int, const float*, const uint32_t*, GaussianStore*, ThreadPool&) const;
+template void FormTables::Evaluate<4>(int, const float*, const uint32_t*, GaussianStore*, ThreadPool&) const;
+
+}  // namespace streetsim::field
