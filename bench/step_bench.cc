@@ -35,6 +35,7 @@
 #include "scene/gaussians/synthetic_street.h"
 #include "scene/train/dynamic_stage.h"
 #include "server/server.h"
+#include "server/server_main.h"
 
 using namespace streetsim;
 namespace fs = std::filesystem;
@@ -153,6 +154,7 @@ int main(int argc, char** argv) {
     return Usage(("--scene " + a.scene_dir + ": no scene.ply there").c_str());
   }
 
+  server::ConfigureServingAllocator();  // as `streetsim serve` runs (rss_mib measures what it holds)
   server::ServerOptions o;
   o.listen = "127.0.0.1:0";
   o.data_root = root;

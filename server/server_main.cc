@@ -8,13 +8,17 @@
 
 namespace streetsim::server {
 
-int RunServerUntilSignal(const ServerOptions& options) {
+void ConfigureServingAllocator() {
   // A served frame's buffers are megabytes (a 4096x4096 render holds ~600 MB). glibc raises its
   // mmap threshold after such blocks are freed and then keeps later ones in the heap, where one
   // large request leaves the process that much bigger for good. A fixed threshold (which turns the
   // adaptation off) keeps every block above 1 MiB in its own mapping, returned when freed.
   mallopt(M_MMAP_THRESHOLD, 1 << 20);
   mallopt(M_TRIM_THRESHOLD, 8 << 20);
+}
+
+int RunServerUntilSignal(const ServerOptions& options) {
+  ConfigureServingAllocator();
   // Block the stop signals in every thread (gRPC's included, created after this) and wait for
   // them here.
   sigset_t stop;

@@ -212,11 +212,37 @@ absl::Status SceneSoa::AssignRows(ThreadPool& pool, const GaussianParamsView& p,
         opacity_logit[i] = p.opacity_logits[i];
         nf |= NonFinite(p.opacity_logits[i]);
       }
-      for (int kc = 0; kc < sh_values; ++kc) {
-        const float v = p.sh[i * stride + kc];
-        sh[static_cast<size_t>(kc) * n + i] = v;
-        nf |= NonFinite(v);
+    }
+    // SH is channel-major here: a row's values go to sh_values arrays. Runs of kTile consecutive
+    // rows (a dynamic scene's moving Gaussians mostly are) are transposed a tile at a time, so
+    // that each array gets whole cache lines; other rows one by one.
+    constexpr int kTile = 16, kMaxShValues = 48;
+    for (int64_t r = b; r < e;) {
+      const size_t i0 = c.rows[r];
+      if (r + kTile <= e && c.rows[r + kTile - 1] == i0 + kTile - 1 && i0 + kTile <= n) {
+        const float* src = p.sh + i0 * stride;
+        alignas(64) float tile[kMaxShValues * kTile];  // [channel][row]
+        for (int j = 0; j < kTile; ++j) {
+          const float* row = src + j * stride;
+          for (int kc = 0; kc < sh_values; ++kc) {
+            tile[kc * kTile + j] = row[kc];
+            nf |= NonFinite(row[kc]);
+          }
+        }
+        for (int kc = 0; kc < sh_values; ++kc) {
+          std::memcpy(sh.data() + static_cast<size_t>(kc) * n + i0, tile + kc * kTile, sizeof(float) * kTile);
+        }
+        r += kTile;
+        continue;
       }
+      if (i0 < n) {
+        for (int kc = 0; kc < sh_values; ++kc) {
+          const float v = p.sh[i0 * stride + kc];
+          sh[static_cast<size_t>(kc) * n + i0] = v;
+          nf |= NonFinite(v);
+        }
+      }
+      ++r;
     }
     if (nf) bad.store(true, std::memory_order_relaxed);
   });

@@ -37,6 +37,14 @@ float QuantiseSymmetric(const float* x, int n, int stride, int8_t* q, int q_stri
   return step;
 }
 
+// S3Gaussian's appearance at rank 1 into one Gaussian's 48 SH floats (restrict: the store and
+// the tables never overlap, which lets the fixed-count loops vectorise without alias checks).
+inline void AppearanceRank1(float* __restrict dst, const int8_t* __restrict qb, const int8_t* __restrict qv,
+                            float off0, float st0, float off1, float st1, float a) {
+  for (int c = 0; c < 3; ++c) dst[c] = off0 + st0 * static_cast<float>(qb[c]) + a * static_cast<float>(qv[c]);
+  for (int c = 3; c < 48; ++c) dst[c] = off1 + st1 * static_cast<float>(qb[c]) + a * static_cast<float>(qv[c]);
+}
+
 }  // namespace
 
 GroupSpan<float> SpanOf(FormGroup g, GaussianStore* s) { return SpanIn<float>(g, s); }
@@ -226,8 +234,11 @@ void FormTables::Evaluate(int k, const float* w, const uint32_t* rows, GaussianS
       if (blocks_[bi].groups & (1u << g)) runs[bi].push_back({SpanOf(static_cast<FormGroup>(g), out), kFormGroupChannels[g]});
     }
   }
+  const bool s3_rank1 = blocks_.size() == 1 && blocks_[0].groups == kAppearance && blocks_[0].rank == 1 &&
+                        out->sh_degree == 3;
   pool.ParallelFor(static_cast<int64_t>(rows_), 4096, [&](int64_t b, int64_t e, int) {
     float ut[kMaxAppearanceRank + 4];
+    float vals[64];  // a block's channels (48 at most)
     for (int64_t r = b; r < e; ++r) {
       const size_t i = rows[r];
       const float* ends = &position_ends_[r * 6];
@@ -236,6 +247,21 @@ void FormTables::Evaluate(int k, const float* w, const uint32_t* rows, GaussianS
         float s = 0;
         for (int j = 0; j < kTaps; ++j) s += w[j] * qp[3 * j + c];
         out->means[i * 3 + c] = ends[c] + (ends[3 + c] - ends[c]) * line + FromBf16(position_step_[r * 3 + c]) * s;
+      }
+      if (s3_rank1) {
+        // S3Gaussian's form at the default rank: the DC and the bands are one run of 48 floats in
+        // the store, written with fixed trip counts (the general path below takes ~2x as long).
+        const Block& bl = blocks_[0];
+        const int8_t* qu = &bl.q_u[r * M + k];
+        float s = 0;
+        for (int t = 0; t < kTaps; ++t) s += w[t] * qu[t];
+        const float a = FromBf16(bl.scale[r]) * s;
+        const int8_t* qb = &bl.q_base[r * 48];
+        const int8_t* qv = &bl.q_v[r * 48];
+        const float off0 = bl.base_offset[r * 2], st0 = FromBf16(bl.base_step[r * 2]);
+        const float off1 = bl.base_offset[r * 2 + 1], st1 = FromBf16(bl.base_step[r * 2 + 1]);
+        AppearanceRank1(out->sh.data() + i * 48, qb, qv, off0, st0, off1, st1, a);
+        continue;
       }
       for (size_t bi = 0; bi < blocks_.size(); ++bi) {
         const Block& bl = blocks_[bi];
@@ -246,18 +272,25 @@ void FormTables::Evaluate(int k, const float* w, const uint32_t* rows, GaussianS
           for (int t = 0; t < kTaps; ++t) s += w[t] * qu[t];
           ut[j] = FromBf16(bl.scale[r * R + j]) * s;
         }
+        // The block's values in a local buffer (nothing aliases it, so the loops vectorise), one
+        // pass per group for the time-mean and one per term, then copied into the store's runs.
         const int8_t* qb = &bl.q_base[r * n];
         const int8_t* qv = &bl.q_v[r * R * n];
         int c0 = 0;
         for (int gi = 0; gi < G; ++gi) {
-          const Run& run = runs[bi][gi];
-          float* dst = run.span.data + i * run.span.stride + run.span.offset;
+          const int count = runs[bi][gi].count;
           const float off = bl.base_offset[r * G + gi], step = FromBf16(bl.base_step[r * G + gi]);
-          for (int c = 0; c < run.count; ++c) {
-            float v = off + step * qb[c0 + c];
-            for (int j = 0; j < R; ++j) v += ut[j] * qv[j * n + c0 + c];
-            dst[c] = v;
-          }
+          for (int c = c0; c < c0 + count; ++c) vals[c] = off + step * static_cast<float>(qb[c]);
+          c0 += count;
+        }
+        for (int j = 0; j < R; ++j) {
+          const float a = ut[j];
+          const int8_t* q = qv + j * n;
+          for (int c = 0; c < n; ++c) vals[c] += a * static_cast<float>(q[c]);
+        }
+        c0 = 0;
+        for (const Run& run : runs[bi]) {
+          std::copy_n(vals + c0, run.count, run.span.data + i * run.span.stride + run.span.offset);
           c0 += run.count;
         }
       }

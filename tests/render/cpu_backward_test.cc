@@ -408,5 +408,39 @@ TEST(CpuBackward, UpdateSceneRowsRendersLikeUploadOfTheNewTime) {
   EXPECT_EQ(engine->UpdateSceneRows(ParamsViewOf(after), change, &updated).code(), absl::StatusCode::kInvalidArgument);
 }
 
+// A dynamic scene moves runs of consecutive Gaussians: those rows take the tiled transpose of the
+// SH into the engine's channel-major arrays (render/cpu/scene_soa.cc), the others row by row.
+// Both must land where a plain Upload puts them, and a NaN inside a tile is refused.
+TEST(CpuBackward, UpdateSceneRowsOfConsecutiveRowsMovesEverySh) {
+  const GaussianStore before = MakeSyntheticStreet({.num_gaussians = 1'003, .seed = 7, .sh_degree = 3});
+  GaussianStore after = before;
+  std::vector<uint32_t> rows;
+  for (uint32_t i = 0; i < 300; ++i) rows.push_back(i);                      // tiles
+  for (uint32_t i = 301; i < before.size(); i += 3) rows.push_back(i);       // singles
+  for (uint32_t i : rows) {
+    for (int k = 0; k < 48; ++k) after.sh[i * 48 + k] += 0.01f * static_cast<float>((i + k) % 13) - 0.06f;
+    after.means[i * 3] += 0.03f;
+  }
+  ParamsChange change;
+  change.rows = rows.data();
+  change.num_rows = rows.size();
+  change.means = true;
+  change.sh_coeffs = 16;
+  const PinholeCamera camera = UpdateTestCamera();
+  auto engine = CreateCpuEngine({.num_threads = 2});
+  std::unique_ptr<DeviceScene> updated;
+  ASSERT_TRUE(engine->UpdateSceneParams(ParamsViewOf(before), &updated).ok());
+  ASSERT_TRUE(engine->UpdateSceneRows(ParamsViewOf(after), change, &updated).ok());
+  auto uploaded = engine->Upload(after);
+  ASSERT_TRUE(uploaded.ok());
+  RenderOutput a, b;
+  ASSERT_TRUE(engine->Render(*updated, camera, {}, &a).ok());
+  ASSERT_TRUE(engine->Render(**uploaded, camera, {}, &b).ok());
+  EXPECT_EQ(a.rgb, b.rgb);
+  GaussianStore bad = after;
+  bad.sh[37 * 48 + 40] = std::nanf("");  // inside a tile, in a band
+  EXPECT_EQ(engine->UpdateSceneRows(ParamsViewOf(bad), change, &updated).code(), absl::StatusCode::kInvalidArgument);
+}
+
 }  // namespace
 }  // namespace streetsim
