@@ -219,7 +219,11 @@ absl::Status SceneSoa::AssignRows(ThreadPool& pool, const GaussianParamsView& p,
     constexpr int kTile = 16, kMaxShValues = 48;
     for (int64_t r = b; r < e;) {
       const size_t i0 = c.rows[r];
-      if (r + kTile <= e && c.rows[r + kTile - 1] == i0 + kTile - 1 && i0 + kTile <= n) {
+      // Every row of the run is checked: rows need not be sorted, and a tile must not write a row
+      // that is not in the change (its view values may be stale).
+      bool run = r + kTile <= e && i0 + kTile <= n;
+      for (int j = 1; run && j < kTile; ++j) run = c.rows[r + j] == i0 + j;
+      if (run) {
         const float* src = p.sh + i0 * stride;
         alignas(64) float tile[kMaxShValues * kTile];  // [channel][row]
         for (int j = 0; j < kTile; ++j) {

@@ -366,6 +366,39 @@ TEST(CpuBackward, UpdateSceneParamsRendersLikeUpload) {
   }
 }
 
+// The frame of `store` uploaded whole.
+std::vector<float> UploadedRgb(Engine& engine, const GaussianStore& store) {
+  auto scene = engine.Upload(store);
+  EXPECT_TRUE(scene.ok()) << scene.status();
+  RenderOutput out;
+  if (scene.ok()) {
+    EXPECT_TRUE(engine.Render(**scene, UpdateTestCamera(), {}, &out).ok());
+  }
+  return out.rgb;
+}
+
+// The frame after a full update to `before` and a row update (`change`) from the view of `after`;
+// empty when the row update is refused, `*status` then says why.
+std::vector<float> RowUpdatedRgb(Engine& engine, const GaussianStore& before, const GaussianStore& after,
+                                 const ParamsChange& change, absl::Status* status = nullptr) {
+  std::unique_ptr<DeviceScene> scene;
+  EXPECT_TRUE(engine.UpdateSceneParams(ParamsViewOf(before), &scene).ok());
+  const absl::Status st = engine.UpdateSceneRows(ParamsViewOf(after), change, &scene);
+  if (status != nullptr) *status = st;
+  if (!st.ok()) return {};
+  RenderOutput out;
+  EXPECT_TRUE(engine.Render(*scene, UpdateTestCamera(), {}, &out).ok());
+  return out.rgb;
+}
+
+ParamsChange ChangeOf(const std::vector<uint32_t>& rows, int sh_coeffs) {
+  ParamsChange change;
+  change.rows = rows.data();
+  change.num_rows = rows.size();
+  change.sh_coeffs = sh_coeffs;
+  return change;
+}
+
 // Serving updates only the moving Gaussians' changed values (UpdateSceneRows): after a full
 // update at one time and a row update to another, the frame is the one a plain Upload of the
 // second time gives, bit for bit; a non-finite changed value or a row out of range is refused.
@@ -379,33 +412,22 @@ TEST(CpuBackward, UpdateSceneRowsRendersLikeUploadOfTheNewTime) {
     for (int k = 0; k < 3; ++k) after.sh[i * 48 + k] += 0.2f;  // DC only
     after.opacity_logits[i] += 0.5f;
   }
-  ParamsChange change;
-  change.rows = rows.data();
-  change.num_rows = rows.size();
+  ParamsChange change = ChangeOf(rows, 1);
   change.means = change.opacity = true;
-  change.sh_coeffs = 1;
-  const PinholeCamera camera = UpdateTestCamera();
   auto engine = CreateCpuEngine({.num_threads = 2});
-  std::unique_ptr<DeviceScene> updated;
-  ASSERT_TRUE(engine->UpdateSceneParams(ParamsViewOf(before), &updated).ok());
-  ASSERT_TRUE(engine->UpdateSceneRows(ParamsViewOf(after), change, &updated).ok());
-  auto uploaded = engine->Upload(after);
-  ASSERT_TRUE(uploaded.ok());
-  RenderOutput a, b, c;
-  ASSERT_TRUE(engine->Render(*updated, camera, {}, &a).ok());
-  ASSERT_TRUE(engine->Render(**uploaded, camera, {}, &b).ok());
-  auto old = engine->Upload(before);
-  ASSERT_TRUE(engine->Render(**old, camera, {}, &c).ok());
-  EXPECT_EQ(a.rgb, b.rgb);
-  EXPECT_NE(a.rgb, c.rgb) << "the change must show";
+  const std::vector<float> updated = RowUpdatedRgb(*engine, before, after, change);
+  EXPECT_EQ(updated, UploadedRgb(*engine, after));
+  EXPECT_NE(updated, UploadedRgb(*engine, before)) << "the change must show";
   GaussianStore bad = after;
   bad.means[rows[4] * 3 + 1] = std::nanf("");
-  EXPECT_EQ(engine->UpdateSceneRows(ParamsViewOf(bad), change, &updated).code(), absl::StatusCode::kInvalidArgument);
-  ASSERT_TRUE(engine->UpdateSceneParams(ParamsViewOf(after), &updated).ok());
-  std::vector<uint32_t> out_of_range = {5, static_cast<uint32_t>(after.size())};
-  change.rows = out_of_range.data();
-  change.num_rows = out_of_range.size();
-  EXPECT_EQ(engine->UpdateSceneRows(ParamsViewOf(after), change, &updated).code(), absl::StatusCode::kInvalidArgument);
+  absl::Status st;
+  RowUpdatedRgb(*engine, before, bad, change, &st);
+  EXPECT_EQ(st.code(), absl::StatusCode::kInvalidArgument);
+  const std::vector<uint32_t> out_of_range = {5, static_cast<uint32_t>(after.size())};
+  ParamsChange past_end = ChangeOf(out_of_range, 1);
+  past_end.means = true;
+  RowUpdatedRgb(*engine, before, after, past_end, &st);
+  EXPECT_EQ(st.code(), absl::StatusCode::kInvalidArgument);
 }
 
 // A dynamic scene moves runs of consecutive Gaussians: those rows take the tiled transpose of the
@@ -421,25 +443,45 @@ TEST(CpuBackward, UpdateSceneRowsOfConsecutiveRowsMovesEverySh) {
     for (int k = 0; k < 48; ++k) after.sh[i * 48 + k] += 0.01f * static_cast<float>((i + k) % 13) - 0.06f;
     after.means[i * 3] += 0.03f;
   }
-  ParamsChange change;
-  change.rows = rows.data();
-  change.num_rows = rows.size();
+  ParamsChange change = ChangeOf(rows, 16);
   change.means = true;
-  change.sh_coeffs = 16;
-  const PinholeCamera camera = UpdateTestCamera();
   auto engine = CreateCpuEngine({.num_threads = 2});
-  std::unique_ptr<DeviceScene> updated;
-  ASSERT_TRUE(engine->UpdateSceneParams(ParamsViewOf(before), &updated).ok());
-  ASSERT_TRUE(engine->UpdateSceneRows(ParamsViewOf(after), change, &updated).ok());
-  auto uploaded = engine->Upload(after);
-  ASSERT_TRUE(uploaded.ok());
-  RenderOutput a, b;
-  ASSERT_TRUE(engine->Render(*updated, camera, {}, &a).ok());
-  ASSERT_TRUE(engine->Render(**uploaded, camera, {}, &b).ok());
-  EXPECT_EQ(a.rgb, b.rgb);
+  EXPECT_EQ(RowUpdatedRgb(*engine, before, after, change), UploadedRgb(*engine, after));
   GaussianStore bad = after;
   bad.sh[37 * 48 + 40] = std::nanf("");  // inside a tile, in a band
-  EXPECT_EQ(engine->UpdateSceneRows(ParamsViewOf(bad), change, &updated).code(), absl::StatusCode::kInvalidArgument);
+  absl::Status st;
+  RowUpdatedRgb(*engine, before, bad, change, &st);
+  EXPECT_EQ(st.code(), absl::StatusCode::kInvalidArgument);
+}
+
+// Rows need not be sorted. Sixteen rows whose first and last look like a run (i0 .. i0 + 15) but
+// that leave out one row in between and list another must not be taken as a tile: the left-out
+// row's SH in the view (stale in a served field's buffer) must not reach the engine.
+TEST(CpuBackward, UpdateSceneRowsTakesNoRowOutsideTheChange) {
+  const GaussianStore before = MakeSyntheticStreet({.num_gaussians = 1'003, .seed = 9, .sh_degree = 3});
+  GaussianStore stale = before;  // every row of the view changed; only the listed ones may land
+  for (size_t i = 0; i < before.size(); ++i) {
+    for (int k = 0; k < 3; ++k) stale.sh[i * 48 + k] += 1.5f;
+  }
+  auto engine = CreateCpuEngine({.num_threads = 2});
+  const std::vector<float> before_rgb = UploadedRgb(*engine, before);
+  int checked = 0;
+  for (uint32_t i0 = 0; i0 + 16 < 400 && checked < 3; i0 += 16) {
+    for (uint32_t left_out = i0 + 1; left_out < i0 + 15; ++left_out) {
+      GaussianStore only_it = before;
+      std::copy_n(&stale.sh[left_out * 48], 48, &only_it.sh[left_out * 48]);
+      if (UploadedRgb(*engine, only_it) == before_rgb) continue;  // not visible: cannot tell
+      std::vector<uint32_t> rows;
+      for (uint32_t i = i0; i < i0 + 16; ++i) rows.push_back(i == left_out ? 900 + i0 / 16 : i);
+      GaussianStore expected = before;
+      for (uint32_t i : rows) std::copy_n(&stale.sh[i * 48], 48, &expected.sh[i * 48]);
+      EXPECT_EQ(RowUpdatedRgb(*engine, before, stale, ChangeOf(rows, 16)), UploadedRgb(*engine, expected))
+          << "rows " << i0 << ".." << i0 + 15 << " without " << left_out;
+      ++checked;
+      break;
+    }
+  }
+  EXPECT_EQ(checked, 3) << "too few visible rows to test";
 }
 
 }  // namespace
