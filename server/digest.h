@@ -1,5 +1,13 @@
-// Content digests of response payloads: 64-bit FNV-1a (not cryptographic; it identifies frames
-// for determinism checks and caching, it does not authenticate them). Printed "fnv1a64:<16 hex>".
+// Content digests of response payloads (not cryptographic; they identify frames for determinism
+// checks and caching, they do not authenticate them). Printed "fnv1a64w:<16 hex>".
+//
+// The function, so that a client can recompute it (docs/server.md "Digests"): FNV-1a taken over
+// 64-bit little-endian words instead of bytes, each step h = ((h ^ word) * 0x100000001b3), then
+// h ^= h >> 29 (the fold carries high bits down, which a word-wide multiply alone never does); a
+// last partial word is zero-padded, and the byte length is folded in as one more word. One
+// multiply per 8 bytes instead of per byte: a step's 5 MB of images and LiDAR hash in about 1 ms
+// instead of 12 ms on one core. Each step is a bijection of h, so two inputs of equal length
+// that differ in a single word always differ in digest.
 #pragma once
 
 #include <cstdint>
@@ -8,14 +16,18 @@
 
 namespace streetsim::server {
 
-class Fnv1a64 {
+class ContentDigest {
  public:
   void Update(std::string_view bytes);
-  uint64_t value() const { return h_; }
-  std::string Hex() const;  // "fnv1a64:%016x"
+  std::string Hex() const;  // "fnv1a64w:%016x" of everything updated so far
 
  private:
+  void Word(uint64_t w);
+
   uint64_t h_ = 0xcbf29ce484222325ull;
+  uint64_t length_ = 0;
+  uint64_t pending_ = 0;  // the bytes of a word not yet full, little-endian
+  int pending_bytes_ = 0;
 };
 
 std::string DigestOf(std::string_view bytes);

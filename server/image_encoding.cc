@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <limits>
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -40,9 +41,18 @@ absl::Status EncodeRgb(int width, int height, const std::vector<float>& rgb,
                        v1::ImageEncoding encoding, int jpeg_quality, v1::Image* out) {
   const size_t n = size_t(width) * height;
   std::string bytes(n * 3, '\0');
+  // lround(v * 255) for v in [0, 1], written so that it vectorises: x - trunc(x) is exact in
+  // float, so the comparison rounds half away from zero exactly as lround does.
+  const float* src = rgb.data();
+  uint8_t* dst = reinterpret_cast<uint8_t*>(bytes.data());
   for (size_t i = 0; i < n * 3; ++i) {
-    const float v = std::isfinite(rgb[i]) ? std::clamp(rgb[i], 0.0f, 1.0f) : 0.0f;
-    bytes[i] = static_cast<char>(static_cast<uint8_t>(std::lround(v * 255.0f)));
+    const float v = src[i];
+    float c = v > 1.0f ? 1.0f : v;
+    c = c >= 0.0f ? c : 0.0f;                                      // NaN, -inf -> 0
+    c = v == std::numeric_limits<float>::infinity() ? 0.0f : c;  // +inf -> 0, as every non-finite
+    const float x = c * 255.0f;
+    const int r = static_cast<int>(x);
+    dst[i] = static_cast<uint8_t>(r + (x - static_cast<float>(r) >= 0.5f ? 1 : 0));
   }
   out->set_format(v1::IMAGE_FORMAT_RGB8);
   if (encoding == v1::IMAGE_ENCODING_UNSPECIFIED || encoding == v1::IMAGE_ENCODING_RAW) {

@@ -105,7 +105,7 @@ void LidarResultToProto(const LidarJob& job, const LidarRenderOutput& out, v1::L
   r->set_intensity(Bytes(out.intensity));
   r->set_alpha(Bytes(out.alpha));
   r->set_num_visible_splats(out.num_visible);
-  Fnv1a64 digest;
+  ContentDigest digest;
   digest.Update(r->range());
   digest.Update(r->intensity());
   digest.Update(r->alpha());

@@ -147,7 +147,8 @@ absl::StatusOr<RenderResult> RenderCore::Render(const SceneField& field, int64_t
 
   if (absl::Status s = cancel(); !s.ok()) return s;
   const auto t_encode = std::chrono::steady_clock::now();
-  Fnv1a64 digest;
+  // The response's digest is taken over its items' digests, so no payload is hashed twice.
+  ContentDigest digest;
   for (size_t i = 0; i < views.size(); ++i) {
     const RenderOutput& r = rendered[i];
     v1::SensorFrame frame;
@@ -159,19 +160,19 @@ absl::StatusOr<RenderResult> RenderCore::Render(const SceneField& field, int64_t
       if (absl::Status s = EncodeRgb(r.width, r.height, r.rgb, outputs.rgb_encoding(),
                                      outputs.jpeg_quality(), frame.mutable_rgb());
           !s.ok()) return s;
-      digest.Update(frame.rgb().data());
+      digest.Update(frame.rgb().digest());
     }
     if (outputs.depth()) {
       if (absl::Status s = EncodeDepth(r.width, r.height, r.depth, outputs.depth_encoding(),
                                        frame.mutable_depth());
           !s.ok()) return s;
-      digest.Update(frame.depth().data());
+      digest.Update(frame.depth().digest());
     }
     if (outputs.alpha()) {
       if (absl::Status s = EncodeAlpha(r.width, r.height, r.alpha, outputs.alpha_encoding(),
                                        frame.mutable_alpha());
           !s.ok()) return s;
-      digest.Update(frame.alpha().data());
+      digest.Update(frame.alpha().digest());
     }
     result.frames.push_back(std::move(frame));
   }
@@ -180,9 +181,7 @@ absl::StatusOr<RenderResult> RenderCore::Render(const SceneField& field, int64_t
     v1::LidarResult lidar;
     LidarResultToProto(*extras.lidar, lidar_out, &lidar);
     lidar.mutable_timings()->set_encode_ms(MsSince(t_lidar));
-    digest.Update(lidar.range());
-    digest.Update(lidar.intensity());
-    digest.Update(lidar.alpha());
+    digest.Update(lidar.digest());
     result.lidar = std::move(lidar);
   }
   result.timings.set_encode_ms(MsSince(t_encode));

@@ -100,7 +100,7 @@ struct SoaSource {
     ls[2] = std::min(std::max(s.ls2[i], -30.0f), 30.0f);
     q[0] = s.qw[i]; q[1] = s.qx[i]; q[2] = s.qy[i]; q[3] = s.qz[i];
     *logit = std::min(std::max(s.opacity_logit[i], -80.0f), 80.0f);
-    for (int k = 0; k < K * 3; ++k) sh[k] = s.sh[static_cast<size_t>(k) * s.n + i];
+    for (int k = 0; k < K * 3; ++k) sh[k] = s.sh[static_cast<size_t>(k) * s.sh_plane + i];
   }
 };
 

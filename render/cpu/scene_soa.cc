@@ -12,6 +12,11 @@
 #include "absl/strings/str_cat.h"
 
 namespace streetsim::cpu {
+namespace {
+
+size_t ShPlaneFor(size_t n) { return (n + 15) / 16 * 16; }
+
+}  // namespace
 
 SceneSoa SceneSoa::FromStore(const GaussianStore& s) {
   SceneSoa o;
@@ -23,7 +28,8 @@ SceneSoa SceneSoa::FromStore(const GaussianStore& s) {
     v->resize(n);
   }
   const int K = s.sh_coeffs();
-  o.sh.resize(static_cast<size_t>(K) * 3 * n);
+  o.sh_plane = ShPlaneFor(n);
+  o.sh.resize(static_cast<size_t>(K) * 3 * o.sh_plane);
   for (size_t i = 0; i < n; ++i) {
     o.mx[i] = s.means[i * 3];
     o.my[i] = s.means[i * 3 + 1];
@@ -36,7 +42,7 @@ SceneSoa SceneSoa::FromStore(const GaussianStore& s) {
     o.qy[i] = s.rotations[i * 4 + 2];
     o.qz[i] = s.rotations[i * 4 + 3];
     o.opacity_logit[i] = s.opacity_logits[i];
-    for (int kc = 0; kc < K * 3; ++kc) o.sh[kc * n + i] = s.sh[i * K * 3 + kc];
+    for (int kc = 0; kc < K * 3; ++kc) o.sh[kc * o.sh_plane + i] = s.sh[i * K * 3 + kc];
   }
   return o;
 }
@@ -49,39 +55,66 @@ inline uint32_t NonFinite(float v) {
   return (b & 0x7f800000u) == 0x7f800000u;
 }
 #if defined(__AVX2__)
-// Coefficients [0, kc_end) (a multiple of 8) of Gaussians [i0, i0 + count) (count a multiple of
-// 8): src[i * stride + kc] -> dst[kc * n + i], 8 x 8 at a time through registers. Returns 1 if any
-// moved value is inf or nan.
-uint32_t TransposeSh8(const float* src, size_t stride, size_t i0, int count, int kc_end, float* dst, size_t n) {
+// Rows i .. i+7, values kc0 .. kc0+7 of the interleaved SH, transposed: out[j] holds value
+// kc0 + j of the eight rows. Flags a non-finite value in `bad`.
+inline void Transpose8x8(const float* src, size_t stride, size_t i, int kc0, __m256 out[8], __m256i& bad) {
   const __m256i exp_mask = _mm256_set1_epi32(0x7f800000);
+  __m256 r[8];
+  for (int k = 0; k < 8; ++k) {
+    r[k] = _mm256_loadu_ps(src + (i + k) * stride + kc0);
+    const __m256i e = _mm256_and_si256(_mm256_castps_si256(r[k]), exp_mask);
+    bad = _mm256_or_si256(bad, _mm256_cmpeq_epi32(e, exp_mask));
+  }
+  const __m256 t0 = _mm256_unpacklo_ps(r[0], r[1]), t1 = _mm256_unpackhi_ps(r[0], r[1]);
+  const __m256 t2 = _mm256_unpacklo_ps(r[2], r[3]), t3 = _mm256_unpackhi_ps(r[2], r[3]);
+  const __m256 t4 = _mm256_unpacklo_ps(r[4], r[5]), t5 = _mm256_unpackhi_ps(r[4], r[5]);
+  const __m256 t6 = _mm256_unpacklo_ps(r[6], r[7]), t7 = _mm256_unpackhi_ps(r[6], r[7]);
+  // Per 128-bit half h: u_j = column 4h + j of rows 0-3 (u0..u3) and rows 4-7 (u4..u7).
+  const __m256 u0 = _mm256_shuffle_ps(t0, t2, 0x44), u1 = _mm256_shuffle_ps(t0, t2, 0xee);
+  const __m256 u2 = _mm256_shuffle_ps(t1, t3, 0x44), u3 = _mm256_shuffle_ps(t1, t3, 0xee);
+  const __m256 u4 = _mm256_shuffle_ps(t4, t6, 0x44), u5 = _mm256_shuffle_ps(t4, t6, 0xee);
+  const __m256 u6 = _mm256_shuffle_ps(t5, t7, 0x44), u7 = _mm256_shuffle_ps(t5, t7, 0xee);
+  out[0] = _mm256_permute2f128_ps(u0, u4, 0x20);
+  out[1] = _mm256_permute2f128_ps(u1, u5, 0x20);
+  out[2] = _mm256_permute2f128_ps(u2, u6, 0x20);
+  out[3] = _mm256_permute2f128_ps(u3, u7, 0x20);
+  out[4] = _mm256_permute2f128_ps(u0, u4, 0x31);
+  out[5] = _mm256_permute2f128_ps(u1, u5, 0x31);
+  out[6] = _mm256_permute2f128_ps(u2, u6, 0x31);
+  out[7] = _mm256_permute2f128_ps(u3, u7, 0x31);
+}
+
+// Coefficients [0, kc_end) (a multiple of 8) of Gaussians [i0, i0 + count) (count a multiple of
+// 8): src[i * stride + kc] -> dst[kc * plane + i], 8 x 8 at a time through registers. Returns 1 if
+// any moved value is inf or nan.
+uint32_t TransposeSh8(const float* src, size_t stride, size_t i0, int count, int kc_end, float* dst, size_t plane) {
   __m256i bad = _mm256_setzero_si256();
   for (int g = 0; g < count; g += 8) {
     const size_t i = i0 + static_cast<size_t>(g);
     for (int kc0 = 0; kc0 < kc_end; kc0 += 8) {
-      __m256 r[8];
-      for (int k = 0; k < 8; ++k) {
-        r[k] = _mm256_loadu_ps(src + (i + k) * stride + kc0);
-        const __m256i e = _mm256_and_si256(_mm256_castps_si256(r[k]), exp_mask);
-        bad = _mm256_or_si256(bad, _mm256_cmpeq_epi32(e, exp_mask));
-      }
-      const __m256 t0 = _mm256_unpacklo_ps(r[0], r[1]), t1 = _mm256_unpackhi_ps(r[0], r[1]);
-      const __m256 t2 = _mm256_unpacklo_ps(r[2], r[3]), t3 = _mm256_unpackhi_ps(r[2], r[3]);
-      const __m256 t4 = _mm256_unpacklo_ps(r[4], r[5]), t5 = _mm256_unpackhi_ps(r[4], r[5]);
-      const __m256 t6 = _mm256_unpacklo_ps(r[6], r[7]), t7 = _mm256_unpackhi_ps(r[6], r[7]);
-      // Per 128-bit half h: u_j = column 4h + j of rows 0-3 (u0..u3) and rows 4-7 (u4..u7).
-      const __m256 u0 = _mm256_shuffle_ps(t0, t2, 0x44), u1 = _mm256_shuffle_ps(t0, t2, 0xee);
-      const __m256 u2 = _mm256_shuffle_ps(t1, t3, 0x44), u3 = _mm256_shuffle_ps(t1, t3, 0xee);
-      const __m256 u4 = _mm256_shuffle_ps(t4, t6, 0x44), u5 = _mm256_shuffle_ps(t4, t6, 0xee);
-      const __m256 u6 = _mm256_shuffle_ps(t5, t7, 0x44), u7 = _mm256_shuffle_ps(t5, t7, 0xee);
-      float* d = dst + static_cast<size_t>(kc0) * n + i;
-      _mm256_storeu_ps(d + 0 * n, _mm256_permute2f128_ps(u0, u4, 0x20));
-      _mm256_storeu_ps(d + 1 * n, _mm256_permute2f128_ps(u1, u5, 0x20));
-      _mm256_storeu_ps(d + 2 * n, _mm256_permute2f128_ps(u2, u6, 0x20));
-      _mm256_storeu_ps(d + 3 * n, _mm256_permute2f128_ps(u3, u7, 0x20));
-      _mm256_storeu_ps(d + 4 * n, _mm256_permute2f128_ps(u0, u4, 0x31));
-      _mm256_storeu_ps(d + 5 * n, _mm256_permute2f128_ps(u1, u5, 0x31));
-      _mm256_storeu_ps(d + 6 * n, _mm256_permute2f128_ps(u2, u6, 0x31));
-      _mm256_storeu_ps(d + 7 * n, _mm256_permute2f128_ps(u3, u7, 0x31));
+      __m256 t[8];
+      Transpose8x8(src, stride, i, kc0, t, bad);
+      float* d = dst + static_cast<size_t>(kc0) * plane + i;
+      for (int j = 0; j < 8; ++j) _mm256_storeu_ps(d + j * plane, t[j]);
+    }
+  }
+  return _mm256_testz_si256(bad, bad) ? 0u : 1u;
+}
+
+// Sixteen rows from i0 (a multiple of 16) into their planes, values 0 .. kc_end (a multiple of 8):
+// each plane gets one whole, aligned cache line, written with streaming stores. A served scene's
+// update writes ~100 MB that the render reads back from memory anyway; streaming skips reading
+// every destination line first. The caller fences (_mm_sfence) before the rows are read.
+uint32_t StreamShTile16(const float* src, size_t stride, size_t i0, int kc_end, float* dst, size_t plane) {
+  __m256i bad = _mm256_setzero_si256();
+  for (int kc0 = 0; kc0 < kc_end; kc0 += 8) {
+    __m256 lo[8], hi[8];
+    Transpose8x8(src, stride, i0, kc0, lo, bad);
+    Transpose8x8(src, stride, i0 + 8, kc0, hi, bad);
+    float* d = dst + static_cast<size_t>(kc0) * plane + i0;
+    for (int j = 0; j < 8; ++j) {
+      _mm256_stream_ps(d + j * plane, lo[j]);
+      _mm256_stream_ps(d + j * plane + 8, hi[j]);
     }
   }
   return _mm256_testz_si256(bad, bad) ? 0u : 1u;
@@ -124,7 +157,8 @@ absl::Status SceneSoa::Assign(ThreadPool& pool, const GaussianParamsView& p) {
   n = p.n;
   sh_degree = p.sh_degree;
   for (auto* v : {&mx, &my, &mz, &ls0, &ls1, &ls2, &qw, &qx, &qy, &qz, &opacity_logit}) v->resize(n);
-  sh.resize(static_cast<size_t>(K) * 3 * n);
+  sh_plane = ShPlaneFor(n);
+  sh.resize(static_cast<size_t>(K) * 3 * sh_plane);
   std::atomic<bool> bad{false};
   constexpr int64_t kBlock = 64;
   const int64_t blocks = static_cast<int64_t>((n + kBlock - 1) / kBlock);
@@ -153,11 +187,11 @@ absl::Status SceneSoa::Assign(ThreadPool& pool, const GaussianParamsView& p) {
       // 8 x 8 blocks transposed in registers (a strided scalar copy was most of this pass).
       if (i1 - i0 == static_cast<size_t>(kBlock)) {
         kc_done = (K * 3) / 8 * 8;
-        nf |= TransposeSh8(p.sh, stride, i0, kBlock, kc_done, sh.data(), n);
+        nf |= TransposeSh8(p.sh, stride, i0, kBlock, kc_done, sh.data(), sh_plane);
       }
 #endif
       for (int kc = kc_done; kc < K * 3; ++kc) {
-        float* dst = sh.data() + static_cast<size_t>(kc) * n;
+        float* dst = sh.data() + static_cast<size_t>(kc) * sh_plane;
         const float* src = p.sh + kc;
         for (size_t i = i0; i < i1; ++i) {
           const float v = src[i * stride];
@@ -213,19 +247,29 @@ absl::Status SceneSoa::AssignRows(ThreadPool& pool, const GaussianParamsView& p,
         nf |= NonFinite(p.opacity_logits[i]);
       }
     }
-    // SH is channel-major here: a row's values go to sh_values arrays. Runs of kTile consecutive
-    // rows (a dynamic scene's moving Gaussians mostly are) are transposed a tile at a time, so
-    // that each array gets whole cache lines; other rows one by one.
+    // SH is plane-major here: a row's values go to sh_values planes. Runs of kTile consecutive
+    // rows (a dynamic scene's moving Gaussians mostly are) go a tile at a time, so that each plane
+    // gets whole cache lines: streamed when the run starts a line, else through a local tile;
+    // other rows one by one.
     constexpr int kTile = 16, kMaxShValues = 48;
+    bool streamed = false;
     for (int64_t r = b; r < e;) {
       const size_t i0 = c.rows[r];
       // Every row of the run is checked: rows need not be sorted, and a tile must not write a row
       // that is not in the change (its view values may be stale).
       bool run = r + kTile <= e && i0 + kTile <= n;
       for (int j = 1; run && j < kTile; ++j) run = c.rows[r + j] == i0 + j;
+#if defined(__AVX2__)
+      if (run && i0 % kTile == 0 && sh_values % 8 == 0) {
+        nf |= StreamShTile16(p.sh, stride, i0, sh_values, sh.data(), sh_plane);
+        streamed = true;
+        r += kTile;
+        continue;
+      }
+#endif
       if (run) {
         const float* src = p.sh + i0 * stride;
-        alignas(64) float tile[kMaxShValues * kTile];  // [channel][row]
+        alignas(64) float tile[kMaxShValues * kTile];  // [value][row]
         for (int j = 0; j < kTile; ++j) {
           const float* row = src + j * stride;
           for (int kc = 0; kc < sh_values; ++kc) {
@@ -234,7 +278,7 @@ absl::Status SceneSoa::AssignRows(ThreadPool& pool, const GaussianParamsView& p,
           }
         }
         for (int kc = 0; kc < sh_values; ++kc) {
-          std::memcpy(sh.data() + static_cast<size_t>(kc) * n + i0, tile + kc * kTile, sizeof(float) * kTile);
+          std::memcpy(sh.data() + static_cast<size_t>(kc) * sh_plane + i0, tile + kc * kTile, sizeof(float) * kTile);
         }
         r += kTile;
         continue;
@@ -242,12 +286,15 @@ absl::Status SceneSoa::AssignRows(ThreadPool& pool, const GaussianParamsView& p,
       if (i0 < n) {
         for (int kc = 0; kc < sh_values; ++kc) {
           const float v = p.sh[i0 * stride + kc];
-          sh[static_cast<size_t>(kc) * n + i0] = v;
+          sh[static_cast<size_t>(kc) * sh_plane + i0] = v;
           nf |= NonFinite(v);
         }
       }
       ++r;
     }
+#if defined(__AVX2__)
+    if (streamed) _mm_sfence();  // streaming stores are weakly ordered: publish them before the join
+#endif
     if (nf) bad.store(true, std::memory_order_relaxed);
   });
   if (bad.load()) {

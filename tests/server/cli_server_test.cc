@@ -244,7 +244,7 @@ TEST_F(CliServerTest, ReplayWritesFramesVideosAndSummary) {
   // The log trajectory moves 10 m/s along x; the offset is 0.5 m to the left (+y).
   EXPECT_NEAR(summary["steps"][3]["ego_xyz_m"][0].get<double>(), 3.0, 1e-6);
   EXPECT_NEAR(summary["steps"][3]["ego_xyz_m"][1].get<double>(), 0.5, 1e-6);
-  EXPECT_TRUE(Contains(summary["steps"][0]["content_digest"].get<std::string>(), "fnv1a64:"));
+  EXPECT_TRUE(Contains(summary["steps"][0]["content_digest"].get<std::string>(), "fnv1a64w:"));
   EXPECT_EQ(summary["videos"].size(), 2u);
   // Bad scenarios: exit 2, one line.
   std::ofstream(dir_ + "/bad.json") << R"({"scene": "timed"})";

@@ -114,7 +114,7 @@ TEST_F(RenderTest, RenderEncodingsDigestsAndTimings) {
   EXPECT_EQ(f.alpha().format(), v1::IMAGE_FORMAT_F32);
   EXPECT_GT(f.num_visible_gaussians(), 0u);
   EXPECT_GT(raw->timings().total_ms(), 0);
-  EXPECT_EQ(raw->content_digest().rfind("fnv1a64:", 0), 0u);
+  EXPECT_EQ(raw->content_digest().rfind("fnv1a64w:", 0), 0u);
   absl::StatusOr<client::DecodedImage> depth = client::DecodeImage(f.depth());
   ASSERT_TRUE(depth.ok());
   float max_depth = 0;
