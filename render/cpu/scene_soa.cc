@@ -249,8 +249,8 @@ absl::Status SceneSoa::AssignRows(ThreadPool& pool, const GaussianParamsView& p,
     }
     // SH is plane-major here: a row's values go to sh_values planes. Runs of kTile consecutive
     // rows (a dynamic scene's moving Gaussians mostly are) go a tile at a time, so that each plane
-    // gets whole cache lines: streamed when the run starts a line, else through a local tile;
-    // other rows one by one.
+    // gets whole cache lines: streamed from a line start (rows before it one by one), or, for the
+    // DC alone or without AVX2, through a local tile; other rows one by one.
     constexpr int kTile = 16, kMaxShValues = 48;
     bool streamed = false;
     for (int64_t r = b; r < e;) {
@@ -260,11 +260,14 @@ absl::Status SceneSoa::AssignRows(ThreadPool& pool, const GaussianParamsView& p,
       bool run = r + kTile <= e && i0 + kTile <= n;
       for (int j = 1; run && j < kTile; ++j) run = c.rows[r + j] == i0 + j;
 #if defined(__AVX2__)
-      if (run && i0 % kTile == 0 && sh_values % 8 == 0) {
-        nf |= StreamShTile16(p.sh, stride, i0, sh_values, sh.data(), sh_plane);
-        streamed = true;
-        r += kTile;
-        continue;
+      if (sh_values % 8 == 0) {
+        if (run && i0 % kTile == 0) {
+          nf |= StreamShTile16(p.sh, stride, i0, sh_values, sh.data(), sh_plane);
+          streamed = true;
+          r += kTile;
+          continue;
+        }
+        run = false;  // one by one up to the next line start (a gap in the rows, a block's start)
       }
 #endif
       if (run) {

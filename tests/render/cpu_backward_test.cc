@@ -431,13 +431,16 @@ TEST(CpuBackward, UpdateSceneRowsRendersLikeUploadOfTheNewTime) {
 }
 
 // A dynamic scene moves runs of consecutive Gaussians: those rows take the tiled transpose of the
-// SH into the engine's channel-major arrays (render/cpu/scene_soa.cc), the others row by row.
+// SH into the engine's plane-major arrays (render/cpu/scene_soa.cc), streamed from a cache line's
+// start, the others row by row.
 // Both must land where a plain Upload puts them, and a NaN inside a tile is refused.
 TEST(CpuBackward, UpdateSceneRowsOfConsecutiveRowsMovesEverySh) {
   const GaussianStore before = MakeSyntheticStreet({.num_gaussians = 1'003, .seed = 7, .sh_degree = 3});
   GaussianStore after = before;
   std::vector<uint32_t> rows;
-  for (uint32_t i = 0; i < 300; ++i) rows.push_back(i);                      // tiles
+  for (uint32_t i = 0; i < 300; ++i) {
+    if (i != 100) rows.push_back(i);  // tiles; after the gap, rows one by one up to a line start
+  }
   for (uint32_t i = 301; i < before.size(); i += 3) rows.push_back(i);       // singles
   for (uint32_t i : rows) {
     for (int k = 0; k < 48; ++k) after.sh[i * 48 + k] += 0.01f * static_cast<float>((i + k) % 13) - 0.06f;
