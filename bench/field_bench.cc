@@ -15,7 +15,7 @@
 //               [--ext-modules "all;encoder,vae,attention,gru,decoder"] [--serve-vulkan]
 //               [--train-ply SCENE.ply]
 //   --serve-vulkan adds serving rows with the field on Vulkan (the server's --field-device vulkan,
-//   scene/field/vulkan/vulkan_serving.h; a GPU when there is one, else lavapipe, which is slower
+//   render/vulkan/field/vulkan_serving.h; a GPU when there is one, else lavapipe, which is slower
 //   than the cpu for the field). Their first (warm-up) timestamp creates the device field.
 #include <algorithm>
 #include <chrono>
@@ -37,7 +37,7 @@
 #include "scene/field/spatial_order.h"
 #include "scene/field/static_skip.h"
 #include "scene/gaussians/ply_io.h"
-#include "scene/field/vulkan/vulkan_serving.h"
+#include "render/vulkan/field/vulkan_serving.h"
 #include "scene/gaussians/synthetic_street.h"
 
 using namespace streetsim;

@@ -1,4 +1,4 @@
-// Deformation field on Vulkan (scene/field/vulkan/vulkan_field.h, docs/field.md "Vulkan field"):
+// Deformation field on Vulkan (render/vulkan/field/vulkan_field.h, docs/field.md "Vulkan field"):
 // forward and backward per timestamp at the spec's sizes (4 levels x 6 planes x 32 channels,
 // 64..512, time 25, MLP 128 -> 64 -> {3, 48}) for N Gaussians uniformly random in a
 // 200 x 200 x 20 m AABB, random dL/d(Δx, ΔSH). Prints device time (timestamps around each batch's
@@ -26,7 +26,7 @@
 #include "render/common/thread_pool.h"
 #include "scene/field/deformation_field.h"
 #include "scene/field/field_eval.h"
-#include "scene/field/vulkan/vulkan_field.h"
+#include "render/vulkan/field/vulkan_field.h"
 
 using namespace streetsim;
 using namespace streetsim::field;

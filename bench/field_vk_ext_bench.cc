@@ -1,4 +1,4 @@
-// The extended field on Vulkan (scene/field/vulkan/ext/vulkan_extended_field.h, docs/field.md
+// The extended field on Vulkan (render/vulkan/field/ext/vulkan_extended_field.h, docs/field.md
 // "Extended field on Vulkan"): ms per 1000 Gaussians of a forward and of a forward + backward, for
 // the rows of field_ext_bench's table (every module off, each module alone, pairs, all), at the
 // spec's sizes (K = 5), Gaussians uniformly random in a 200 x 200 x 20 m AABB, random output
@@ -20,7 +20,7 @@
 #include "bench/field_ext_bench_scene.h"
 #include "render/common/thread_pool.h"
 #include "scene/field/extended/extended_field.h"
-#include "scene/field/vulkan/ext/vulkan_extended_field.h"
+#include "render/vulkan/field/ext/vulkan_extended_field.h"
 
 using namespace streetsim;
 using namespace streetsim::field;

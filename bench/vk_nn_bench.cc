@@ -1,4 +1,4 @@
-// The extended field's Vulkan kernels (scene/field/vulkan/nn/vk_nn_kernels.h) one at a time at
+// The extended field's Vulkan kernels (render/vulkan/field/nn/vk_nn_kernels.h) one at a time at
 // spec 14's sizes (docs/field.md "Composition"): model dim 64 = 4 heads x 16, 7 tokens of 16
 // Fourier + 128 features = 144, VAE latent 32, GRU hidden 32, for --rows Gaussians (token kernels
 // on rows x 7). Each kernel is recorded --repeats times into one command buffer (barriers between)
@@ -21,7 +21,7 @@
 #include "render/vulkan/context.h"
 #include "render/vulkan/pipeline.h"
 #include "render/vulkan/vulkan_engine.h"
-#include "scene/field/vulkan/nn/vk_nn_kernels.h"
+#include "render/vulkan/field/nn/vk_nn_kernels.h"
 
 using namespace streetsim;
 using namespace streetsim::field;

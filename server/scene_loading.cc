@@ -8,7 +8,7 @@
 #include "absl/strings/str_cat.h"
 #include "render/common/thread_pool.h"
 #include "scene/field/extended/extended_serving.h"
-#include "scene/field/vulkan/vulkan_serving.h"
+#include "render/vulkan/field/vulkan_serving.h"
 #include "scene/field/extended/extended_io.h"
 #include "scene/field/field_io.h"
 #include "scene/gaussians/ply_io.h"

@@ -30,7 +30,7 @@ struct LoadedScene {
 struct SceneLoadOptions {
   // Where a dynamic scene's field runs, resolved (kCpu or kVulkan: Server::Start resolves the
   // server's --field-device against its engine, train::ResolveFieldDevice). kVulkan falls back to
-  // the cpu with a warning when the device fails (scene/field/vulkan/vulkan_serving.h).
+  // the cpu with a warning when the device fails (render/vulkan/field/vulkan_serving.h).
   train::FieldDevice field_device = train::FieldDevice::kCpu;
   field::StaticSkipOptions static_skip;  // ServerOptions::static_skip
   // false (the default): a dynamic scene is served through its serving form (cached in

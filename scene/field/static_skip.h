@@ -80,7 +80,7 @@ class DeltaRanges {
 // motion_threshold_m and each of the next `sh_values` channels (ΔSH) varies by less than sh_threshold.
 bool MotionAndColourStatic(const DeltaRanges& r, size_t row, int sh_values, const StaticSkipOptions& o);
 
-// S3Gaussian's field evaluated on a device for ServingField (scene/field/vulkan/vulkan_serving.h):
+// S3Gaussian's field evaluated on a device for ServingField (render/vulkan/field/vulkan_serving.h):
 // Δx (*dx, n * 3) and ΔSH (*dsh, n * 48; null: not wanted) of the compact `means` (n * 3) at
 // `query`, as FieldForward<float>. `field` is the serving field's own (the device may upload its
 // parameters on the first call).

@@ -14,7 +14,7 @@
 #include "scene/field/field_io.h"
 #include "scene/field/field_regularizers.h"
 #include "scene/field/spatial_order.h"
-#include "scene/field/vulkan/vulkan_deformed_scene.h"
+#include "render/vulkan/field/vulkan_deformed_scene.h"
 #include "scene/train/gradient_guard.h"
 
 namespace streetsim::train {

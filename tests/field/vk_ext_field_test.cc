@@ -1,4 +1,4 @@
-// The extended field on Vulkan (scene/field/vulkan/ext/vulkan_extended_field.h) against the cpu
+// The extended field on Vulkan (render/vulkan/field/ext/vulkan_extended_field.h) against the cpu
 // double path (ExtendedForward<double> / ExtendedBackward<double>, which ext_grad_check_test checks
 // against finite differences): forward outputs, Σ KL and every gradient group (planes, S3Gaussian's
 // MLP, each module's parameters, canonical means / opacities / scales / rotations), each module
@@ -18,7 +18,7 @@
 #include "render/common/thread_pool.h"
 #include "render/vulkan/vulkan_engine.h"
 #include "scene/field/extended/extended_field.h"
-#include "scene/field/vulkan/ext/vulkan_extended_field.h"
+#include "render/vulkan/field/ext/vulkan_extended_field.h"
 #include "tests/field/ext_test_fields.h"
 #include "tests/field/field_test_util.h"
 

@@ -1,4 +1,4 @@
-// The extended field's Vulkan kernels (scene/field/vulkan/nn/vk_nn_kernels.h) against the cpu ops
+// The extended field's Vulkan kernels (render/vulkan/field/nn/vk_nn_kernels.h) against the cpu ops
 // of scene/field/nn in float (and double, printed: the cpu double path is the reference that
 // field_nn_test gradient-checks against finite differences, so the kernels' agreement with it is
 // their gradient check): Linear, sums, activations and the gate here; LayerNorm, temporal tokens,

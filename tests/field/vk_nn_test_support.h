@@ -11,7 +11,7 @@
 // glibc's / Eigen's by a few ulp, amplified in cancelling differences such as 1 - sigmoid).
 #pragma once
 
-#include "scene/field/vulkan/nn/vk_nn_kernels.h"
+#include "render/vulkan/field/nn/vk_nn_kernels.h"
 
 #include <cmath>
 #include <cstdio>

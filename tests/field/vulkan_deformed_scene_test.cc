@@ -1,4 +1,4 @@
-// The Vulkan trainer glue (scene/field/vulkan/vulkan_deformed_scene.h) against the cpu glue
+// The Vulkan trainer glue (render/vulkan/field/vulkan_deformed_scene.h) against the cpu glue
 // (deformed_scene.h): one deform + backward, then a few fine-stage iterations (deform, a fixed
 // quadratic "render" loss on the deformed means / SH, backward, the field's Adam step, re-upload)
 // run side by side on the cpu and on Vulkan. Skips without a Vulkan device.
@@ -12,7 +12,7 @@
 #include "render/vulkan/vulkan_engine.h"
 #include "scene/field/deformed_scene.h"
 #include "scene/field/field_adam.h"
-#include "scene/field/vulkan/vulkan_deformed_scene.h"
+#include "render/vulkan/field/vulkan_deformed_scene.h"
 #include "tests/field/field_test_util.h"
 
 namespace streetsim::field {

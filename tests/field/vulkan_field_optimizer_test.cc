@@ -13,7 +13,7 @@
 #include "render/vulkan/vulkan_engine.h"
 #include "scene/field/field_adam.h"
 #include "scene/field/field_regularizers.h"
-#include "scene/field/vulkan/vulkan_field.h"
+#include "render/vulkan/field/vulkan_field.h"
 #include "scene/optim/adam_kernel.h"
 #include "tests/field/field_test_util.h"
 

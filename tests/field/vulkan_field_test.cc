@@ -1,4 +1,4 @@
-// The Vulkan field (scene/field/vulkan/vulkan_field.h) against the cpu field: forward vs the cpu
+// The Vulkan field (render/vulkan/field/vulkan_field.h) against the cpu field: forward vs the cpu
 // double forward, backward vs the cpu double backward (which field_grad_check_test checks against
 // finite differences) per parameter group, a directional finite-difference check of the Vulkan
 // gradient through the Vulkan forward itself, the spec's sizes vs the cpu float path, bad
@@ -15,7 +15,7 @@
 #include "render/vulkan/vulkan_engine.h"
 #include "scene/field/deformation_field.h"
 #include "scene/field/field_eval.h"
-#include "scene/field/vulkan/vulkan_field.h"
+#include "render/vulkan/field/vulkan_field.h"
 #include "tests/field/field_test_util.h"
 
 namespace streetsim::field {

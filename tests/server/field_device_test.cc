@@ -17,7 +17,7 @@
 #include "scene/field/field_eval.h"
 #include "scene/field/field_io.h"
 #include "scene/field/static_skip.h"
-#include "scene/field/vulkan/vulkan_serving.h"
+#include "render/vulkan/field/vulkan_serving.h"
 #include "tests/common/cli_runner.h"
 #include "tests/common/scratch_dir.h"
 #include "tests/server/moving_extension.h"

@@ -30,7 +30,7 @@ struct ExtCompactInputs {
   }
 };
 
-// The extended field evaluated on a device for ExtServingField (scene/field/vulkan/vulkan_serving.h):
+// The extended field evaluated on a device for ExtServingField (render/vulkan/field/vulkan_serving.h):
 // as ExtendedForward<float> with `field`'s parameters (inference pass: z = μ). `field` is the
 // serving field's own (the device may upload its parameters on the first call).
 using ExtDeviceForward = std::function<absl::StatusOr<double>(const ExtendedField& field, const ExtPass& pass,

@@ -5,8 +5,8 @@
 #include <limits>
 
 #include "absl/strings/str_cat.h"
-#include "scene/field/vulkan/field_linear_push.h"
-#include "scene/field/vulkan/nn/vk_nn_impl.h"
+#include "render/vulkan/field/field_linear_push.h"
+#include "render/vulkan/field/nn/vk_nn_impl.h"
 #include "streetsim_spirv.h"
 
 namespace streetsim::field::vknn {

@@ -1,4 +1,4 @@
-#include "scene/field/vulkan/plane_groups.h"
+#include "render/vulkan/field/plane_groups.h"
 
 #include <algorithm>
 

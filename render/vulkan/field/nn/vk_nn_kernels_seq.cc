@@ -3,7 +3,7 @@
 #include <cmath>
 
 #include "absl/strings/str_cat.h"
-#include "scene/field/vulkan/nn/vk_nn_impl.h"
+#include "render/vulkan/field/nn/vk_nn_impl.h"
 #include "streetsim_spirv.h"
 
 namespace streetsim::field::vknn {

@@ -17,7 +17,7 @@
 #include "render/vulkan/context.h"
 #include "render/vulkan/pipeline.h"
 #include "scene/field/deformation_field.h"
-#include "scene/field/vulkan/plane_groups.h"
+#include "render/vulkan/field/plane_groups.h"
 
 namespace streetsim::field {
 

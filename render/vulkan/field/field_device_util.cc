@@ -1,4 +1,4 @@
-#include "scene/field/vulkan/field_device_util.h"
+#include "render/vulkan/field/field_device_util.h"
 
 #include <algorithm>
 #include <thread>

@@ -11,7 +11,7 @@
 
 #include "scene/field/extended/extended_serving.h"
 #include "scene/field/static_skip.h"
-#include "scene/field/vulkan/vulkan_field.h"
+#include "render/vulkan/field/vulkan_field.h"
 
 namespace streetsim::field {
 

@@ -6,7 +6,7 @@
 //
 // What runs where: the token sampling and its backward (vk_token_sampler.h, shaders/ext_*), every
 // Linear / LayerNorm / activation / gate / Fourier token / VAE / attention / GRU op and its
-// backward (scene/field/vulkan/nn, NnKernels) on the device; on the host, per batch: ε (drawn with
+// backward (render/vulkan/field/nn, NnKernels) on the device; on the host, per batch: ε (drawn with
 // the cpu's ext_noise.h and uploaded: exact), the encoder's 10 geometry inputs and their backward
 // (encoder_geometry.h: ~100 flops per Gaussian on data the host holds anyway; the device would
 // need the canonical opacities / scales / rotations uploaded for them), the Σ KL (rows read back,
@@ -30,7 +30,7 @@
 
 #include "absl/status/statusor.h"
 #include "scene/field/extended/extended_field.h"
-#include "scene/field/vulkan/vulkan_field.h"
+#include "render/vulkan/field/vulkan_field.h"
 
 namespace streetsim::field {
 

@@ -1,4 +1,4 @@
-#include "scene/field/vulkan/ext/ext_net.h"
+#include "render/vulkan/field/ext/ext_net.h"
 
 #include <algorithm>
 #include <vector>

@@ -1,6 +1,6 @@
 // The head of the two sample-backward kernels: the base field's feature backward
 // (field_sample_backward.glsl) and the extended field's token backward
-// (scene/field/vulkan/ext/shaders/ext_sample_backward.glsl). Float atomics unless CAS_ATOMICS,
+// (render/vulkan/field/ext/shaders/ext_sample_backward.glsl). Float atomics unless CAS_ATOMICS,
 // the plane sampling code, LANES invocations per Gaussian in 256-wide workgroups, the Gaussians'
 // means (binding 5) and dL/d(mean) (binding 7, written). Include it first (an #extension must
 // precede every declaration); then declare binding 6 and the push constants `pc`, and include

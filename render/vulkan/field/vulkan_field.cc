@@ -1,6 +1,6 @@
 // VulkanField: buffers, the plane groups, per-batch command recording (kernels in shaders/,
 // docs/field.md "Vulkan field").
-#include "scene/field/vulkan/vulkan_field.h"
+#include "render/vulkan/field/vulkan_field.h"
 
 #include <algorithm>
 #include <chrono>
@@ -11,10 +11,10 @@
 #include "render/vulkan/buffer.h"
 #include "render/vulkan/context.h"
 #include "render/vulkan/pipeline.h"
-#include "scene/field/vulkan/field_linear_push.h"
-#include "scene/field/vulkan/field_device_util.h"
-#include "scene/field/vulkan/plane_groups.h"
-#include "scene/field/vulkan/vulkan_field_impl.h"
+#include "render/vulkan/field/field_linear_push.h"
+#include "render/vulkan/field/field_device_util.h"
+#include "render/vulkan/field/plane_groups.h"
+#include "render/vulkan/field/vulkan_field_impl.h"
 #include "streetsim_spirv.h"
 
 namespace streetsim::field {

@@ -1,9 +1,9 @@
-#include "scene/field/vulkan/vulkan_serving.h"
+#include "render/vulkan/field/vulkan_serving.h"
 
 #include <memory>
 
 #include "render/common/log.h"
-#include "scene/field/vulkan/ext/vulkan_extended_field.h"
+#include "render/vulkan/field/ext/vulkan_extended_field.h"
 
 namespace streetsim::field {
 

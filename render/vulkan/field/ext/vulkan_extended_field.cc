@@ -1,7 +1,7 @@
 // VulkanExtendedField: parameters on the device, the per-batch host round trip (ε, the encoder's
 // geometry and their backward on the host), the batch's command buffer (token sampling:
 // vk_token_sampler.h; network: ext_net.h).
-#include "scene/field/vulkan/ext/vulkan_extended_field.h"
+#include "render/vulkan/field/ext/vulkan_extended_field.h"
 
 #include <algorithm>
 #include <chrono>
@@ -17,10 +17,10 @@
 #include "render/vulkan/pipeline.h"
 #include "scene/field/extended/encoder_geometry.h"
 #include "scene/field/extended/ext_noise.h"
-#include "scene/field/vulkan/ext/ext_net.h"
-#include "scene/field/vulkan/field_device_util.h"
-#include "scene/field/vulkan/ext/vk_token_sampler.h"
-#include "scene/field/vulkan/nn/vk_nn_kernels.h"
+#include "render/vulkan/field/ext/ext_net.h"
+#include "render/vulkan/field/field_device_util.h"
+#include "render/vulkan/field/ext/vk_token_sampler.h"
+#include "render/vulkan/field/nn/vk_nn_kernels.h"
 
 namespace streetsim::field {
 

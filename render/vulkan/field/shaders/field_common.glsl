@@ -1,4 +1,4 @@
-// Shared pieces of the deformation field's kernels (scene/field/vulkan/vulkan_field.h; the cpu
+// Shared pieces of the deformation field's kernels (render/vulkan/field/vulkan_field.h; the cpu
 // reference is scene/field/hexplane_kernels.h + field_eval.cc, the formulas docs/field.md).
 //
 // The planes live in up to 4 storage buffers ("plane groups"): one buffer cannot hold the spec's

@@ -8,7 +8,7 @@
 #include <string>
 
 #include "absl/status/status.h"
-#include "scene/field/vulkan/nn/vk_nn_kernels.h"
+#include "render/vulkan/field/nn/vk_nn_kernels.h"
 
 namespace streetsim::field::vknn {
 

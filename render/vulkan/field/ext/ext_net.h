@@ -15,7 +15,7 @@
 #include "render/vulkan/pipeline.h"
 #include "scene/field/extended/extended_config.h"
 #include "scene/field/field_config.h"
-#include "scene/field/vulkan/nn/vk_nn_kernels.h"
+#include "render/vulkan/field/nn/vk_nn_kernels.h"
 
 namespace streetsim::field::vkext {
 

@@ -9,7 +9,7 @@
 #include <vector>
 
 #include "absl/strings/str_cat.h"
-#include "scene/field/vulkan/vulkan_field_impl.h"
+#include "render/vulkan/field/vulkan_field_impl.h"
 #include "scene/optim/adam_kernel.h"
 #include "streetsim_spirv.h"
 

@@ -11,7 +11,7 @@
 #include "absl/status/statusor.h"
 #include "render/common/thread_pool.h"
 #include "scene/field/deformed_scene.h"
-#include "scene/field/vulkan/vulkan_field.h"
+#include "render/vulkan/field/vulkan_field.h"
 
 namespace streetsim::field {
 

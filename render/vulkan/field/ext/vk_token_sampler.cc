@@ -1,10 +1,10 @@
-#include "scene/field/vulkan/ext/vk_token_sampler.h"
+#include "render/vulkan/field/ext/vk_token_sampler.h"
 
 #include <algorithm>
 
 #include "absl/strings/str_cat.h"
 #include "scene/field/extended/extended_sampling.h"
-#include "scene/field/vulkan/field_device_util.h"
+#include "render/vulkan/field/field_device_util.h"
 #include "streetsim_spirv.h"
 
 namespace streetsim::field {

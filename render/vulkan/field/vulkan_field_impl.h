@@ -1,6 +1,6 @@
 // VulkanField's state (buffers, pipelines, per-batch recording helpers), shared by its two source
 // files: vulkan_field.cc (forward, backward) and vulkan_field_optimizer.cc (the plane regularisers
-// and Adam on the device). Private to scene/field/vulkan.
+// and Adam on the device). Private to render/vulkan/field.
 #pragma once
 
 #include <algorithm>
@@ -16,9 +16,9 @@
 #include "render/vulkan/buffer.h"
 #include "render/vulkan/context.h"
 #include "render/vulkan/pipeline.h"
-#include "scene/field/vulkan/field_device_util.h"
-#include "scene/field/vulkan/field_linear_push.h"
-#include "scene/field/vulkan/vulkan_field.h"
+#include "render/vulkan/field/field_device_util.h"
+#include "render/vulkan/field/field_linear_push.h"
+#include "render/vulkan/field/vulkan_field.h"
 
 namespace streetsim::field {
 

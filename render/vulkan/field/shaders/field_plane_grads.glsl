@@ -1,7 +1,7 @@
 // Plane-gradient buffers (bindings 8..11, grouped as the planes) and the bilinear splat of one
 // plane sample's dL/d(sample), shared by the base field's feature backward
 // (field_sample_backward.glsl) and the extended field's token backward
-// (scene/field/vulkan/ext/shaders/ext_sample_backward.glsl). Float atomicAdd
+// (render/vulkan/field/ext/shaders/ext_sample_backward.glsl). Float atomicAdd
 // (VK_EXT_shader_atomic_float) unless CAS_ATOMICS is defined, then a compare-and-swap loop.
 // Include after field_sample_backward_head.glsl (atomics, `means`, `d_means`, LANES) and the push
 // constants `pc` (ax, ay, az, bx, by, bz, rows).

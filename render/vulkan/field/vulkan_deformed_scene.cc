@@ -1,4 +1,4 @@
-#include "scene/field/vulkan/vulkan_deformed_scene.h"
+#include "render/vulkan/field/vulkan_deformed_scene.h"
 
 #include <span>
 

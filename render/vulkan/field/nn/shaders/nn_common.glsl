@@ -1,4 +1,4 @@
-// Shared pieces of the extended field's Vulkan kernels (scene/field/vulkan/nn/vk_nn_kernels.h).
+// Shared pieces of the extended field's Vulkan kernels (render/vulkan/field/nn/vk_nn_kernels.h).
 // Tensors are row-major views: element (r, c) at off + r * stride + c; the host checks that every
 // such index of a dispatch fits in 32 bits and lies inside its buffer.
 #ifndef STREETSIM_NN_COMMON_GLSL_
