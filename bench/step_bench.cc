@@ -4,7 +4,7 @@
 // object (p50_ms, p99_ms, steps_per_s, rss_mib ...). Figures: docs/benchmarks.md "Server step latency".
 //
 //   step_bench [--field none|exact|served] [--gaussians N | --scene DIR] [--camera WxH] [--lidar BEAMSxCOLUMNS]
-//              [--steps K] [--sessions S] [--actor-edit none|remove|move|insert]
+//              [--steps K] [--warmup W] [--sessions S] [--actor-edit none|remove|move|insert]
 //
 // --gaussians N: a synthetic street whose field moves every Gaussian (its time planes vary over
 // the whole scene, as a trained KITTI field does: docs/benchmarks.md "On trained KITTI scenes").
@@ -14,6 +14,8 @@
 // load (load_s includes it) and cached beside the scene. --lidar 0x0: no LiDAR.
 // --actor-edit: every step edits the scene's largest actor (--scene DIR with actors.json,
 // docs/actors.md): removes it, moves it 3.5 m to its left, or inserts a copy there.
+// --warmup W (default 1): each session's first W steps (first-use allocations, caches) are timed
+// apart: `first_step_ms` is the slowest of them; p50 / p99 are over the K steps after them.
 #include <unistd.h>
 
 #include <algorithm>
@@ -50,6 +52,7 @@ struct Args {
   int width = 1242, height = 375;
   int beams = 64, columns = 2048;
   int steps = 20;
+  int warmup = 1;
   int sessions = 1;
   std::string actor_edit = "none";
 };
@@ -57,7 +60,8 @@ struct Args {
 int Usage(const char* why) {
   std::fprintf(stderr,
                "step_bench: %s\nusage: step_bench [--field none|exact|served] [--gaussians N | --scene DIR] "
-               "[--camera WxH] [--lidar BEAMSxCOLUMNS] [--steps K] [--sessions S] [--actor-edit none|remove|move|insert]\n",
+               "[--camera WxH] [--lidar BEAMSxCOLUMNS] [--steps K] [--warmup W] [--sessions S] "
+               "[--actor-edit none|remove|move|insert]\n",
                why);
   return 2;
 }
@@ -123,6 +127,7 @@ int main(int argc, char** argv) {
     else if (flag == "--camera") { if (!ParsePair(v, &a.width, &a.height)) return Usage("--camera takes WxH"); }
     else if (flag == "--lidar") { if (!ParsePair(v, &a.beams, &a.columns)) return Usage("--lidar takes BEAMSxCOLUMNS"); }
     else if (flag == "--steps") a.steps = std::atoi(v);
+    else if (flag == "--warmup") a.warmup = std::atoi(v);
     else if (flag == "--sessions") a.sessions = std::atoi(v);
     else if (flag == "--actor-edit") a.actor_edit = v;
     else return Usage(("unknown flag " + flag).c_str());
@@ -137,6 +142,7 @@ int main(int argc, char** argv) {
   if (a.gaussians < 1 || a.steps < 1 || a.sessions < 1 || a.width < 1 || a.height < 1) {
     return Usage("--gaussians, --steps, --sessions and --camera must be positive");
   }
+  if (a.warmup < 0 || a.warmup > 1000) return Usage("--warmup takes 0..1000");
 
   const std::string root = TempDir("data"), state = TempDir("state");
   const std::string scene_path = root + "/bench";
@@ -205,7 +211,9 @@ int main(int argc, char** argv) {
   }
 
   std::mutex mu;
-  std::vector<double> latencies_ms;
+  std::vector<double> latencies_ms;  // the steps after the warm-up
+  double first_step_ms = 0;          // the slowest warm-up step
+  size_t steps_done = 0;
   int errors = 0;
   const auto t0 = std::chrono::steady_clock::now();
   std::vector<std::thread> threads;
@@ -216,7 +224,7 @@ int main(int argc, char** argv) {
       req.set_scene("bench");
       req.set_start_time_us(loaded->has_time_range() ? loaded->start_time_us() : 0);
       // Each step at a new time; sessions apart in time, as independent planners are.
-      req.set_step_dt_us(std::max<int64_t>(1, end_us / (a.steps + 1)));
+      req.set_step_dt_us(std::max<int64_t>(1, end_us / (a.warmup + a.steps + 1)));
       v1::SensorRequest* cam = req.add_sensors();
       cam->set_sensor_id(loaded->rig().cameras_size() ? loaded->rig().cameras(0).sensor_id() : "cam_front");
       cam->set_width(a.width);
@@ -229,10 +237,10 @@ int main(int argc, char** argv) {
       if (!session.ok()) {
         std::fprintf(stderr, "step_bench: session %d: %s\n", s, std::string(session.status().message()).c_str());
         std::lock_guard<std::mutex> l(mu);
-        errors += a.steps;
+        errors += a.warmup + a.steps;
         return;
       }
-      for (int k = 0; k < a.steps; ++k) {
+      for (int k = 0; k < a.warmup + a.steps; ++k) {
         v1::StepRequest step;
         step.set_session_id(session->session_id());
         step.set_step_index(k);
@@ -243,7 +251,14 @@ int main(int argc, char** argv) {
         absl::StatusOr<v1::StepResponse> r = (*mine)->Step(step);
         const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t).count();
         std::lock_guard<std::mutex> l(mu);
-        if (r.ok()) latencies_ms.push_back(ms); else ++errors;
+        if (!r.ok()) {
+          ++errors;
+        } else if (k < a.warmup) {
+          first_step_ms = std::max(first_step_ms, ms);
+        } else {
+          latencies_ms.push_back(ms);
+        }
+        ++steps_done;
       }
       (void)(*mine)->CloseSession(session->session_id());
     });
@@ -262,14 +277,16 @@ int main(int argc, char** argv) {
   std::printf("| %s | %s | %zu | %llu | %dx%d | %dx%d | %d | %zu | %.1f | %.1f | %.2f | %d | %.0f |\n", a.field.c_str(),
               a.actor_edit.c_str(), n,
               static_cast<unsigned long long>(after.ok() ? after->num_dynamic_gaussians() : 0), a.width, a.height, a.beams,
-              a.columns, a.sessions, latencies_ms.size(), pct(0.5), pct(0.99), latencies_ms.size() / wall_s, errors, rss);
+              a.columns, a.sessions, latencies_ms.size(), pct(0.5), pct(0.99), steps_done / wall_s, errors, rss);
   std::printf("{\"field\": \"%s\", \"actor_edit\": \"%s\", \"gaussians\": %zu, \"moving\": %llu, \"sessions\": %d, \"steps\": %zu, "
               "\"p50_ms\": %.2f, \"p99_ms\": %.2f, \"steps_per_s\": %.3f, \"errors\": %d, \"rss_mib\": %.1f, "
-              "\"rss_loaded_mib\": %.1f, \"load_s\": %.2f, \"field_evaluations\": %lld}\n",
+              "\"rss_loaded_mib\": %.1f, \"load_s\": %.2f, \"field_evaluations\": %lld, \"warmup_steps\": %d, "
+              "\"first_step_ms\": %.2f}\n",
               a.field.c_str(), a.actor_edit.c_str(), n,
               static_cast<unsigned long long>(after.ok() ? after->num_dynamic_gaussians() : 0), a.sessions,
-              latencies_ms.size(), pct(0.5), pct(0.99), latencies_ms.size() / wall_s, errors, rss, rss_loaded,
-              loaded->load_time_s(), static_cast<long long>(after.ok() ? after->field_evaluations() : 0));
+              latencies_ms.size(), pct(0.5), pct(0.99), steps_done / wall_s, errors, rss, rss_loaded,
+              loaded->load_time_s(), static_cast<long long>(after.ok() ? after->field_evaluations() : 0), a.warmup,
+              first_step_ms);
   c->reset();
   srv->reset();
   fs::remove_all(root);
