@@ -213,7 +213,7 @@ int main(int argc, char** argv) {
   std::mutex mu;
   std::vector<double> latencies_ms;  // the steps after the warm-up
   double first_step_ms = 0;          // the slowest warm-up step
-  size_t steps_done = 0;
+  size_t steps_done = 0;             // every step answered, warm-up included (steps/s)
   int errors = 0;
   const auto t0 = std::chrono::steady_clock::now();
   std::vector<std::thread> threads;
@@ -253,12 +253,14 @@ int main(int argc, char** argv) {
         std::lock_guard<std::mutex> l(mu);
         if (!r.ok()) {
           ++errors;
-        } else if (k < a.warmup) {
+          continue;
+        }
+        ++steps_done;
+        if (k < a.warmup) {
           first_step_ms = std::max(first_step_ms, ms);
         } else {
           latencies_ms.push_back(ms);
         }
-        ++steps_done;
       }
       (void)(*mine)->CloseSession(session->session_id());
     });
