@@ -5,6 +5,7 @@
 //
 //   step_bench [--field none|exact|served] [--gaussians N | --scene DIR] [--camera WxH] [--lidar BEAMSxCOLUMNS]
 //              [--steps K] [--warmup W] [--sessions S] [--actor-edit none|remove|move|insert]
+//              [--backend cpu|vulkan] [--field-device auto|cpu|vulkan]
 //
 // --gaussians N: a synthetic street whose field moves every Gaussian (its time planes vary over
 // the whole scene, as a trained KITTI field does: docs/benchmarks.md "On trained KITTI scenes").
@@ -16,6 +17,10 @@
 // docs/actors.md): removes it, moves it 3.5 m to its left, or inserts a copy there.
 // --warmup W (default 1): each session's first W steps (first-use allocations, caches) are timed
 // apart: `first_step_ms` is the slowest of them; p50 / p99 are over the K steps after them.
+// --backend vulkan: the server's render engine on Vulkan (a GPU when there is one, else lavapipe);
+// --field-device as `streetsim serve`'s (vulkan with the serving form: the form's kernel writes
+// the engine's scene, render/vulkan/field/vulkan_serving_form.h). The JSON's field_device is
+// where the served scene ended up (GetScene).
 #include <unistd.h>
 
 #include <algorithm>
@@ -55,13 +60,15 @@ struct Args {
   int warmup = 1;
   int sessions = 1;
   std::string actor_edit = "none";
+  std::string backend = "cpu";       // the render engine (--backend)
+  std::string field_device = "auto";  // --field-device, as `streetsim serve`'s
 };
 
 int Usage(const char* why) {
   std::fprintf(stderr,
                "step_bench: %s\nusage: step_bench [--field none|exact|served] [--gaussians N | --scene DIR] "
                "[--camera WxH] [--lidar BEAMSxCOLUMNS] [--steps K] [--warmup W] [--sessions S] "
-               "[--actor-edit none|remove|move|insert]\n",
+               "[--actor-edit none|remove|move|insert] [--backend cpu|vulkan] [--field-device auto|cpu|vulkan]\n",
                why);
   return 2;
 }
@@ -130,6 +137,8 @@ int main(int argc, char** argv) {
     else if (flag == "--warmup") a.warmup = std::atoi(v);
     else if (flag == "--sessions") a.sessions = std::atoi(v);
     else if (flag == "--actor-edit") a.actor_edit = v;
+    else if (flag == "--backend") a.backend = v;
+    else if (flag == "--field-device") a.field_device = v;
     else return Usage(("unknown flag " + flag).c_str());
   }
   if (a.field != "none" && a.field != "exact" && a.field != "served") return Usage("--field takes none, exact or served");
@@ -143,6 +152,10 @@ int main(int argc, char** argv) {
     return Usage("--gaussians, --steps, --sessions and --camera must be positive");
   }
   if (a.warmup < 0 || a.warmup > 1000) return Usage("--warmup takes 0..1000");
+  absl::StatusOr<Backend> backend = ParseBackend(a.backend);
+  if (!backend.ok() || *backend == Backend::kAuto) return Usage("--backend takes cpu or vulkan");
+  absl::StatusOr<train::FieldDevice> field_device = train::ParseFieldDevice(a.field_device);
+  if (!field_device.ok()) return Usage("--field-device takes auto, cpu or vulkan");
 
   const std::string root = TempDir("data"), state = TempDir("state");
   const std::string scene_path = root + "/bench";
@@ -165,7 +178,8 @@ int main(int argc, char** argv) {
   o.listen = "127.0.0.1:0";
   o.data_root = root;
   o.state_dir = state;
-  o.backend = Backend::kCpu;
+  o.backend = *backend;
+  o.field_device = *field_device;
   o.exact_field = a.field == "exact";
   o.limits.max_sessions = std::max(16, a.sessions);
   o.limits.max_queued_renders = std::max(8, a.sessions);
@@ -280,11 +294,11 @@ int main(int argc, char** argv) {
               a.actor_edit.c_str(), n,
               static_cast<unsigned long long>(after.ok() ? after->num_dynamic_gaussians() : 0), a.width, a.height, a.beams,
               a.columns, a.sessions, latencies_ms.size(), pct(0.5), pct(0.99), steps_done / wall_s, errors, rss);
-  std::printf("{\"field\": \"%s\", \"actor_edit\": \"%s\", \"gaussians\": %zu, \"moving\": %llu, \"sessions\": %d, \"steps\": %zu, "
+  std::printf("{\"field\": \"%s\", \"backend\": \"%s\", \"field_device\": \"%s\", \"actor_edit\": \"%s\", \"gaussians\": %zu, \"moving\": %llu, \"sessions\": %d, \"steps\": %zu, "
               "\"p50_ms\": %.2f, \"p99_ms\": %.2f, \"steps_per_s\": %.3f, \"errors\": %d, \"rss_mib\": %.1f, "
               "\"rss_loaded_mib\": %.1f, \"load_s\": %.2f, \"field_evaluations\": %lld, \"warmup_steps\": %d, "
               "\"first_step_ms\": %.2f}\n",
-              a.field.c_str(), a.actor_edit.c_str(), n,
+              a.field.c_str(), a.backend.c_str(), after.ok() ? after->field_device().c_str() : "", a.actor_edit.c_str(), n,
               static_cast<unsigned long long>(after.ok() ? after->num_dynamic_gaussians() : 0), a.sessions,
               latencies_ms.size(), pct(0.5), pct(0.99), steps_done / wall_s, errors, rss, rss_loaded,
               loaded->load_time_s(), static_cast<long long>(after.ok() ? after->field_evaluations() : 0), a.warmup,

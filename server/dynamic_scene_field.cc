@@ -2,13 +2,15 @@
 
 #include "absl/strings/str_cat.h"
 #include "render/params_view.h"
+#include "render/common/log.h"
+#include "render/vulkan/field/vulkan_serving.h"
 #include "scene/field/serving_form.h"
 
 namespace streetsim::server {
 
 absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
     std::unique_ptr<field::ServedScene> served, std::optional<std::vector<float>> reflectance,
-    const SceneUploader& upload) {
+    const SceneUploader& upload, bool on_device) {
   if (!served) return absl::InvalidArgumentError("no served scene");
   std::unique_ptr<DynamicSceneField> f(new DynamicSceneField());
   f->num_gaussians_ = served->size();
@@ -28,19 +30,50 @@ absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
   f->evaluations_.store(f->serving_->field_evaluations());
   f->device_name_ = f->serving_->device();
   f->on_device_.store(f->serving_->device() != "cpu");
+  f->try_writer_ = on_device;
   return f;
 }
 
 absl::StatusOr<const GaussianStore*> DynamicSceneField::EvaluateLocked(int64_t time_us) const {
   // Clamps to the log's range; a repeated time coordinate is free.
   absl::StatusOr<const GaussianStore*> store = serving_->At(time_us, *pool_);
-  evaluations_.store(serving_->field_evaluations());
+  evaluations_.store(serving_->field_evaluations() + device_writes_);
   on_device_.store(serving_->device() != "cpu");
   return store;
 }
 
+bool DynamicSceneField::WriteOnDeviceLocked(int64_t time_us, Engine& engine) const {
+  if (try_writer_) {
+    try_writer_ = false;
+    absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>> w = field::DeviceWriterFor(engine, *serving_);
+    if (w.ok()) {
+      writer_ = std::move(*w);
+    } else {
+      LOG(WARNING) << "the serving form stays on the host: " << w.status();
+    }
+    on_writer_.store(writer_ != nullptr);
+  }
+  if (!writer_) return false;
+  if (writer_current_ && time_us == writer_time_us_) return true;
+  device_evaluation_ = -1;  // whatever the device copy held, it is the writer's from here
+  if (absl::Status s = writer_->WriteAt(time_us, device_.get()); !s.ok()) {
+    // The host evaluates and uploads everything from now on (device_evaluation_ -1: a full upload).
+    LOG(WARNING) << "the serving form's kernel failed, evaluating on the host from now on: " << s;
+    writer_.reset();
+    writer_current_ = false;
+    on_writer_.store(false);
+    return false;
+  }
+  writer_current_ = true;
+  writer_time_us_ = time_us;
+  ++device_writes_;
+  evaluations_.store(serving_->field_evaluations() + device_writes_);
+  return true;
+}
+
 absl::StatusOr<const DeviceScene*> DynamicSceneField::At(int64_t time_us, Engine& engine) const {
   std::lock_guard<std::mutex> lock(mu_);
+  if (WriteOnDeviceLocked(time_us, engine)) return device_.get();
   absl::StatusOr<const GaussianStore*> store = EvaluateLocked(time_us);
   if (!store.ok()) return store.status();
   if (serving_->field_evaluations() != device_evaluation_) {
@@ -86,7 +119,9 @@ FieldStats DynamicSceneField::stats() const {
   return {true,
           num_dynamic_,
           evaluations_.load(),
-          on_device_.load() ? device_name_ : std::string("cpu"),
+          on_writer_.load() ? std::string(field::kVulkanServingDevice)
+          : on_device_.load() ? device_name_
+                              : std::string("cpu"),
           form ? "form" : "exact",
           form ? form->error().max[0] : 0.0};
 }

@@ -23,10 +23,14 @@ namespace streetsim::server {
 
 class DynamicSceneField : public SceneField {
  public:
-  // Evaluates `served` at its start and uploads that through `upload`.
+  // Evaluates `served` at its start and uploads that through `upload`. on_device: the field's
+  // device is the engine's (--field-device resolved to vulkan): a serving form is then written
+  // into the engine's copy by the engine's device at each new time (field::DeviceWriterFor),
+  // made at the first At; the host evaluates only for HostAt.
   static absl::StatusOr<std::unique_ptr<DynamicSceneField>> Create(std::unique_ptr<field::ServedScene> served,
                                                                    std::optional<std::vector<float>> reflectance,
-                                                                   const SceneUploader& upload);
+                                                                   const SceneUploader& upload,
+                                                                   bool on_device = false);
 
   absl::StatusOr<const DeviceScene*> At(int64_t time_us, Engine& engine) const override;
   absl::StatusOr<std::shared_ptr<const HostScene>> HostAt(int64_t time_us) const override;
@@ -37,12 +41,21 @@ class DynamicSceneField : public SceneField {
   DynamicSceneField() = default;
   // The deformed store at time_us (mu_ held).
   absl::StatusOr<const GaussianStore*> EvaluateLocked(int64_t time_us) const;
+  // The device copy at time_us through writer_ (mu_ held). False: no writer (none could be made,
+  // or it failed now: a warning, and the host path from now on).
+  bool WriteOnDeviceLocked(int64_t time_us, Engine& engine) const;
 
   mutable std::mutex mu_;
   mutable std::unique_ptr<ThreadPool> pool_;
   mutable std::unique_ptr<field::ServedScene> serving_;
   mutable std::unique_ptr<DeviceScene> device_;
-  mutable int64_t device_evaluation_ = 0;  // serving_'s evaluation count the device copy holds (0: baked)
+  mutable int64_t device_evaluation_ = 0;  // serving_'s evaluation count the device copy holds (0: baked;
+                                           // -1: unknown, e.g. written by writer_)
+  mutable bool try_writer_ = false;        // Create's on_device, until the first At tries
+  mutable std::unique_ptr<field::DeviceSceneWriter> writer_;
+  mutable int64_t writer_time_us_ = 0;     // the time the device copy holds when written by writer_
+  mutable bool writer_current_ = false;
+  mutable int64_t device_writes_ = 0;
   mutable std::shared_ptr<HostScene> host_;  // views the serving field's current Gaussians (HostScene)
   mutable int64_t host_evaluation_ = -1;
   std::optional<std::vector<float>> reflectance_;
@@ -53,6 +66,7 @@ class DynamicSceneField : public SceneField {
   // Whether serving_ still evaluates on its device (GetScene reads it the same way).
   std::string device_name_ = "cpu";
   mutable std::atomic<bool> on_device_{false};
+  mutable std::atomic<bool> on_writer_{false};  // writer_ writes the device copy (GetScene: its device)
 };
 
 }  // namespace streetsim::server

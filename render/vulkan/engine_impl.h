@@ -4,6 +4,7 @@
 
 #include <array>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <string>
@@ -60,6 +61,16 @@ class VulkanEngine : public Engine {
   // param_upload.cc: packed in parallel into one persistent staging buffer, one submission.
   absl::Status UpdateSceneParams(const GaussianParamsView& params,
                                  std::unique_ptr<DeviceScene>* scene) override;
+
+  // Kernels outside the engine that write a scene's parameters in place (the serving form's,
+  // render/vulkan/field/vulkan_serving_form.h): `record` records dispatches that write `scene`'s
+  // geometry and SH buffers; they are submitted once, under the engine's lock, and the next
+  // render sees them. What a backward pass kept of the scene is dropped. InvalidArgument for a
+  // scene of another engine.
+  absl::Status WriteSceneOnDevice(DeviceScene* scene,
+                                  const std::function<void(Recorder&, const VulkanScene&)>& record);
+  // The device, for those kernels' pipelines and buffers (they hold it as scenes do).
+  std::shared_ptr<const Context> shared_context() const { return ctx_; }
 
   // For testing.cc.
   const Context& context() const { return *ctx_; }

@@ -412,6 +412,22 @@ absl::Status VulkanEngine::UpdateScene(const GaussianStore& store,
   return UploadParams(store, vscene);
 }
 
+absl::Status VulkanEngine::WriteSceneOnDevice(
+    DeviceScene* scene, const std::function<void(Recorder&, const VulkanScene&)>& record) {
+  auto* vscene = scene ? dynamic_cast<VulkanScene*>(scene) : nullptr;
+  if (vscene == nullptr || vscene->engine_id() != id_) {
+    return absl::InvalidArgumentError("vulkan: WriteSceneOnDevice: not a scene of this engine");
+  }
+  std::lock_guard<std::mutex> lock(mu_);
+  if (kept_.scene == vscene) kept_.scene = nullptr;  // the kept splats no longer match
+  if (absl::Status s = BeginFrameCommands(cmd_, *arena_); !s.ok()) return s;
+  Recorder rec(*ctx_, cmd_, arena_.get());
+  AttachProfiler(rec, profiler_.get());
+  record(rec, *vscene);
+  rec.Barrier();  // the next frame's projection reads what was written
+  return SubmitAndWait(rec, readback_);
+}
+
 absl::Status VulkanEngine::EnsureBackwardResources(const VulkanScene& scene, uint32_t pixels) {
   const Context& c = *ctx_;
   const VkDeviceSize n = scene.size();

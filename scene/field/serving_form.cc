@@ -81,39 +81,42 @@ int ServingForm::modelled_channels() const {
   return n;
 }
 
-double ServingForm::Tau(int64_t time_us) const {
-  if (time_range_.end_us <= time_range_.start_us) return 0;
-  const double tau = (static_cast<double>(time_us) - static_cast<double>(time_range_.start_us)) /
-                     (static_cast<double>(time_range_.end_us) - static_cast<double>(time_range_.start_us));
+double ServingForm::SplineAxis::Tau(int64_t time_us) const {
+  if (time_range.end_us <= time_range.start_us) return 0;
+  const double tau = (static_cast<double>(time_us) - static_cast<double>(time_range.start_us)) /
+                     (static_cast<double>(time_range.end_us) - static_cast<double>(time_range.start_us));
   return std::clamp(tau, 0.0, 1.0);
 }
 
-int ServingForm::Weights(double tau, float w[4]) const {
-  const int segments = control_points_ - degree_;
+ServingForm::Spline ServingForm::SplineAxis::AtTau(double tau) const {
+  Spline sp;
+  const int segments = control_points - degree;
   const double u = tau * segments;
   const int k = std::clamp(static_cast<int>(std::floor(u)), 0, segments - 1);
   const double s = u - k, s2 = s * s, s3 = s2 * s;
-  if (degree_ == 1) {
-    w[0] = static_cast<float>(1 - s);
-    w[1] = static_cast<float>(s);
-    w[2] = w[3] = 0;
-    return k;
+  sp.k = k;
+  sp.taps = degree + 1;
+  if (degree == 1) {
+    sp.w[0] = static_cast<float>(1 - s);
+    sp.w[1] = static_cast<float>(s);
+  } else {
+    // Uniform cubic B-spline.
+    sp.w[0] = static_cast<float>((1 - s) * (1 - s) * (1 - s) / 6);
+    sp.w[1] = static_cast<float>((3 * s3 - 6 * s2 + 4) / 6);
+    sp.w[2] = static_cast<float>((-3 * s3 + 3 * s2 + 3 * s + 1) / 6);
+    sp.w[3] = static_cast<float>(s3 / 6);
   }
-  // Uniform cubic B-spline.
-  w[0] = static_cast<float>((1 - s) * (1 - s) * (1 - s) / 6);
-  w[1] = static_cast<float>((3 * s3 - 6 * s2 + 4) / 6);
-  w[2] = static_cast<float>((-3 * s3 + 3 * s2 + 3 * s + 1) / 6);
-  w[3] = static_cast<float>(s3 / 6);
-  return k;
+  for (int j = 0; j < sp.taps; ++j) sp.line += sp.w[j] * static_cast<float>(k + j);
+  sp.line /= static_cast<float>(control_points - 1);
+  return sp;
 }
 
 void ServingForm::EvaluateInto(double tau, GaussianStore* out, ThreadPool& pool) const {
-  float w[4];
-  const int k = Weights(tau, w);
+  const Spline sp = spline_axis().AtTau(tau);
   if (degree_ == 1) {
-    tables_.Evaluate<2>(k, w, rows_.data(), out, pool);
+    tables_.Evaluate<2>(sp.k, sp.w, sp.line, rows_.data(), out, pool);
   } else {
-    tables_.Evaluate<4>(k, w, rows_.data(), out, pool);
+    tables_.Evaluate<4>(sp.k, sp.w, sp.line, rows_.data(), out, pool);
   }
 }
 
@@ -262,7 +265,9 @@ absl::StatusOr<std::unique_ptr<ServingForm>> ServingForm::Fit(ServedScene& exact
   Eigen::MatrixXd A = Eigen::MatrixXd::Zero(M, M);
   for (int s = 0; s < S; ++s) {
     fit_us[s] = time_at(static_cast<double>(s) / (S - 1));
-    fit_k[s] = f->Weights(f->Tau(fit_us[s]), fit_w[s].data());
+    const Spline sp = f->spline_axis().At(fit_us[s]);
+    fit_k[s] = sp.k;
+    std::copy_n(sp.w, 4, fit_w[s].data());
     for (int a = 0; a <= degree; ++a)
       for (int b = 0; b <= degree; ++b) A(fit_k[s] + a, fit_k[s] + b) += double(fit_w[s][a]) * fit_w[s][b];
   }

@@ -79,6 +79,24 @@ class ServingForm : public ServedScene {
 
   int control_points() const { return control_points_; }
   int degree() const { return degree_; }
+  // Where a time falls on the spline: its first control point k, the weights of the `taps`
+  // control points from k (w[taps..] are 0) and where they fall on the line between the end
+  // points (FormTables' position), as At evaluates it; the ends clamp.
+  struct Spline {
+    int k = 0, taps = 2;
+    float w[4] = {};
+    float line = 0;
+  };
+  struct SplineAxis {
+    FieldTimeRange time_range;
+    int degree = 1, control_points = 2;
+    double Tau(int64_t time_us) const;  // [0, 1] over the time range
+    Spline At(int64_t time_us) const { return AtTau(Tau(time_us)); }
+    Spline AtTau(double tau) const;
+  };
+  SplineAxis spline_axis() const { return {time_range_, degree_, control_points_}; }
+  const FormTables& tables() const { return tables_; }
+  const std::vector<uint32_t>& moving_rows() const { return rows_; }
   int segments() const { return control_points_ - degree_; }
   bool models(FormGroup g) const { return groups_ & (1u << static_cast<int>(g)); }
   const ServingFormError& error() const { return error_; }
@@ -93,12 +111,9 @@ class ServingForm : public ServedScene {
   friend class ServingFormCodec;  // serving_form_io.cc
   ServingForm() = default;
   int modelled_channels() const;  // channels of every modelled group but position
-  // Spline weights at normalised time tau in [0, 1]: the first control point and degree_ + 1
-  // weights (the rest of w is 0).
-  int Weights(double tau, float w[4]) const;
   // Writes the form at tau into `out` (only the moving rows' modelled channels).
   void EvaluateInto(double tau, GaussianStore* out, ThreadPool& pool) const;
-  double Tau(int64_t time_us) const;
+  double Tau(int64_t time_us) const { return spline_axis().Tau(time_us); }
   // Fit's last step: the form against `exact` halfway between the fit samples (error_,
   // position_error_m_).
   absl::Status Check(ServedScene& exact, const std::vector<int64_t>& fit_us, ThreadPool& pool);

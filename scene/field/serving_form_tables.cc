@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <bit>
 #include <cmath>
+#include <cstddef>
+#include <cstring>
 
 namespace streetsim::field {
 
@@ -218,12 +220,9 @@ FormTables FormTables::Quantise(const std::vector<float>& coef, size_t rows, int
 }
 
 template <int kTaps>
-void FormTables::Evaluate(int k, const float* w, const uint32_t* rows, GaussianStore* out, ThreadPool& pool) const {
+void FormTables::Evaluate(int k, const float* w, float line, const uint32_t* rows, GaussianStore* out,
+                          ThreadPool& pool) const {
   const int M = control_points_;
-  // Where on the line between the ends the taps fall.
-  float line = 0;
-  for (int j = 0; j < kTaps; ++j) line += w[j] * static_cast<float>(k + j);
-  line /= static_cast<float>(M - 1);
   struct Run {
     GroupSpan<float> span;
     int count;
@@ -298,7 +297,63 @@ void FormTables::Evaluate(int k, const float* w, const uint32_t* rows, GaussianS
   });
 }
 
-template void FormTables::Evaluate<2>(int, const float*, const uint32_t*, GaussianStore*, ThreadPool&) const;
-template void FormTables::Evaluate<4>(int, const float*, const uint32_t*, GaussianStore*, ThreadPool&) const;
+FormTables::RecordLayout FormTables::MakeRecordLayout() const {
+  RecordLayout l;
+  const uint32_t M = static_cast<uint32_t>(control_points_);
+  auto words_of_bytes = [](uint32_t bytes) { return (bytes + 3) / 4; };
+  uint32_t w = 1;  // the row index
+  l.ends = w, w += 6;
+  l.position_step = w, w += words_of_bytes(3 * 2);
+  l.q_position = w, w += words_of_bytes(M * 3);
+  for (const Block& b : blocks_) {
+    RecordLayout::Block d;
+    d.groups = b.groups;
+    d.channels = static_cast<uint32_t>(b.channels);
+    d.rank = static_cast<uint32_t>(b.rank);
+    d.group_count = static_cast<uint32_t>(b.group_count());
+    d.base_offset = w, w += d.group_count;
+    d.base_step = w, w += words_of_bytes(d.group_count * 2);
+    d.scale = w, w += words_of_bytes(d.rank * 2);
+    d.q_base = w, w += words_of_bytes(d.channels);
+    d.q_u = w, w += words_of_bytes(d.rank * M);
+    d.q_v = w, w += words_of_bytes(d.rank * d.channels);
+    l.blocks.push_back(d);
+  }
+  l.record_words = w;
+  return l;
+}
+
+static_assert(std::endian::native == std::endian::little, "FormTables::PackRecords copies bytes");
+
+void FormTables::PackRecords(const RecordLayout& l, const uint32_t* rows, size_t begin, size_t end,
+                             uint32_t* out) const {
+  const size_t M = static_cast<size_t>(control_points_);
+  std::fill(out, out + (end - begin) * l.record_words, 0u);
+  for (size_t r = begin; r < end; ++r) {
+    uint32_t* rec = out + (r - begin) * l.record_words;
+    // On a little-endian host a byte copy packs the low element first, as the kernel reads.
+    auto put = [rec](uint32_t word, const void* src, size_t bytes) {
+      std::memcpy(reinterpret_cast<std::byte*>(rec + word), src, bytes);
+    };
+    rec[0] = rows[r];
+    put(l.ends, &position_ends_[r * 6], 6 * sizeof(float));
+    put(l.position_step, &position_step_[r * 3], 3 * sizeof(uint16_t));
+    put(l.q_position, &q_position_[r * M * 3], M * 3);
+    for (size_t bi = 0; bi < blocks_.size(); ++bi) {
+      const Block& b = blocks_[bi];
+      const RecordLayout::Block& d = l.blocks[bi];
+      const size_t G = d.group_count, R = d.rank, n = d.channels;
+      put(d.base_offset, &b.base_offset[r * G], G * sizeof(float));
+      put(d.base_step, &b.base_step[r * G], G * sizeof(uint16_t));
+      put(d.scale, &b.scale[r * R], R * sizeof(uint16_t));
+      put(d.q_base, &b.q_base[r * n], n);
+      put(d.q_u, &b.q_u[r * R * M], R * M);
+      put(d.q_v, &b.q_v[r * R * n], R * n);
+    }
+  }
+}
+
+template void FormTables::Evaluate<2>(int, const float*, float, const uint32_t*, GaussianStore*, ThreadPool&) const;
+template void FormTables::Evaluate<4>(int, const float*, float, const uint32_t*, GaussianStore*, ThreadPool&) const;
 
 }  // namespace streetsim::field

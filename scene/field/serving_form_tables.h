@@ -63,13 +63,33 @@ class FormTables {
                              int appearance_rank, ThreadPool& pool);
 
   // Writes the rows' modelled channels (row r of the tables is Gaussian rows[r] of `out`) at the
-  // spline's weights w[0..kTaps) of the control points k, k + 1, ...
+  // spline's weights w[0..kTaps) of the control points k, k + 1, ..., which fall at `line` on
+  // the line between the first and the last control point (ServingForm::Spline).
   template <int kTaps>
-  void Evaluate(int k, const float* w, const uint32_t* rows, GaussianStore* out, ThreadPool& pool) const;
+  void Evaluate(int k, const float* w, float line, const uint32_t* rows, GaussianStore* out, ThreadPool& pool) const;
 
   size_t rows() const { return rows_; }
+  int control_points() const { return control_points_; }
   int appearance_rank() const;  // 0 when the appearance is not modelled
   size_t bytes() const;         // host bytes of every table
+
+  // The tables as fixed-size records of 32-bit words, one per moving Gaussian, for a device
+  // kernel (render/vulkan/field/shaders/serving_form.comp reads this layout): record r holds
+  // Gaussian rows[r]'s index, then row r's slice of every table above, each slice starting on a
+  // word (floats as floats, bfloat16 two to a word, int8 four to a word, little end first). One
+  // record per row keeps a row's reads together and lets the rows split into buffers anywhere.
+  struct RecordLayout {
+    uint32_t record_words = 0;
+    uint32_t ends = 0, position_step = 0, q_position = 0;  // word offsets in a record (row index: 0)
+    struct Block {
+      uint32_t groups = 0, channels = 0, rank = 0, group_count = 0;
+      uint32_t base_offset = 0, base_step = 0, scale = 0, q_base = 0, q_u = 0, q_v = 0;  // word offsets
+    };
+    std::vector<Block> blocks;
+  };
+  RecordLayout MakeRecordLayout() const;
+  // Records [begin, end) of `layout` (MakeRecordLayout's) into out ((end - begin) * record_words).
+  void PackRecords(const RecordLayout& layout, const uint32_t* rows, size_t begin, size_t end, uint32_t* out) const;
 
  private:
   friend class ServingFormCodec;  // serving_form_io.cc

@@ -128,6 +128,19 @@ class ServedScene {
   std::string device_ = "cpu";
 };
 
+// A served scene written straight into a render engine's copy of it by the engine's own device
+// (the serving form's kernel on a Vulkan engine: render/vulkan/field/vulkan_serving.h
+// DeviceWriterFor), so that a new time moves nothing across the bus. The host's ServedScene::At
+// stays what the LiDAR renders.
+class DeviceSceneWriter {
+ public:
+  virtual ~DeviceSceneWriter() = default;
+  // Writes the scene at `time_us` (clamped as At clamps) into `scene`: the engine's copy of the
+  // same Gaussians at any earlier time (only what changes over time is written).
+  virtual absl::Status WriteAt(int64_t time_us, DeviceScene* scene) = 0;
+  virtual std::string device() const = 0;  // where it runs, as ServedScene::device()
+};
+
 // Cells of a field's time grid over the log's range: time_resolution - 1 with the full time range,
 // half of that with S3Gaussian's [0, 1] mapping (only the upper half of the axis is used).
 inline int TimeCells(const FieldConfig& c) {

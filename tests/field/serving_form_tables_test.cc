@@ -30,7 +30,8 @@ GaussianStore At(const FormTables& t, int m, size_t rows, ThreadPool& pool) {
   // The last control point is the second tap of the last segment.
   const bool last = m == kM - 1;
   const float w[2] = {last ? 0.0f : 1.0f, last ? 1.0f : 0.0f};
-  t.Evaluate<2>(last ? m - 1 : m, w, index.data(), &g, pool);
+  const float line = static_cast<float>(m) / (kM - 1);  // w[0] * k + w[1] * (k + 1) over M - 1
+  t.Evaluate<2>(last ? m - 1 : m, w, line, index.data(), &g, pool);
   return g;
 }
 

@@ -288,20 +288,37 @@ class FieldDeviceServerTest : public ServerTest {
     std::ofstream(dir + "/scene.json") << kRig;
   }
 
-  // A second server forced to `device`, and its client.
-  void StartOther(train::FieldDevice device) {
-    server::ServerOptions o = TestOptions(data_root_, state_dir_ + "/other");
+  struct Running {
+    std::unique_ptr<server::Server> server;
+    std::unique_ptr<client::Client> client;
+  };
+  // A server with the field on `device` (the exact field unless `form`) and the engine on
+  // `backend`, its state in `state`, and its client.
+  Running Start(train::FieldDevice device, const std::string& state, Backend backend = Backend::kCpu,
+                bool form = false) {
+    server::ServerOptions o = TestOptions(data_root_, state_dir_ + "/" + state);
     o.field_device = device;
-    o.exact_field = true;
+    o.exact_field = !form;
+    o.backend = backend;
+    Running r;
     absl::StatusOr<std::unique_ptr<server::Server>> s = server::Server::Start(o);
-    ASSERT_TRUE(s.ok()) << s.status();
-    other_server_ = std::move(*s);
+    EXPECT_TRUE(s.ok()) << s.status();
+    if (!s.ok()) return r;
+    r.server = std::move(*s);
     client::ClientOptions co;
-    co.target = other_server_->address();
+    co.target = r.server->address();
     co.timeout_s = 60;
     absl::StatusOr<std::unique_ptr<client::Client>> c = client::Client::Connect(co);
-    ASSERT_TRUE(c.ok()) << c.status();
-    other_ = std::move(*c);
+    EXPECT_TRUE(c.ok()) << c.status();
+    if (c.ok()) r.client = std::move(*c);
+    return r;
+  }
+  // A second server forced to `device`, and its client.
+  void StartOther(train::FieldDevice device) {
+    Running r = Start(device, "other");
+    ASSERT_TRUE(r.client);
+    other_server_ = std::move(r.server);
+    other_ = std::move(r.client);
   }
 
   void TearDown() override {
@@ -414,6 +431,46 @@ TEST_F(FieldDeviceServerTest, ForcedVulkanServesTheCpuRendersWithinRounding) {
     // --field-device auto with the cpu engine: the cpu.
     EXPECT_EQ(FieldDevice(*client_, scene), "cpu") << scene;
   }
+}
+
+// The serving form on a Vulkan engine with --field-device vulkan: its compute kernel writes the
+// engine's copy of the scene at each new time (GetScene's field_device "vulkan"), and the renders
+// equal those of the same form (one field.serving cache) evaluated on the host and uploaded
+// (--field-device cpu, the same engine) within the rounding bounds above: the kernel's
+// multiply-adds may fuse where the host's do not.
+TEST_F(FieldDeviceServerTest, TheFormsKernelOnAVulkanEngineServesTheHostFormsRenders) {
+  if (!HaveVulkan()) GTEST_SKIP() << "no Vulkan device";
+  Running host = Start(train::FieldDevice::kCpu, "form_host", Backend::kVulkan, /*form=*/true);
+  Running kernel = Start(train::FieldDevice::kVulkan, "form_kernel", Backend::kVulkan, /*form=*/true);
+  ASSERT_TRUE(host.client && kernel.client);
+  ASSERT_TRUE(host.client->LoadScene("dyn", true).ok());
+  ASSERT_TRUE(kernel.client->LoadScene("dyn", true).ok());
+  std::string previous;
+  for (int64_t t : {kTimesUs[1], kTimesUs[0], kTimesUs[2], kTimesUs[2], kTimesUs[3], kLogEndUs + 500'000}) {
+    const v1::RenderResponse a = Render(*kernel.client, "dyn", t);
+    const v1::RenderResponse b = Render(*host.client, "dyn", t);
+    if (a.frames_size() != 1 || b.frames_size() != 1) continue;
+    const std::string tag = "t=" + std::to_string(t);
+    const ByteDiff rgb = CompareRgb(a.frames(0).rgb().data(), b.frames(0).rgb().data());
+    EXPECT_LE(rgb.max, 2) << tag;
+    EXPECT_LT(rgb.fraction, 0.01) << tag;
+    const DepthDiff depth = CompareDepth(a.frames(0).depth().data(), b.frames(0).depth().data());
+    EXPECT_LT(depth.max, 1e-2) << tag;
+    EXPECT_LT(depth.fraction, 0.01) << tag;
+    std::printf("%s: RGB max %d levels (%.4f %% of bytes), depth max %.2e\n", tag.c_str(), rgb.max,
+                100 * rgb.fraction, depth.max);
+    if (!previous.empty() && t != kTimesUs[2] && t != kLogEndUs + 500'000) {
+      EXPECT_GT(CompareRgb(previous, a.frames(0).rgb().data()).max, 5) << tag << ": no motion";
+    }
+    previous = a.frames(0).rgb().data();
+  }
+  absl::StatusOr<v1::Scene> k = kernel.client->GetScene("dyn");
+  absl::StatusOr<v1::Scene> h = host.client->GetScene("dyn");
+  ASSERT_TRUE(k.ok() && h.ok());
+  EXPECT_EQ(k->field_device(), "vulkan") << "the kernel failed or was not used";
+  EXPECT_EQ(h->field_device(), "cpu");
+  EXPECT_EQ(k->field_serving(), "form");
+  EXPECT_EQ(h->field_serving(), "form");
 }
 
 // No Vulkan device for the field (STREETSIM_VK_DEVICE naming none: Vulkan's own "no such device"

@@ -4,6 +4,8 @@
 
 #include "render/common/log.h"
 #include "render/vulkan/field/ext/vulkan_extended_field.h"
+#include "render/vulkan/field/vulkan_serving_form.h"
+#include "scene/field/serving_form.h"
 
 namespace streetsim::field {
 
@@ -45,6 +47,18 @@ ExtServingField::Device VulkanExtFieldForward(const VulkanFieldOptions& options)
             if (absl::Status s = EnsureCreated(device, field, options); !s.ok()) return s;
             return (*device)->Forward(pass, in, out);
           }};
+}
+
+absl::StatusOr<std::unique_ptr<DeviceSceneWriter>> DeviceWriterFor(Engine& engine, const ServedScene& served) {
+  const auto* form = dynamic_cast<const ServingForm*>(&served);
+  if (form == nullptr || engine.backend() != Backend::kVulkan || form->num_dynamic() == 0) {
+    return std::unique_ptr<DeviceSceneWriter>();
+  }
+  absl::StatusOr<std::unique_ptr<VulkanServingForm>> w = VulkanServingForm::Create(engine, *form);
+  if (!w.ok()) return w.status();
+  LOG(INFO) << "serving form: evaluated on the engine's device (" << (*w)->device_description() << "), "
+            << (*w)->device_bytes() / 1e6 << " MB of tables";
+  return std::unique_ptr<DeviceSceneWriter>(std::move(*w));
 }
 
 void ServeOnVulkan(ServingField& scene, const VulkanFieldOptions& options) {

@@ -11,6 +11,7 @@
 
 #include "scene/field/extended/extended_serving.h"
 #include "scene/field/static_skip.h"
+#include "render/engine.h"
 #include "render/vulkan/field/vulkan_field.h"
 
 namespace streetsim::field {
@@ -21,6 +22,11 @@ inline constexpr char kVulkanServingDevice[] = "vulkan";  // ServedScene::device
 // there too). VulkanFieldOptions::device picks the device (kGpu: a GPU, else lavapipe).
 ServingField::Device VulkanFieldForward(const VulkanFieldOptions& options = {});
 ExtServingField::Device VulkanExtFieldForward(const VulkanFieldOptions& options = {});
+
+// The served scene written by `engine`'s own device where it can be: a serving form on a Vulkan
+// engine (VulkanServingForm, its tables uploaded now); nullptr otherwise (the host evaluates and
+// the engine uploads what changed). Errors are the device's (creation, upload).
+absl::StatusOr<std::unique_ptr<DeviceSceneWriter>> DeviceWriterFor(Engine& engine, const ServedScene& served);
 
 // The same hooks on a scene already created (its analysis stays as it was made).
 void ServeOnVulkan(ServingField& scene, const VulkanFieldOptions& options = {});
