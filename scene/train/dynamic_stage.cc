@@ -307,7 +307,7 @@ absl::StatusOr<GaussianParamsView> DynamicStage::DeformBase(const TrainState& st
                                                             ThreadPool& pool) {
   field::CanonicalView c{st.size(), st.params.means.data(), st.params.sh.data()};
   if (use_vulkan_ && !vk_) {  // here, after Begin/Resume/prior have set the parameters
-    absl::StatusOr<std::unique_ptr<field::VulkanField>> vk = field::VulkanField::Create(field_);
+    absl::StatusOr<std::unique_ptr<field::VulkanFieldDevice>> vk = field::VulkanFieldDevice::Create(field_);
     if (!vk.ok()) return vk.status();
     vk_ = std::move(*vk);
     optimizer_on_device_ = optimizer_place_ == FieldOptimizerPlace::kDevice ||
@@ -315,7 +315,8 @@ absl::StatusOr<GaussianParamsView> DynamicStage::DeformBase(const TrainState& st
     // A resumed Adam continues from its moments; a fresh one starts at 0 there. A device without
     // room for the moments keeps the host optimiser unless the device one was asked for.
     if (optimizer_on_device_) {
-      const absl::Status s = adam_.step > 0 ? vk_->SetAdamMoments(adam_.m, adam_.v) : vk_->PrepareOptimizer();
+      const absl::Status s =
+          adam_.step > 0 ? vk_->base()->SetAdamMoments(adam_.m, adam_.v) : vk_->base()->PrepareOptimizer();
       if (!s.ok() && optimizer_place_ == FieldOptimizerPlace::kDevice) return s;
       if (!s.ok()) {
         LOG(WARNING) << "fine stage: the field's optimiser stays on the host (" << s << ")";
@@ -327,7 +328,7 @@ absl::StatusOr<GaussianParamsView> DynamicStage::DeformBase(const TrainState& st
               << (optimizer_on_device_ ? ", its regularisers and Adam too" : "");
   }
   const absl::Status deformed =
-      vk_ ? field::VulkanDeformScene(*vk_, field_, field_.TimeCoordinate(time_us), c, pool, &deformed_)
+      vk_ ? field::VulkanDeformScene(*vk_->base(), field_, field_.TimeCoordinate(time_us), c, pool, &deformed_)
           : field::DeformScene(field_, field_.TimeCoordinate(time_us), c, pool, *ws_, &deformed_);
   if (!deformed.ok()) return deformed;
   // Colour direction: the engine takes it from the means it renders, i.e. the deformed ones
@@ -349,7 +350,7 @@ absl::StatusOr<double> DynamicStage::Backward(const TrainState& st, int active_d
     d_field_.assign(field_.layout().total, 0.0f);
   }
   absl::StatusOr<field::DeformLosses> dl =
-      vk_ ? field::VulkanDeformBackward(*vk_, field_, c, deformed_, active_degree, hyper_, pool, grads, &d_field_,
+      vk_ ? field::VulkanDeformBackward(*vk_->base(), field_, c, deformed_, active_degree, hyper_, pool, grads, &d_field_,
                                         &vk_scratch_)
           : field::DeformBackward(field_, c, deformed_, active_degree, hyper_, pool, *ws_, grads, &d_field_);
   if (!dl.ok()) return dl.status();
@@ -369,13 +370,14 @@ absl::StatusOr<double> DynamicStage::BackwardOnDevice(const TrainState& st, int 
                                                       int64_t fine_iteration, GaussianGrads* grads, ThreadPool& pool) {
   field::CanonicalView c{st.size(), st.params.means.data(), st.params.sh.data()};
   auto t0 = Clock::now();
-  absl::StatusOr<field::DeformLosses> dl = field::VulkanDeformBackward(*vk_, field_, c, deformed_, active_degree,
-                                                                       hyper_, pool, grads, nullptr, &vk_scratch_);
+  absl::StatusOr<field::DeformLosses> dl = field::VulkanDeformBackward(*vk_->base(), field_, c, deformed_,
+                                                                       active_degree, hyper_, pool, grads, nullptr,
+                                                                       &vk_scratch_);
   if (!dl.ok()) return dl.status();
   timings_.backward_ms += MsSince(t0);
   t0 = Clock::now();
   // adam_.step counts as FieldAdamStep's does (its moments live on the device until SyncHost).
-  absl::StatusOr<field::RegularizerLosses> reg = vk_->RegularizeAndStep(
+  absl::StatusOr<field::RegularizerLosses> reg = vk_->base()->RegularizeAndStep(
       PlaneRegularizerWeights(hyper_), field::FieldLearningRates(hyper_, fine_iteration, st.extent), adam_.step + 1);
   if (!reg.ok()) return reg.status();
   ++adam_.step;
@@ -387,10 +389,10 @@ absl::StatusOr<double> DynamicStage::BackwardOnDevice(const TrainState& st, int 
 absl::Status DynamicStage::SyncHost() {
   if (!host_stale_) return absl::OkStatus();
   const size_t total = field_.layout().total;
-  if (absl::Status s = vk_->ReadParams(field_.mutable_params()); !s.ok()) return s;
+  if (absl::Status s = vk_->base()->ReadParams(field_.mutable_params()); !s.ok()) return s;
   adam_.m.resize(total);
   adam_.v.resize(total);
-  if (absl::Status s = vk_->ReadAdamMoments(adam_.m, adam_.v); !s.ok()) return s;
+  if (absl::Status s = vk_->base()->ReadAdamMoments(adam_.m, adam_.v); !s.ok()) return s;
   host_stale_ = false;
   return absl::OkStatus();
 }
@@ -509,19 +511,12 @@ absl::StatusOr<GaussianParamsView> DynamicStage::DeformExtended(const TrainState
   const field::ExtCanonicalView c{st.size(), st.params.means.data(), st.params.sh.data(),
                                   st.params.log_scales.data(), st.params.rotations.data(),
                                   st.params.opacity_logits.data()};
-  if (use_vulkan_ && !vk_ext_) {  // here, after Begin/Resume/prior have set the parameters
-    absl::StatusOr<std::unique_ptr<field::VulkanExtendedField>> vk = field::VulkanExtendedField::Create(*ext_);
+  if (use_vulkan_ && !vk_) {  // here, after Begin/Resume/prior have set the parameters
+    absl::StatusOr<std::unique_ptr<field::VulkanFieldDevice>> vk = field::VulkanFieldDevice::Create(*ext_);
     if (!vk.ok()) return vk.status();
-    vk_ext_ = std::move(*vk);
-    field::VulkanExtendedField* f = vk_ext_.get();
-    ext_eval_.forward = [f](const field::ExtPass& p, const field::ExtInputs<float>& in,
-                            const field::ExtOutputs<float>& out) { return f->Forward(p, in, out); };
-    ext_eval_.backward = [f](const field::ExtPass& p, const field::ExtInputs<float>& in,
-                             const field::ExtOutputGrads<float>& d_out, double kl_weight,
-                             const field::ExtInputGrads<float>& grads) {
-      return f->Backward(p, in, d_out, kl_weight, grads);
-    };
-    LOG(INFO) << "fine stage: the extended field runs on Vulkan (" << vk_ext_->device_description() << ")";
+    vk_ = std::move(*vk);
+    ext_eval_ = vk_->ext_evaluator();
+    LOG(INFO) << "fine stage: the extended field runs on Vulkan (" << vk_->device_description() << ")";
   }
   if (absl::Status s = field::DeformSceneExt(*ext_, pass, c, pool, *ext_ws_, &ext_deformed_, ext_eval_); !s.ok()) {
     return s;
@@ -565,9 +560,9 @@ absl::StatusOr<double> DynamicStage::BackwardExtended(const TrainState& st, int 
   field::ExtAdamStep(ext_->mutable_params().data(), d_ext_.data(), d_ext_.size(), &ext_adam_,
                      field::ExtNetworkLr(ext_hyper_, fine_iteration));
   timings_.adam_ms += MsSince(t0);
-  if (vk_ext_) {
+  if (vk_) {
     t0 = Clock::now();
-    if (absl::Status s = vk_ext_->UpdateParams(base.params(), ext_->params()); !s.ok()) return s;
+    if (absl::Status s = vk_->UpdateParams(base.params(), ext_->params()); !s.ok()) return s;
     timings_.upload_ms += MsSince(t0);
   }
   return dl->weighted + *reg;

@@ -21,8 +21,7 @@
 #include "scene/field/deformed_scene.h"
 #include "scene/field/extended/extended_deform.h"
 #include "scene/field/field_adam.h"
-#include "render/vulkan/field/vulkan_field.h"
-#include "render/vulkan/field/ext/vulkan_extended_field.h"
+#include "render/vulkan/field/vulkan_field_device.h"
 #include "scene/gaussians/gaussian_store.h"
 #include "scene/train/dataset.h"
 #include "scene/train/train_state.h"
@@ -79,8 +78,8 @@ struct FieldOptions {
   // Where S3Gaussian's field runs in the fine stage (docs/field.md "Vulkan field"): kAuto takes
   // the Vulkan field when the trainer's backend is vulkan and a Vulkan GPU exists (on lavapipe it
   // is 20-40x slower than the cpu field; ResolveFieldDevice); kVulkan forces it (any Vulkan
-  // device). The same holds for --field extended (VulkanExtendedField; docs/field.md "Extended
-  // field on Vulkan").
+  // device). The same holds for --field extended (field::VulkanFieldDevice makes the kernels of
+  // either field; docs/field.md "Extended field on Vulkan").
   FieldDevice device = FieldDevice::kAuto;
   // With S3Gaussian's field on Vulkan, where its plane regularisers and Adam run. kDevice: there
   // too (VulkanField::RegularizeAndStep, the host's formulas), so that the gradient and the
@@ -171,10 +170,11 @@ class DynamicStage {
   std::unique_ptr<field::FieldWorkspace> ws_;
   field::DeformedScene deformed_;
   std::vector<float> d_field_;
-  // The Vulkan field (FieldOptions::device), created at the first Deform from field_'s
-  // parameters and re-uploaded after every Adam step.
+  // The field on Vulkan (FieldOptions::device; S3Gaussian's or the extended one, as the server's
+  // served scenes have it), created at the first Deform from the field's parameters and
+  // re-uploaded after every Adam step on the host.
   bool use_vulkan_ = false;
-  std::unique_ptr<field::VulkanField> vk_;
+  std::unique_ptr<field::VulkanFieldDevice> vk_;
   FieldOptimizerPlace optimizer_place_;  // FieldOptions::optimizer
   bool optimizer_on_device_ = false;     // what it resolved to for vk_
   bool host_stale_ = false;           // vk_ holds newer parameters / moments than field_ / adam_
@@ -191,9 +191,7 @@ class DynamicStage {
   absl::StatusOr<double> BackwardExtended(const TrainState& st, int active_degree, int64_t fine_iteration,
                                           GaussianGrads* grads, ThreadPool& pool);
   std::unique_ptr<field::ExtendedField> ext_;
-  // The extended field on Vulkan (use_vulkan_), made at the first fine Deform like vk_.
-  std::unique_ptr<field::VulkanExtendedField> vk_ext_;
-  field::ExtEvaluator ext_eval_;  // vk_ext_'s Forward / Backward (empty: the cpu)
+  field::ExtEvaluator ext_eval_;  // vk_'s forward / backward of the extended field (empty: the cpu)
   field::ExtAdamState ext_adam_;
   field::ExtHyper ext_hyper_;
   std::unique_ptr<field::ExtWorkspace> ext_ws_;

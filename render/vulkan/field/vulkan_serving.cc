@@ -3,7 +3,7 @@
 #include <memory>
 
 #include "render/common/log.h"
-#include "render/vulkan/field/ext/vulkan_extended_field.h"
+#include "render/vulkan/field/vulkan_field_device.h"
 #include "render/vulkan/field/vulkan_serving_form.h"
 #include "scene/field/serving_form.h"
 
@@ -11,16 +11,14 @@ namespace streetsim::field {
 
 namespace {
 
-// The device field behind a scene's hook: std::function wants a copyable callable, the field is
-// created on the first call.
-template <typename DeviceField>
-using LazyDevice = std::shared_ptr<std::unique_ptr<DeviceField>>;
+// The device field behind a scene's hook (VulkanFieldDevice, as the trainer uses it):
+// std::function wants a copyable callable, the field is created on the first call.
+using LazyDevice = std::shared_ptr<std::unique_ptr<VulkanFieldDevice>>;
 
-template <typename DeviceField, typename Source>
-absl::Status EnsureCreated(const LazyDevice<DeviceField>& device, const Source& field,
-                           const VulkanFieldOptions& options) {
+template <typename Source>
+absl::Status EnsureCreated(const LazyDevice& device, const Source& field, const VulkanFieldOptions& options) {
   if (*device) return absl::OkStatus();
-  absl::StatusOr<std::unique_ptr<DeviceField>> created = DeviceField::Create(field, options);
+  absl::StatusOr<std::unique_ptr<VulkanFieldDevice>> created = VulkanFieldDevice::Create(field, options);
   if (!created.ok()) return created.status();
   *device = std::move(*created);
   LOG(INFO) << "serving the field on Vulkan (" << (*device)->device_description() << ")";
@@ -30,7 +28,7 @@ absl::Status EnsureCreated(const LazyDevice<DeviceField>& device, const Source& 
 }  // namespace
 
 ServingField::Device VulkanFieldForward(const VulkanFieldOptions& options) {
-  auto device = std::make_shared<std::unique_ptr<VulkanField>>();
+  auto device = std::make_shared<std::unique_ptr<VulkanFieldDevice>>();
   return {kVulkanServingDevice,
           [device, options](const DeformationField& field, const FieldQuery& query, std::span<const float> means,
                             std::vector<float>* dx, std::vector<float>* dsh) -> absl::Status {
@@ -40,12 +38,12 @@ ServingField::Device VulkanFieldForward(const VulkanFieldOptions& options) {
 }
 
 ExtServingField::Device VulkanExtFieldForward(const VulkanFieldOptions& options) {
-  auto device = std::make_shared<std::unique_ptr<VulkanExtendedField>>();
+  auto device = std::make_shared<std::unique_ptr<VulkanFieldDevice>>();
   return {kVulkanServingDevice,
           [device, options](const ExtendedField& field, const ExtPass& pass, const ExtInputs<float>& in,
                             const ExtOutputs<float>& out) -> absl::StatusOr<double> {
             if (absl::Status s = EnsureCreated(device, field, options); !s.ok()) return s;
-            return (*device)->Forward(pass, in, out);
+            return (*device)->ForwardExt(pass, in, out);
           }};
 }
 

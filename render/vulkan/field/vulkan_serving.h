@@ -1,7 +1,6 @@
 // The served scenes' field on a Vulkan device (the server's --field-device, docs/server.md
-// "Field device"): ServingField (S3Gaussian's field, VulkanField) and ExtServingField (the
-// extended field, VulkanExtendedField, inference z = μ) evaluate their dynamic Gaussians on the
-// device; the static skip, the baked Gaussians and the deformed store on the host are unchanged.
+// "Field device"): ServingField (S3Gaussian's field) and ExtServingField (the extended field,
+// inference z = μ) evaluate their dynamic Gaussians on a VulkanFieldDevice (the trainer's too); the static skip, the baked Gaussians and the deformed store on the host are unchanged.
 //
 // The device field is created on the scene's first evaluation with a dynamic Gaussian (a scene
 // whose Gaussians are all static never touches the device), is owned by the scene and released

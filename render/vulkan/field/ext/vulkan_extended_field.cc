@@ -412,6 +412,7 @@ absl::StatusOr<double> VulkanExtendedField::Backward(const ExtPass& pass, const 
 }
 
 std::string VulkanExtendedField::device_description() const { return impl_->ctx->description(); }
+bool VulkanExtendedField::is_cpu_device() const { return impl_->ctx->is_cpu(); }
 bool VulkanExtendedField::uses_float_atomics() const { return impl_->sampler->uses_float_atomics(); }
 int VulkanExtendedField::plane_buffers() const { return impl_->sampler->plane_buffers(); }
 size_t VulkanExtendedField::batch_rows() const { return impl_->batch; }

@@ -59,6 +59,7 @@ class VulkanExtendedField {
                                   double kl_weight, const ExtInputGrads<float>& grads);
 
   std::string device_description() const;
+  bool is_cpu_device() const;  // a CPU implementation of Vulkan (lavapipe)
   bool uses_float_atomics() const;
   int plane_buffers() const;
   size_t batch_rows() const;  // after the device's limits
