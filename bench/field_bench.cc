@@ -16,7 +16,9 @@
 //               [--train-ply SCENE.ply]
 //   --serve-vulkan adds serving rows with the field on Vulkan (the server's --field-device vulkan,
 //   render/vulkan/field/vulkan_serving.h; a GPU when there is one, else lavapipe, which is slower
-//   than the cpu for the field). Their first (warm-up) timestamp creates the device field.
+//   than the cpu for the field; their first (warm-up) timestamp creates the device field), and the
+//   serving form's kernel on a Vulkan engine (row "form kernel": --backend vulkan, the form
+//   written into the engine's scene, against the host form plus a whole-scene upload).
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -34,6 +36,9 @@
 #include "scene/field/extended/extended_serving.h"
 #include "scene/field/field_regularizers.h"
 #include "scene/field/serving_form.h"
+#include "render/params_view.h"
+#include "render/vulkan/field/vulkan_serving_form.h"
+#include "render/vulkan/vulkan_engine.h"
 #include "scene/field/spatial_order.h"
 #include "scene/field/static_skip.h"
 #include "scene/gaussians/ply_io.h"
@@ -118,6 +123,44 @@ void TimeServe(size_t n, const std::string& name, field::ServedScene& sf, double
               cpu / repeats);
 }
 
+// The serving form on a Vulkan engine (the server's --backend vulkan --field-device vulkan): its
+// compute kernel writing a new time into the engine's scene, against the host form's evaluation
+// plus the engine's upload of the whole scene (what the server did before the kernel). Wall time
+// per timestamp, each call waits for the device.
+void TimeFormOnVulkanEngine(size_t n, ServingForm& form, int repeats, ThreadPool& pool) {
+  absl::StatusOr<std::unique_ptr<Engine>> engine = CreateVulkanEngine(VulkanDevicePreference::kGpu);
+  if (!engine.ok()) {
+    std::printf("      (no Vulkan engine: %s)\n", std::string(engine.status().message()).c_str());
+    return;
+  }
+  absl::StatusOr<const GaussianStore*> first = form.At(0, pool);
+  if (!first.ok()) std::exit(1);
+  absl::StatusOr<std::unique_ptr<DeviceScene>> scene = (*engine)->Upload(**first);
+  const auto t0 = Clock::now();
+  absl::StatusOr<std::unique_ptr<VulkanServingForm>> kernel = VulkanServingForm::Create(**engine, form);
+  const double setup_ms = Ms(t0);
+  if (!scene.ok() || !kernel.ok()) {
+    std::printf("      (the form's kernel failed: %s)\n",
+                std::string((scene.ok() ? kernel.status() : scene.status()).message()).c_str());
+    return;
+  }
+  double kernel_ms = 0, host_ms = 0;
+  for (int r = 0; r <= repeats; ++r) {
+    const int64_t t = 100'000 * (r + 1) + 50'000;
+    auto t1 = Clock::now();
+    if (!(*kernel)->WriteAt(t, scene->get()).ok()) std::exit(1);
+    if (r > 0) kernel_ms += Ms(t1);
+    t1 = Clock::now();
+    absl::StatusOr<const GaussianStore*> s = form.At(t + 25'000, pool);
+    if (!s.ok() || !(*engine)->UpdateSceneParams(ParamsViewOf(**s), &*scene).ok()) std::exit(1);
+    if (r > 0) host_ms += Ms(t1);
+  }
+  std::printf("serve %8zu %-13s on %s: %zu MB of tables (%.0f ms to upload); per timestamp %7.2f ms wall "
+              "(host form + whole-scene upload: %7.2f ms)\n",
+              n, "form kernel", (*kernel)->device_description().c_str(), (*kernel)->device_bytes() >> 20, setup_ms,
+              kernel_ms / repeats, host_ms / repeats);
+}
+
 // The extended field on `base` with `modules`, the modules let in: the gate at 0.1 and the
 // decoder's last layers Xavier x 0.1 (at init both are 0 and the extension changes nothing).
 ExtendedField BenchExtension(const DeformationField& base, const std::string& modules) {
@@ -186,6 +229,7 @@ void BenchServe(size_t n, int repeats, int samples, double dyn_fraction, bool or
       std::printf("      form: %zu table bytes per moving Gaussian, p99 / max position error %.2f / %.2f mm\n",
                   (*form)->table_bytes() / std::max<size_t>(1, (*form)->num_dynamic()),
                   (*form)->error().position_p99_m * 1e3, (*form)->error().max[0] * 1e3);
+      if (vulkan) TimeFormOnVulkanEngine(n, **form, repeats, pool);
     }
   }
   // The extended field (ExtServingField: no spatial-feature cache, ExtendedForward per timestamp).

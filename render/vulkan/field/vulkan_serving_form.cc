@@ -23,6 +23,7 @@ struct FormPush {
   uint32_t rows, record_words, k, taps;
   float w[4];
   float line;
+  uint32_t s3_rank1;  // serving_form.comp's fast path
 };
 
 }  // namespace
@@ -36,6 +37,7 @@ struct VulkanServingForm::Impl {
   std::vector<vk::Buffer> tables;
   std::vector<uint32_t> table_rows;  // records per buffer
   uint32_t record_words = 0;
+  bool s3_rank1 = false;
   size_t bytes = 0;
   // The spline's time axis, copied so that the form need not outlive this.
   ServingForm::SplineAxis axis;
@@ -58,6 +60,9 @@ absl::StatusOr<std::unique_ptr<VulkanServingForm>> VulkanServingForm::Create(Eng
   const FormTables& t = form.tables();
   const FormTables::RecordLayout layout = t.MakeRecordLayout();
   impl->record_words = layout.record_words;
+  constexpr uint32_t kAppearance =
+      (1u << static_cast<int>(FormGroup::kColour)) | (1u << static_cast<int>(FormGroup::kShBands));
+  impl->s3_rank1 = layout.blocks.size() == 1 && layout.blocks[0].groups == kAppearance && layout.blocks[0].rank == 1;
 
   std::vector<uint32_t> desc = {static_cast<uint32_t>(layout.blocks.size()), layout.ends, layout.position_step,
                                 layout.q_position, static_cast<uint32_t>(t.control_points())};
@@ -113,6 +118,7 @@ absl::Status VulkanServingForm::WriteAt(int64_t time_us, DeviceScene* scene) {
   push.taps = static_cast<uint32_t>(spline.taps);
   std::copy_n(spline.w, 4, push.w);
   push.line = spline.line;
+  push.s3_rank1 = m.s3_rank1 ? 1u : 0u;
   return m.engine->WriteSceneOnDevice(scene, [&](vk::Recorder& rec, const vk::VulkanScene& s) {
     const vk::SceneBuffers sb = s.view();
     for (size_t b = 0; b < m.tables.size(); ++b) {

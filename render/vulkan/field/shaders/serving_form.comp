@@ -28,6 +28,7 @@ layout(push_constant, std430) uniform Push {
   uint taps;          // degree + 1
   float w0, w1, w2, w3;
   float line;         // where on the line between the end points the taps fall
+  uint s3_rank1;      // 1: one appearance block (DC + bands) at rank 1, S3Gaussian's default form
 } pc;
 
 #define MAX_RANK 8u  // kMaxAppearanceRank
@@ -82,6 +83,36 @@ void main() {
     for (uint t = 0u; t < pc.taps; ++t) s += W(t) * I8(base, qpos, (pc.k + t) * 3u + c);
     const float e0 = uintBitsToFloat(rec[base + ends + c]), e1 = uintBitsToFloat(rec[base + ends + 3u + c]);
     geo[i * 12u + c] = e0 + (e1 - e0) * pc.line + Bf16(base, pstep, c) * s;
+  }
+  if (pc.s3_rank1 != 0u) {
+    // S3Gaussian's default form: 48 appearance channels = 12 words of int8 per table, one word of
+    // q_base and q_v read for 4 channels, each SH buffer written with fixed indices (the general
+    // path below reads a word per byte and branches per channel).
+    const uint d = 5u;
+    const uint w_off = desc[d + 4u], w_step = desc[d + 5u], w_scale = desc[d + 6u];
+    const uint w_qb = desc[d + 7u], w_qu = desc[d + 8u], w_qv = desc[d + 9u];
+    float s = 0.0;
+    for (uint t = 0u; t < pc.taps; ++t) s += W(t) * I8(base, w_qu, pc.k + t);
+    const float a = Bf16(base, w_scale, 0u) * s;
+    const float off0 = uintBitsToFloat(rec[base + w_off]), st0 = Bf16(base, w_step, 0u);
+    const float off1 = uintBitsToFloat(rec[base + w_off + 1u]), st1 = Bf16(base, w_step, 1u);
+    float v[48];
+    for (uint wd = 0u; wd < 12u; ++wd) {
+      const int qb = int(rec[base + w_qb + wd]), qv = int(rec[base + w_qv + wd]);
+      for (uint b = 0u; b < 4u; ++b) {
+        const uint c = wd * 4u + b;
+        const float base_value = c < 3u ? off0 + st0 * float(bitfieldExtract(qb, int(b * 8u), 8))
+                                        : off1 + st1 * float(bitfieldExtract(qb, int(b * 8u), 8));
+        v[c] = base_value + a * float(bitfieldExtract(qv, int(b * 8u), 8));
+      }
+    }
+    for (uint c = 0u; c < 12u; ++c) {
+      sh0[i * 12u + c] = v[c];
+      sh1[i * 12u + c] = v[12u + c];
+      sh2[i * 12u + c] = v[24u + c];
+      sh3[i * 12u + c] = v[36u + c];
+    }
+    return;
   }
   float ut[MAX_RANK];
   const uint blocks = desc[0];
