@@ -54,17 +54,16 @@ bool DynamicSceneField::WriteOnDeviceLocked(int64_t time_us, Engine& engine) con
     on_writer_.store(writer_ != nullptr);
   }
   if (!writer_) return false;
-  if (writer_current_ && time_us == writer_time_us_) return true;
+  if (writer_time_us_ == time_us) return true;
   device_evaluation_ = -1;  // whatever the device copy held, it is the writer's from here
   if (absl::Status s = writer_->WriteAt(time_us, device_.get()); !s.ok()) {
     // The host evaluates and uploads everything from now on (device_evaluation_ -1: a full upload).
     LOG(WARNING) << "the serving form's kernel failed, evaluating on the host from now on: " << s;
     writer_.reset();
-    writer_current_ = false;
+    writer_time_us_.reset();
     on_writer_.store(false);
     return false;
   }
-  writer_current_ = true;
   writer_time_us_ = time_us;
   ++device_writes_;
   evaluations_.store(serving_->field_evaluations() + device_writes_);

@@ -53,8 +53,7 @@ class DynamicSceneField : public SceneField {
                                            // -1: unknown, e.g. written by writer_)
   mutable bool try_writer_ = false;        // Create's on_device, until the first At tries
   mutable std::unique_ptr<field::DeviceSceneWriter> writer_;
-  mutable int64_t writer_time_us_ = 0;     // the time the device copy holds when written by writer_
-  mutable bool writer_current_ = false;
+  mutable std::optional<int64_t> writer_time_us_;  // the time writer_ last wrote into the device copy
   mutable int64_t device_writes_ = 0;
   mutable std::shared_ptr<HostScene> host_;  // views the serving field's current Gaussians (HostScene)
   mutable int64_t host_evaluation_ = -1;

@@ -17,7 +17,6 @@ namespace vk = vulkan;
 namespace {
 
 constexpr uint32_t kWg = 256;  // serving_form.comp: local_size_x (FIELD_WG)
-constexpr uint32_t kDescWordsPerBlock = 10;
 
 struct FormPush {
   uint32_t rows, record_words, k, taps;
@@ -70,7 +69,6 @@ absl::StatusOr<std::unique_ptr<VulkanServingForm>> VulkanServingForm::Create(Eng
     desc.insert(desc.end(), {b.groups, b.channels, b.rank, b.group_count, b.base_offset, b.base_step, b.scale,
                              b.q_base, b.q_u, b.q_v});
   }
-  static_assert(kDescWordsPerBlock == 10);
   if (auto b = vk::Buffer::Create(c, desc.size() * 4, vk::Buffer::Kind::kDevice, "serving form desc"); b.ok()) {
     impl->desc = *std::move(b);
   } else {
