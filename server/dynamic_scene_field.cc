@@ -3,14 +3,13 @@
 #include "absl/strings/str_cat.h"
 #include "render/params_view.h"
 #include "render/common/log.h"
-#include "render/vulkan/field/vulkan_serving.h"
 #include "scene/field/serving_form.h"
 
 namespace streetsim::server {
 
 absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
     std::unique_ptr<field::ServedScene> served, std::optional<std::vector<float>> reflectance,
-    const SceneUploader& upload, bool on_device) {
+    const SceneUploader& upload, DeviceWriterMaker make_writer) {
   if (!served) return absl::InvalidArgumentError("no served scene");
   std::unique_ptr<DynamicSceneField> f(new DynamicSceneField());
   f->num_gaussians_ = served->size();
@@ -30,7 +29,7 @@ absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
   f->evaluations_.store(f->serving_->field_evaluations());
   f->device_name_ = f->serving_->device();
   f->on_device_.store(f->serving_->device() != "cpu");
-  f->try_writer_ = on_device;
+  f->make_writer_ = std::move(make_writer);
   return f;
 }
 
@@ -43,11 +42,12 @@ absl::StatusOr<const GaussianStore*> DynamicSceneField::EvaluateLocked(int64_t t
 }
 
 bool DynamicSceneField::WriteOnDeviceLocked(int64_t time_us, Engine& engine) const {
-  if (try_writer_) {
-    try_writer_ = false;
-    absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>> w = field::DeviceWriterFor(engine, *serving_);
+  if (make_writer_) {
+    absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>> w = make_writer_(engine, *serving_);
+    make_writer_ = nullptr;
     if (w.ok()) {
-      writer_ = std::move(*w);
+      writer_ = std::move(*w);  // null: nothing for this engine, the host path
+      if (writer_) writer_device_ = writer_->device();  // before on_writer_ publishes it to stats()
     } else {
       LOG(WARNING) << "the serving form stays on the host: " << w.status();
     }
@@ -118,7 +118,7 @@ FieldStats DynamicSceneField::stats() const {
   return {true,
           num_dynamic_,
           evaluations_.load(),
-          on_writer_.load() ? std::string(field::kVulkanServingDevice)
+          on_writer_.load() ? writer_device_
           : on_device_.load() ? device_name_
                               : std::string("cpu"),
           form ? "form" : "exact",

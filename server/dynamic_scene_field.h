@@ -8,6 +8,7 @@
 
 #include <atomic>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -21,16 +22,21 @@
 
 namespace streetsim::server {
 
+// Makes what writes a serving form into an engine's copy of the scene on the engine's device
+// (field::DeviceWriterFor for a Vulkan engine). An error or a null writer keeps the form on the host.
+using DeviceWriterMaker = std::function<absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>>(
+    Engine&, const field::ServedScene&)>;
+
 class DynamicSceneField : public SceneField {
  public:
-  // Evaluates `served` at its start and uploads that through `upload`. on_device: the field's
-  // device is the engine's (--field-device resolved to vulkan): a serving form is then written
-  // into the engine's copy by the engine's device at each new time (field::DeviceWriterFor),
-  // made at the first At; the host evaluates only for HostAt.
+  // Evaluates `served` at its start and uploads that through `upload`. make_writer (when the
+  // field's device is the engine's: --field-device resolved to vulkan) is called at the first At;
+  // its writer then writes each new time into the engine's copy, and the host evaluates only for
+  // HostAt. A writer that fails is dropped with a warning: the host evaluates and uploads from then on.
   static absl::StatusOr<std::unique_ptr<DynamicSceneField>> Create(std::unique_ptr<field::ServedScene> served,
                                                                    std::optional<std::vector<float>> reflectance,
                                                                    const SceneUploader& upload,
-                                                                   bool on_device = false);
+                                                                   DeviceWriterMaker make_writer = {});
 
   absl::StatusOr<const DeviceScene*> At(int64_t time_us, Engine& engine) const override;
   absl::StatusOr<std::shared_ptr<const HostScene>> HostAt(int64_t time_us) const override;
@@ -51,7 +57,7 @@ class DynamicSceneField : public SceneField {
   mutable std::unique_ptr<DeviceScene> device_;
   mutable int64_t device_evaluation_ = 0;  // serving_'s evaluation count the device copy holds (0: baked;
                                            // -1: unknown, e.g. written by writer_)
-  mutable bool try_writer_ = false;        // Create's on_device, until the first At tries
+  mutable DeviceWriterMaker make_writer_;  // Create's, until the first At calls it
   mutable std::unique_ptr<field::DeviceSceneWriter> writer_;
   mutable std::optional<int64_t> writer_time_us_;  // the time writer_ last wrote into the device copy
   mutable int64_t device_writes_ = 0;
@@ -66,6 +72,7 @@ class DynamicSceneField : public SceneField {
   std::string device_name_ = "cpu";
   mutable std::atomic<bool> on_device_{false};
   mutable std::atomic<bool> on_writer_{false};  // writer_ writes the device copy (GetScene: its device)
+  mutable std::string writer_device_;           // writer_'s device(), set once before on_writer_
 };
 
 }  // namespace streetsim::server

@@ -132,7 +132,9 @@ absl::StatusOr<std::shared_ptr<LoadedScene>> LoadSceneFile(const std::string& pa
     if (!served.ok()) return served.status();  // naming the file
     absl::StatusOr<std::unique_ptr<DynamicSceneField>> dynamic =
         DynamicSceneField::Create(std::move(*served), std::move(*reflectance), upload,
-                                  /*on_device=*/load.field_device == train::FieldDevice::kVulkan);
+                                  load.field_device == train::FieldDevice::kVulkan
+                                      ? DeviceWriterMaker(&field::DeviceWriterFor)
+                                      : DeviceWriterMaker());
     if (!dynamic.ok()) return InFieldFile(extended ? ext_path : field_path, dynamic.status());
     loaded->field = std::move(*dynamic);
     return loaded;

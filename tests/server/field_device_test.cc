@@ -11,6 +11,7 @@
 #include <cstring>
 #include <fstream>
 
+#include "render/params_view.h"
 #include "render/vulkan/vulkan_engine.h"
 #include "scene/field/extended/extended_io.h"
 #include "scene/field/extended/extended_serving.h"
@@ -22,6 +23,7 @@
 #include "tests/common/scratch_dir.h"
 #include "tests/server/moving_extension.h"
 #include "tests/server/moving_field.h"
+#include "server/dynamic_scene_field.h"
 #include "tests/server/server_fixture.h"
 
 namespace streetsim::testing {
@@ -251,6 +253,97 @@ TEST(ServedFieldOnVulkan, ADeviceThatFailsFallsBackToTheCpu) {
     ExpectStoresEqual(**a, **b, "extended t=" + std::to_string(t));
   }
   EXPECT_EQ((*dev)->device(), "cpu");
+}
+
+// Stands in for the serving form's kernel in DynamicSceneField: its "writes" put every
+// Gaussian, the static ones too, 3 m up (not the scene at any time), and the call numbered
+// `fail_at` fails.
+class ShiftingWriter : public field::DeviceSceneWriter {
+ public:
+  ShiftingWriter(Engine& engine, GaussianStore scene, int fail_at, std::shared_ptr<int> calls)
+      : engine_(engine), shifted_(std::move(scene)), fail_at_(fail_at), calls_(std::move(calls)) {
+    for (size_t i = 0; i < shifted_.size(); ++i) shifted_.means[i * 3 + 2] += 3.0f;
+  }
+  absl::Status WriteAt(int64_t, DeviceScene* scene) override {
+    if ((*calls_)++ == fail_at_) return absl::UnavailableError("device lost (simulated)");
+    // The cpu engine updates its copy in place; the scene stays DynamicSceneField's.
+    std::unique_ptr<DeviceScene> held(scene);
+    const absl::Status s = engine_.UpdateSceneParams(ParamsViewOf(shifted_), &held);
+    if (held.release() != scene) return absl::InternalError("the engine replaced the scene");
+    return s;
+  }
+  std::string device() const override { return "test-writer"; }
+
+ private:
+  Engine& engine_;
+  GaussianStore shifted_;
+  const int fail_at_;
+  std::shared_ptr<int> calls_;
+};
+
+// A writer that fails mid-serving (the kernel's device lost): DynamicSceneField drops it and
+// serves the host form with a whole-scene upload, so what the engine renders equals a host-only
+// field's at the failing time and after, whatever the writer left in the engine's copy (a
+// fall-back that updated only the moving rows would keep the static Gaussians 3 m up); the
+// writer is not called again and stats name the host. No writer (an error making it, or none for
+// the engine) leaves the scene on the host from the start.
+TEST(DynamicSceneFieldWriter, AWriterThatFailsFallsBackToTheHostWithAWholeUpload) {
+  const GaussianStore g = Street(4, 1500);
+  const field::DeformationField f = PartlyStaticField(g);
+  ThreadPool pool(0);
+  absl::StatusOr<std::unique_ptr<Engine>> engine = CreateEngine(Backend::kCpu);
+  ASSERT_TRUE(engine.ok()) << engine.status();
+  const server::SceneUploader upload = [&](const GaussianStore& s) { return (*engine)->Upload(s); };
+  auto make = [&](server::DeviceWriterMaker writer) {
+    absl::StatusOr<field::ServingField> served = field::ServingField::Create(f, g, {}, pool);
+    EXPECT_TRUE(served.ok()) << served.status();
+    EXPECT_GT(served->num_dynamic(), 0u);
+    EXPECT_LT(served->num_dynamic(), g.size()) << "the test needs static Gaussians";
+    absl::StatusOr<std::unique_ptr<server::DynamicSceneField>> d = server::DynamicSceneField::Create(
+        std::make_unique<field::ServingField>(std::move(*served)), std::nullopt, upload, std::move(writer));
+    EXPECT_TRUE(d.ok()) << d.status();
+    return std::move(*d);
+  };
+  auto render = [&](const DeviceScene& scene) {
+    RenderOutput out;
+    EXPECT_TRUE((*engine)->Render(scene, FrontCamera(0.0), RenderOptions{}, &out).ok());
+    return out.rgb;
+  };
+  std::unique_ptr<server::DynamicSceneField> host = make({});
+  auto calls = std::make_shared<int>(0);
+  std::unique_ptr<server::DynamicSceneField> kernel = make([&](Engine& e, const field::ServedScene&) {
+    return absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>>(
+        std::make_unique<ShiftingWriter>(e, g, /*fail_at=*/1, calls));
+  });
+  absl::StatusOr<const DeviceScene*> first = kernel->At(kTimesUs[1], **engine);
+  ASSERT_TRUE(first.ok()) << first.status();
+  EXPECT_EQ(kernel->stats().device, "test-writer");
+  absl::StatusOr<const DeviceScene*> first_host = host->At(kTimesUs[1], **engine);
+  ASSERT_TRUE(first_host.ok());
+  EXPECT_NE(render(**first), render(**first_host)) << "the writer's scene must differ for the test to bite";
+  for (int64_t t : {kTimesUs[2], kTimesUs[3], kTimesUs[0]}) {
+    absl::StatusOr<const DeviceScene*> a = kernel->At(t, **engine);
+    ASSERT_TRUE(a.ok()) << a.status();
+    const std::vector<float> from_kernel = render(**a);
+    absl::StatusOr<const DeviceScene*> b = host->At(t, **engine);
+    ASSERT_TRUE(b.ok());
+    EXPECT_EQ(from_kernel, render(**b)) << "t=" << t;
+  }
+  EXPECT_EQ(*calls, 2) << "the failed writer was called again";
+  EXPECT_EQ(kernel->stats().device, "cpu");
+
+  // No writer: an error, or none for this engine (DeviceWriterFor on a cpu engine).
+  for (bool fails : {true, false}) {
+    std::unique_ptr<server::DynamicSceneField> unmade = make([fails](Engine&, const field::ServedScene&) {
+      return fails ? absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>>(absl::UnimplementedError("no kernel"))
+                   : absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>>(nullptr);
+    });
+    absl::StatusOr<const DeviceScene*> a = unmade->At(kTimesUs[2], **engine);
+    ASSERT_TRUE(a.ok()) << a.status();
+    const std::vector<float> from_unmade = render(**a);
+    EXPECT_EQ(from_unmade, render(**host->At(kTimesUs[2], **engine))) << fails;
+    EXPECT_EQ(unmade->stats().device, "cpu");
+  }
 }
 
 constexpr char kRig[] = R"({"cameras": [
