@@ -1,7 +1,8 @@
 // A clip set served as one scene (docs/server.md "Clip sets"): a render, trajectory or session
 // step at time t equals, byte for byte, the render of the clip that train::PickClip picks for t
 // served alone (its Gaussians, field, LiDAR and learned background); between clips the nearer
-// wins; a broken clip fails the set with its name; GetScene adds the clips' stats up.
+// wins; a broken clip fails the set with its name; GetScene adds the clips' stats up; on a Vulkan
+// engine the serving form's kernel writes the dynamic clip.
 #include <fstream>
 #include <random>
 
@@ -9,7 +10,9 @@
 #include "scene/field/field_io.h"
 #include "scene/train/clips.h"
 #include "scene/train/dynamic_stage.h"
+#include "render/vulkan/vulkan_engine.h"
 #include "tests/server/moving_field.h"
+#include "tests/server/render_compare.h"
 #include "tests/server/server_fixture.h"
 
 namespace streetsim::testing {
@@ -258,6 +261,70 @@ TEST_F(ClipSetServeTest, ABrokenClipFailsTheSetWithItsNameAndTheServerKeepsServi
   // The broken set's good clip alone, and the healthy set, still render.
   Render("broken/clip_000", 100'000, 5);
   Render("set", 500'000, 5);
+}
+
+// On a Vulkan engine with --field-device vulkan, the dynamic clip's serving form is written into the
+// engine's scene by the form's compute kernel (each clip is loaded as a scene, so each has its own
+// writer; GetScene says "vulkan" for the set), and the set renders as it does with the same forms
+// evaluated on the host and uploaded (--field-device cpu, the same engine), within float rounding
+// (render_compare.h: the kernel may fuse multiply-adds), moving from one time to the next.
+TEST_F(ClipSetServeTest, OnAVulkanEngineTheFormsKernelWritesTheDynamicClip) {
+  if (ListVulkanDevices().empty()) GTEST_SKIP() << "no Vulkan device";
+  struct Running {
+    std::unique_ptr<server::Server> server;
+    std::unique_ptr<client::Client> client;
+  };
+  auto start = [&](train::FieldDevice device, const std::string& state) {
+    server::ServerOptions o = TestOptions(data_root_, state_dir_ + "/" + state);
+    o.backend = Backend::kVulkan;
+    o.field_device = device;
+    Running r;
+    absl::StatusOr<std::unique_ptr<server::Server>> s = server::Server::Start(o);
+    EXPECT_TRUE(s.ok()) << s.status();
+    if (!s.ok()) return r;
+    r.server = std::move(*s);
+    client::ClientOptions co;
+    co.target = r.server->address();
+    co.timeout_s = 60;
+    absl::StatusOr<std::unique_ptr<client::Client>> c = client::Client::Connect(co);
+    EXPECT_TRUE(c.ok()) << c.status();
+    if (c.ok()) r.client = std::move(*c);
+    return r;
+  };
+  auto render = [](client::Client& c, int64_t time_us) {
+    v1::RenderRequest req;
+    req.set_scene("set");
+    req.set_time_us(time_us);
+    *req.mutable_t_world_from_ego() = client::ToPose(EgoAt(12));
+    req.mutable_outputs()->set_rgb(true);
+    req.mutable_outputs()->set_depth(true);
+    absl::StatusOr<v1::RenderResponse> r = c.Render(req);
+    EXPECT_TRUE(r.ok()) << time_us << ": " << r.status();
+    EXPECT_TRUE(!r.ok() || r->frames_size() == 1) << time_us;
+    return r.ok() && r->frames_size() == 1 ? r->frames(0) : v1::SensorFrame();
+  };
+  Running kernel = start(train::FieldDevice::kVulkan, "kernel");
+  Running host = start(train::FieldDevice::kCpu, "host");
+  ASSERT_TRUE(kernel.client && host.client);
+  ASSERT_TRUE(kernel.client->LoadScene("set", true).ok());
+  ASSERT_TRUE(host.client->LoadScene("set", true).ok());
+  std::string previous;
+  for (int64_t t : {450'000, 550'000, 100'000, 650'000}) {
+    const v1::SensorFrame a = render(*kernel.client, t);
+    const v1::SensorFrame b = render(*host.client, t);
+    const std::string tag = "t=" + std::to_string(t);
+    ExpectFramesWithinRounding(a, b, tag);
+    if (t > kClipEndUs[0] && !previous.empty()) {
+      EXPECT_GT(CompareRgb(previous, a.rgb().data()).max, 5) << tag << ": the clip did not move";
+    }
+    if (t > kClipEndUs[0]) previous = a.rgb().data();
+  }
+  absl::StatusOr<v1::Scene> k = kernel.client->GetScene("set");
+  absl::StatusOr<v1::Scene> h = host.client->GetScene("set");
+  ASSERT_TRUE(k.ok() && h.ok());
+  EXPECT_EQ(k->field_device(), "vulkan") << "the kernel failed or was not used";
+  EXPECT_EQ(h->field_device(), "cpu");
+  EXPECT_EQ(k->field_serving(), "form");
 }
 
 }  // namespace
