@@ -270,26 +270,11 @@ TEST_F(ClipSetServeTest, ABrokenClipFailsTheSetWithItsNameAndTheServerKeepsServi
 // (render_compare.h: the kernel may fuse multiply-adds), moving from one time to the next.
 TEST_F(ClipSetServeTest, OnAVulkanEngineTheFormsKernelWritesTheDynamicClip) {
   if (ListVulkanDevices().empty()) GTEST_SKIP() << "no Vulkan device";
-  struct Running {
-    std::unique_ptr<server::Server> server;
-    std::unique_ptr<client::Client> client;
-  };
   auto start = [&](train::FieldDevice device, const std::string& state) {
     server::ServerOptions o = TestOptions(data_root_, state_dir_ + "/" + state);
     o.backend = Backend::kVulkan;
     o.field_device = device;
-    Running r;
-    absl::StatusOr<std::unique_ptr<server::Server>> s = server::Server::Start(o);
-    EXPECT_TRUE(s.ok()) << s.status();
-    if (!s.ok()) return r;
-    r.server = std::move(*s);
-    client::ClientOptions co;
-    co.target = r.server->address();
-    co.timeout_s = 60;
-    absl::StatusOr<std::unique_ptr<client::Client>> c = client::Client::Connect(co);
-    EXPECT_TRUE(c.ok()) << c.status();
-    if (c.ok()) r.client = std::move(*c);
-    return r;
+    return StartServerAndClient(o);
   };
   auto render = [](client::Client& c, int64_t time_us) {
     v1::RenderRequest req;
@@ -303,8 +288,8 @@ TEST_F(ClipSetServeTest, OnAVulkanEngineTheFormsKernelWritesTheDynamicClip) {
     EXPECT_TRUE(!r.ok() || r->frames_size() == 1) << time_us;
     return r.ok() && r->frames_size() == 1 ? r->frames(0) : v1::SensorFrame();
   };
-  Running kernel = start(train::FieldDevice::kVulkan, "kernel");
-  Running host = start(train::FieldDevice::kCpu, "host");
+  RunningServer kernel = start(train::FieldDevice::kVulkan, "kernel");
+  RunningServer host = start(train::FieldDevice::kCpu, "host");
   ASSERT_TRUE(kernel.client && host.client);
   ASSERT_TRUE(kernel.client->LoadScene("set", true).ok());
   ASSERT_TRUE(host.client->LoadScene("set", true).ok());

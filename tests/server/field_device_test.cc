@@ -382,10 +382,7 @@ class FieldDeviceServerTest : public ServerTest {
     std::ofstream(dir + "/scene.json") << kRig;
   }
 
-  struct Running {
-    std::unique_ptr<server::Server> server;
-    std::unique_ptr<client::Client> client;
-  };
+  using Running = RunningServer;
   // A server with the field on `device` (the exact field unless `form`) and the engine on
   // `backend`, its state in `state`, and its client.
   Running Start(train::FieldDevice device, const std::string& state, Backend backend = Backend::kCpu,
@@ -394,18 +391,7 @@ class FieldDeviceServerTest : public ServerTest {
     o.field_device = device;
     o.exact_field = !form;
     o.backend = backend;
-    Running r;
-    absl::StatusOr<std::unique_ptr<server::Server>> s = server::Server::Start(o);
-    EXPECT_TRUE(s.ok()) << s.status();
-    if (!s.ok()) return r;
-    r.server = std::move(*s);
-    client::ClientOptions co;
-    co.target = r.server->address();
-    co.timeout_s = 60;
-    absl::StatusOr<std::unique_ptr<client::Client>> c = client::Client::Connect(co);
-    EXPECT_TRUE(c.ok()) << c.status();
-    if (c.ok()) r.client = std::move(*c);
-    return r;
+    return StartServerAndClient(o);
   }
   // A second server forced to `device`, and its client.
   void StartOther(train::FieldDevice device) {

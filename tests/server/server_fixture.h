@@ -64,6 +64,27 @@ inline server::ServerOptions TestOptions(const std::string& data_root, const std
   return o;
 }
 
+// A second (third, ...) server beside a fixture's own, and a client connected to it: for tests
+// that compare servers started with other options.
+struct RunningServer {
+  std::unique_ptr<server::Server> server;
+  std::unique_ptr<client::Client> client;
+};
+inline RunningServer StartServerAndClient(const server::ServerOptions& options) {
+  RunningServer r;
+  absl::StatusOr<std::unique_ptr<server::Server>> s = server::Server::Start(options);
+  EXPECT_TRUE(s.ok()) << s.status();
+  if (!s.ok()) return r;
+  r.server = std::move(*s);
+  client::ClientOptions co;
+  co.target = r.server->address();
+  co.timeout_s = 60;
+  absl::StatusOr<std::unique_ptr<client::Client>> c = client::Client::Connect(co);
+  EXPECT_TRUE(c.ok()) << c.status();
+  if (c.ok()) r.client = std::move(*c);
+  return r;
+}
+
 class ServerTest : public ::testing::Test {
  protected:
   void SetUp() override {
