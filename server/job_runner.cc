@@ -444,6 +444,136 @@ absl::StatusOr<int> JobRunner::RunChild(const std::string& id, const std::vector
   }
 }
 
+// RunJob's first stage (skipped when a previous attempt finished it): the initial scene in `work`.
+absl::Status JobRunner::InitStage(const std::string& id, const std::string& work, const std::string& out_dir,
+                                  const absl::StatusOr<std::string>& log, bool with_train, v1::Job* job) {
+  v1::JobProgress* p = job->mutable_progress();
+  std::error_code ec;
+  // A continuation's init is a copy of the scene it continues (its checkpoint, outputs and
+  // manifest); the source stays as it is.
+  if (p->stage_index() < 1 && !fs::exists(out_dir) && !job->config().continue_from_scene().empty()) {
+    p->set_stage("init");
+    (void)store_->Put(*job);
+    const std::string from = store_->scenes_dir() + "/" + job->config().continue_from_scene();
+    if (!HasTrainerCheckpoint(from)) {
+      return absl::FailedPreconditionError(absl::StrCat("scene '", job->config().continue_from_scene(),
+                                                        "' is gone or has no checkpoint"));
+    }
+    fs::copy(from, work, fs::copy_options::recursive | fs::copy_options::overwrite_existing, ec);
+    if (ec) return absl::InternalError(absl::StrCat("cannot copy scene '", job->config().continue_from_scene(),
+                                                    "': ", ec.message()));
+    p->set_stage_index(1);
+    p->set_fraction(InitDoneFraction(with_train));
+    p->set_num_gaussians(TrainedGaussianCount(work));
+    (void)store_->Put(*job);
+  }
+  if (p->stage_index() < 1 && !fs::exists(out_dir)) {
+    p->set_stage("init");
+    (void)store_->Put(*job);
+    if (!log.ok()) return log.status();
+    std::vector<std::string> argv = options_.init_command;
+    argv.insert(argv.end(), {*log, "--out", work + "/scene.ply"});
+    absl::StatusOr<int> code = RunChild(id, argv, store_->JobDir(id) + "/init.log", job);
+    if (!code.ok()) return code.status();
+    if (*code != 0) {
+      return absl::InternalError(absl::StrCat("init stage exited with code ", *code, " (see ",
+                                              store_->JobDir(id), "/init.log)"));
+    }
+    if (!fs::exists(work + "/scene.ply")) return absl::InternalError("init stage wrote no scene.ply");
+    p->set_stage_index(1);
+    p->set_fraction(InitDoneFraction(with_train));
+    p->set_num_gaussians(PlyVertexCount(work + "/scene.ply"));
+    (void)store_->Put(*job);
+  }
+  return absl::OkStatus();
+}
+
+// RunJob's train stage (when asked for and available). Re-run after a restart with --resume when
+// the trainer left a checkpoint; WORK/scene.json (from init) is left alone by the trainer.
+absl::Status JobRunner::TrainStage(const std::string& id, const std::string& work,
+                                   const absl::StatusOr<std::string>& log, v1::Job* job) {
+  v1::JobProgress* p = job->mutable_progress();
+  p->set_stage("train");
+  p->set_max_iterations(job->config().max_iterations());
+  (void)store_->Put(*job);
+  if (!log.ok()) return log.status();
+  std::vector<std::string> argv = options_.train_command;
+  argv.insert(argv.end(), {"--log", *log, "--out", work});
+  const std::vector<std::string> flags = TrainFlags(job->config());
+  argv.insert(argv.end(), flags.begin(), flags.end());
+  std::string trainer_message;  // its last "streetsim train: ..." line: why it failed, if it does
+  auto on_line = [&](const std::string& line) {
+    if (line.rfind("streetsim train: ", 0) == 0) trainer_message = line.substr(17, 512);
+    // The divergence guard's rollbacks (docs/training.md "Divergence guard"), for the job's client.
+    if (line.rfind("streetsim train: iteration ", 0) == 0 && line.find("rolled back") != std::string::npos &&
+        p->notes_size() < 16) {
+      p->add_notes(line.substr(17, 512));
+      return true;  // a change to the record, stored with the progress
+    }
+    TrainProgressLine t;
+    if (!ParseTrainProgressLine(line, &t)) return false;
+    p->set_iteration(t.iteration);
+    p->set_max_iterations(t.total);
+    p->set_has_metrics(true);
+    if (std::isfinite(t.loss)) p->set_loss(t.loss);
+    if (std::isfinite(t.psnr_db)) p->set_psnr_db(t.psnr_db);
+    p->set_num_gaussians(t.gaussians);
+    p->set_eta_s(t.eta_s);
+    const double f = std::clamp(static_cast<double>(t.iteration) / static_cast<double>(t.total), 0.0, 1.0);
+    p->set_fraction(InitDoneFraction(true) + (kTrainDoneFraction - InitDoneFraction(true)) * f);
+    return true;
+  };
+  // A trainer killed from outside (the OOM killer, an operator's kill -9) goes on from its last
+  // checkpoint, a bounded number of times: it loses at most one checkpoint interval.
+  absl::StatusOr<int> code;
+  for (int restart = 0;; ++restart) {
+    std::vector<std::string> run = argv;
+    if (HasTrainerCheckpoint(work)) run.push_back("--resume");
+    code = RunChild(id, run, store_->JobDir(id) + "/train.log", job, on_line);
+    if (!code.ok() || *code != 128 + SIGKILL || restart == kMaxTrainerRestarts) break;
+    LOG(WARNING) << "job " << id << ": the trainer was killed (SIGKILL); resuming it from its last checkpoint";
+  }
+  if (!code.ok()) return code.status();
+  if (*code != 0) {
+    return absl::InternalError(absl::StrCat("train stage exited with code ", *code,
+                                            trainer_message.empty() ? "" : ": ", trainer_message, " (see ",
+                                            store_->JobDir(id), "/train.log)"));
+  }
+  if (!fs::exists(work + "/scene.ply")) return absl::InternalError("train stage left no scene.ply");
+  p->set_stage_index(2);
+  p->set_fraction(kTrainDoneFraction);
+  // The trainer prints progress every few iterations, so its last line can lag the end (or, for a
+  // short run, be its first iteration): a finished stage reports what the scene records.
+  if (absl::StatusOr<train::SceneMeta> meta = TrainedSceneMeta(work); meta.ok() && meta->iterations > 0) {
+    p->set_iteration(meta->iterations);
+    p->set_max_iterations(meta->iterations);
+  } else {
+    p->set_iteration(p->max_iterations());
+  }
+  p->set_num_gaussians(TrainedGaussianCount(work));
+  *job->mutable_heldout() = TrainedHeldoutMetrics(work);
+  p->set_preview_png(FirstPreviewPng(work));
+  (void)store_->Put(*job);
+  return absl::OkStatus();
+}
+
+// RunJob's last stage: `work` becomes the published scene `out_dir`.
+absl::Status JobRunner::PublishStage(const std::string& work, const std::string& out_dir, int publish_index,
+                                     v1::Job* job) {
+  v1::JobProgress* p = job->mutable_progress();
+  std::error_code ec;
+  p->set_stage_index(publish_index);
+  p->set_stage("publish");
+  if (!fs::exists(work + "/scene.json")) {
+    SceneManifest m;
+    m.cameras = DefaultRig();
+    std::ofstream(work + "/scene.json") << SceneManifestToJson(m);
+  }
+  fs::rename(work, out_dir, ec);
+  if (ec) return absl::InternalError(absl::StrCat("cannot publish the scene: ", ec.message()));
+  return absl::OkStatus();
+}
+
 void JobRunner::RunJob(const std::string& id) {
   std::optional<v1::Job> loaded = store_->Get(id);
   if (!loaded || IsFinal(loaded->state())) return;
@@ -485,118 +615,12 @@ void JobRunner::RunJob(const std::string& id) {
   }
   absl::StatusOr<std::string> log = ResolveUnderRoot(options_.data_root, job.log_path());
 
-  // Stage 0: init (skipped when a previous attempt finished it). A continuation's init is a copy of
-  // the scene it continues (its checkpoint, outputs and manifest); the source stays as it is.
-  if (p->stage_index() < 1 && !fs::exists(out_dir) && !job.config().continue_from_scene().empty()) {
-    p->set_stage("init");
-    (void)store_->Put(job);
-    const std::string from = store_->scenes_dir() + "/" + job.config().continue_from_scene();
-    if (!HasTrainerCheckpoint(from)) {
-      return fail(absl::FailedPreconditionError(absl::StrCat("scene '", job.config().continue_from_scene(),
-                                                             "' is gone or has no checkpoint")));
-    }
-    fs::copy(from, work, fs::copy_options::recursive | fs::copy_options::overwrite_existing, ec);
-    if (ec) return fail(absl::InternalError(absl::StrCat("cannot copy scene '", job.config().continue_from_scene(),
-                                                         "': ", ec.message())));
-    p->set_stage_index(1);
-    p->set_fraction(InitDoneFraction(with_train));
-    p->set_num_gaussians(TrainedGaussianCount(work));
-    (void)store_->Put(job);
-  }
-  if (p->stage_index() < 1 && !fs::exists(out_dir)) {
-    p->set_stage("init");
-    (void)store_->Put(job);
-    if (!log.ok()) return fail(log.status());
-    std::vector<std::string> argv = options_.init_command;
-    argv.insert(argv.end(), {*log, "--out", work + "/scene.ply"});
-    absl::StatusOr<int> code = RunChild(id, argv, store_->JobDir(id) + "/init.log", &job);
-    if (!code.ok()) return fail(code.status());
-    if (*code != 0) {
-      return fail(absl::InternalError(absl::StrCat("init stage exited with code ", *code, " (see ",
-                                                   store_->JobDir(id), "/init.log)")));
-    }
-    if (!fs::exists(work + "/scene.ply")) return fail(absl::InternalError("init stage wrote no scene.ply"));
-    p->set_stage_index(1);
-    p->set_fraction(InitDoneFraction(with_train));
-    p->set_num_gaussians(PlyVertexCount(work + "/scene.ply"));
-    (void)store_->Put(job);
-  }
-  // Stage 1: train (when asked for and available). Re-run after a restart with --resume when the
-  // trainer left a checkpoint; WORK/scene.json (from init) is left alone by the trainer.
+  if (absl::Status s = InitStage(id, work, out_dir, log, with_train, &job); !s.ok()) return fail(s);
   if (with_train && p->stage_index() < 2 && !fs::exists(out_dir)) {
-    p->set_stage("train");
-    p->set_max_iterations(job.config().max_iterations());
-    (void)store_->Put(job);
-    if (!log.ok()) return fail(log.status());
-    std::vector<std::string> argv = options_.train_command;
-    argv.insert(argv.end(), {"--log", *log, "--out", work});
-    const std::vector<std::string> flags = TrainFlags(job.config());
-    argv.insert(argv.end(), flags.begin(), flags.end());
-    std::string trainer_message;  // its last "streetsim train: ..." line: why it failed, if it does
-    auto on_line = [&](const std::string& line) {
-      if (line.rfind("streetsim train: ", 0) == 0) trainer_message = line.substr(17, 512);
-      // The divergence guard's rollbacks (docs/training.md "Divergence guard"), for the job's client.
-      if (line.rfind("streetsim train: iteration ", 0) == 0 && line.find("rolled back") != std::string::npos &&
-          p->notes_size() < 16) {
-        p->add_notes(line.substr(17, 512));
-        return true;  // a change to the record, stored with the progress
-      }
-      TrainProgressLine t;
-      if (!ParseTrainProgressLine(line, &t)) return false;
-      p->set_iteration(t.iteration);
-      p->set_max_iterations(t.total);
-      p->set_has_metrics(true);
-      if (std::isfinite(t.loss)) p->set_loss(t.loss);
-      if (std::isfinite(t.psnr_db)) p->set_psnr_db(t.psnr_db);
-      p->set_num_gaussians(t.gaussians);
-      p->set_eta_s(t.eta_s);
-      const double f = std::clamp(static_cast<double>(t.iteration) / static_cast<double>(t.total), 0.0, 1.0);
-      p->set_fraction(InitDoneFraction(true) + (kTrainDoneFraction - InitDoneFraction(true)) * f);
-      return true;
-    };
-    // A trainer killed from outside (the OOM killer, an operator's kill -9) goes on from its last
-    // checkpoint, a bounded number of times: it loses at most one checkpoint interval.
-    absl::StatusOr<int> code;
-    for (int restart = 0;; ++restart) {
-      std::vector<std::string> run = argv;
-      if (HasTrainerCheckpoint(work)) run.push_back("--resume");
-      code = RunChild(id, run, store_->JobDir(id) + "/train.log", &job, on_line);
-      if (!code.ok() || *code != 128 + SIGKILL || restart == kMaxTrainerRestarts) break;
-      LOG(WARNING) << "job " << id << ": the trainer was killed (SIGKILL); resuming it from its last checkpoint";
-    }
-    if (!code.ok()) return fail(code.status());
-    if (*code != 0) {
-      return fail(absl::InternalError(absl::StrCat("train stage exited with code ", *code,
-                                                   trainer_message.empty() ? "" : ": ", trainer_message, " (see ",
-                                                   store_->JobDir(id), "/train.log)")));
-    }
-    if (!fs::exists(work + "/scene.ply")) return fail(absl::InternalError("train stage left no scene.ply"));
-    p->set_stage_index(2);
-    p->set_fraction(kTrainDoneFraction);
-    // The trainer prints progress every few iterations, so its last line can lag the end (or, for a
-    // short run, be its first iteration): a finished stage reports what the scene records.
-    if (absl::StatusOr<train::SceneMeta> meta = TrainedSceneMeta(work); meta.ok() && meta->iterations > 0) {
-      p->set_iteration(meta->iterations);
-      p->set_max_iterations(meta->iterations);
-    } else {
-      p->set_iteration(p->max_iterations());
-    }
-    p->set_num_gaussians(TrainedGaussianCount(work));
-    *job.mutable_heldout() = TrainedHeldoutMetrics(work);
-    p->set_preview_png(FirstPreviewPng(work));
-    (void)store_->Put(job);
+    if (absl::Status s = TrainStage(id, work, log, &job); !s.ok()) return fail(s);
   }
-  // Last stage: publish.
   if (!fs::exists(out_dir)) {
-    p->set_stage_index(publish_index);
-    p->set_stage("publish");
-    if (!fs::exists(work + "/scene.json")) {
-      SceneManifest m;
-      m.cameras = DefaultRig();
-      std::ofstream(work + "/scene.json") << SceneManifestToJson(m);
-    }
-    fs::rename(work, out_dir, ec);
-    if (ec) return fail(absl::InternalError(absl::StrCat("cannot publish the scene: ", ec.message())));
+    if (absl::Status s = PublishStage(work, out_dir, publish_index, &job); !s.ok()) return fail(s);
   }
   p->set_stage("done");
   p->set_stage_index(NumStages(with_train));

@@ -75,6 +75,13 @@ class JobRunner {
  private:
   void WorkerLoop();
   void RunJob(const std::string& id);
+  // RunJob's stages. Each returns the status the job fails (or stops) with; `work` is the scene
+  // being built, `out_dir` where it is published.
+  absl::Status InitStage(const std::string& id, const std::string& work, const std::string& out_dir,
+                         const absl::StatusOr<std::string>& log, bool with_train, v1::Job* job);
+  absl::Status TrainStage(const std::string& id, const std::string& work, const absl::StatusOr<std::string>& log,
+                          v1::Job* job);
+  absl::Status PublishStage(const std::string& work, const std::string& out_dir, int publish_index, v1::Job* job);
   // Runs argv as a child; returns its exit code, or CANCELLED / UNAVAILABLE (stopping). Each
   // new line the child writes to log_path goes to on_line (if set); it returns true when it
   // changed *job (the record is then written, at most every 250 ms).
