@@ -263,8 +263,8 @@ TEST_F(ClipSetServeTest, ABrokenClipFailsTheSetWithItsNameAndTheServerKeepsServi
   Render("set", 500'000, 5);
 }
 
-// On a Vulkan engine with --field-device vulkan, the dynamic clip's serving form is written into the
-// engine's scene by the form's compute kernel (each clip is loaded as a scene, so each has its own
+// On a Vulkan engine with --field-device vulkan, the dynamic clip's serving form is written into
+// the engine's scene by the form's compute kernel (each clip is loaded as a scene, so each has its own
 // writer; GetScene says "vulkan" for the set), and the set renders as it does with the same forms
 // evaluated on the host and uploaded (--field-device cpu, the same engine), within float rounding
 // (render_compare.h: the kernel may fuse multiply-adds), moving from one time to the next.

@@ -382,10 +382,9 @@ class FieldDeviceServerTest : public ServerTest {
     std::ofstream(dir + "/scene.json") << kRig;
   }
 
-  using Running = RunningServer;
   // A server with the field on `device` (the exact field unless `form`) and the engine on
   // `backend`, its state in `state`, and its client.
-  Running Start(train::FieldDevice device, const std::string& state, Backend backend = Backend::kCpu,
+  RunningServer Start(train::FieldDevice device, const std::string& state, Backend backend = Backend::kCpu,
                 bool form = false) {
     server::ServerOptions o = TestOptions(data_root_, state_dir_ + "/" + state);
     o.field_device = device;
@@ -395,7 +394,7 @@ class FieldDeviceServerTest : public ServerTest {
   }
   // A second server forced to `device`, and its client.
   void StartOther(train::FieldDevice device) {
-    Running r = Start(device, "other");
+    RunningServer r = Start(device, "other");
     ASSERT_TRUE(r.client);
     other_server_ = std::move(r.server);
     other_ = std::move(r.client);
@@ -474,8 +473,8 @@ TEST_F(FieldDeviceServerTest, ForcedVulkanServesTheCpuRendersWithinRounding) {
 // multiply-adds may fuse where the host's do not.
 TEST_F(FieldDeviceServerTest, TheFormsKernelOnAVulkanEngineServesTheHostFormsRenders) {
   if (!HaveVulkan()) GTEST_SKIP() << "no Vulkan device";
-  Running host = Start(train::FieldDevice::kCpu, "form_host", Backend::kVulkan, /*form=*/true);
-  Running kernel = Start(train::FieldDevice::kVulkan, "form_kernel", Backend::kVulkan, /*form=*/true);
+  RunningServer host = Start(train::FieldDevice::kCpu, "form_host", Backend::kVulkan, /*form=*/true);
+  RunningServer kernel = Start(train::FieldDevice::kVulkan, "form_kernel", Backend::kVulkan, /*form=*/true);
   ASSERT_TRUE(host.client && kernel.client);
   ASSERT_TRUE(host.client->LoadScene("dyn", true).ok());
   ASSERT_TRUE(kernel.client->LoadScene("dyn", true).ok());

@@ -56,8 +56,9 @@ inline DepthDiff CompareDepth(const std::string& a, const std::string& b) {
   return d;
 }
 
-// Two frames of one view within the rounding bounds argued in field_device_test.cc (RGB within 2 levels on under
-// 1 % of the bytes, depth within 1e-2 relative on under 1 % of the pixels beyond 1e-4); prints them.
+// Two frames of one view within the rounding bounds argued in field_device_test.cc (RGB within 2
+// levels on under 1 % of the bytes, depth within 1e-2 relative on under 1 % of the pixels beyond
+// 1e-4); prints them.
 inline void ExpectFramesWithinRounding(const v1::SensorFrame& a, const v1::SensorFrame& b, const std::string& tag) {
   const ByteDiff rgb = CompareRgb(a.rgb().data(), b.rgb().data());
   EXPECT_LE(rgb.max, 2) << tag;

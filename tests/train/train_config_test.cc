@@ -100,8 +100,8 @@ TEST(TrainSettings, RelationsBetweenGivenSettingsAreChecked) {
   EXPECT_EQ(o->train.hyper.pose_refine_until, 5000);
 }
 
-// The quality preset is the former scripts/kitti-recipe's run (docs/benchmarks.md, 27.05 dB): the same
-// segment ends (where that script's runs wrote their outputs) and the same flags in each.
+// The quality preset is the former scripts/kitti-recipe's run (docs/benchmarks.md, 27.05 dB): the
+// same segment ends (where that script's runs wrote their outputs) and the same flags in each.
 TEST(Presets, QualityIsTheRecipesSegments) {
   absl::StatusOr<RunConfig> q = PresetConfig("quality");
   ASSERT_TRUE(q.ok()) << q.status();
