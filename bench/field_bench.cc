@@ -1,7 +1,9 @@
 // Deformation-field speed (docs/field.md), spec sizes (4 levels x 6 planes x 32 channels, 64..512,
 // time 25, MLP 128 -> 64 -> {3, 48}):
 // - serving: field evaluation per timestamp for N Gaussians uniformly random in a 200 x 200 x 20 m
-//   AABB, without and with the static skip, and the serving form fitted to it (row "form"). The field is the spec's init with the space-time
+//   AABB, without and with the static skip, and the serving form fitted to it (row "form"; the
+//   next row: the form written into the cpu engine's planes, against the host form plus the
+//   engine's row update, and the LiDAR's geometry-only evaluation). The field is the spec's init with the space-time
 //   planes varied in time over a band of x (--dynamic-fraction of the AABB's x extent), so the
 //   Gaussians in the band move and the others do not. Then the same with the extended field
 //   (--ext-modules, ';'-separated module lists, default "all"; "" skips these rows): its gate
@@ -35,6 +37,7 @@
 #include "scene/field/deformed_scene.h"
 #include "scene/field/extended/extended_serving.h"
 #include "scene/field/field_regularizers.h"
+#include "scene/field/host_planes_writer.h"
 #include "scene/field/serving_form.h"
 #include "render/params_view.h"
 #include "render/vulkan/field/vulkan_serving_form.h"
@@ -161,6 +164,36 @@ void TimeFormOnVulkanEngine(size_t n, ServingForm& form, int repeats, ThreadPool
               kernel_ms / repeats, host_ms / repeats);
 }
 
+// The serving form on the cpu engine (what `serve` does by default): a new time written straight
+// into the engine's planes (HostPlanesWriter) against the host path it replaced (the form into
+// the host store, then the engine's moving rows from it: UpdateSceneRows), and the LiDAR's part of
+// a time (GeometryAt). Wall time per timestamp, distinct timestamps after a warm-up one.
+void TimeFormOnCpuEngine(size_t n, ServingForm& form, int repeats, ThreadPool& pool) {
+  absl::StatusOr<std::unique_ptr<Engine>> engine = CreateEngine(Backend::kCpu);
+  absl::StatusOr<const GaussianStore*> first = engine.ok() ? form.At(0, pool) : engine.status();
+  if (!first.ok()) std::exit(1);
+  absl::StatusOr<std::unique_ptr<DeviceScene>> scene = (*engine)->Upload(**first);
+  absl::StatusOr<std::unique_ptr<DeviceSceneWriter>> writer = HostPlanesWriterFor(**engine, form);
+  if (!scene.ok() || !writer.ok() || !*writer) std::exit(1);
+  double planes_ms = 0, host_ms = 0, geometry_ms = 0;
+  for (int r = 0; r <= repeats; ++r) {
+    const int64_t t = 100'000 * (r + 1) + 10'000;
+    auto t1 = Clock::now();
+    if (!(*writer)->WriteAt(t, scene->get()).ok()) std::exit(1);
+    if (r > 0) planes_ms += Ms(t1);
+    t1 = Clock::now();
+    absl::StatusOr<const GaussianStore*> s = form.At(t + 20'000, pool);
+    if (!s.ok() || !(*engine)->UpdateSceneRows(ParamsViewOf(**s), form.changes(), &*scene).ok()) std::exit(1);
+    if (r > 0) host_ms += Ms(t1);
+    t1 = Clock::now();
+    if (!form.GeometryAt(t + 40'000, pool).ok()) std::exit(1);
+    if (r > 0) geometry_ms += Ms(t1);
+  }
+  std::printf("serve %8zu %-13s into the cpu engine's planes %7.2f ms wall per timestamp (host form + row update: "
+              "%7.2f ms); the LiDAR's geometry %7.2f ms\n",
+              n, "form", planes_ms / repeats, host_ms / repeats, geometry_ms / repeats);
+}
+
 // The extended field on `base` with `modules`, the modules let in: the gate at 0.1 and the
 // decoder's last layers Xavier x 0.1 (at init both are 0 and the extension changes nothing).
 ExtendedField BenchExtension(const DeformationField& base, const std::string& modules) {
@@ -229,6 +262,7 @@ void BenchServe(size_t n, int repeats, int samples, double dyn_fraction, bool or
       std::printf("      form: %zu table bytes per moving Gaussian, p99 / max position error %.2f / %.2f mm\n",
                   (*form)->table_bytes() / std::max<size_t>(1, (*form)->num_dynamic()),
                   (*form)->error().position_p99_m * 1e3, (*form)->error().max[0] * 1e3);
+      TimeFormOnCpuEngine(n, **form, repeats, pool);
       if (vulkan) TimeFormOnVulkanEngine(n, **form, repeats, pool);
     }
   }

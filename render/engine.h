@@ -121,6 +121,21 @@ struct ParamsChange {
   int sh_coeffs = 0;  // the first sh_coeffs SH coefficients of each channel changed (0: none)
 };
 
+// A scene's copy as planes in host memory (Engine::WritablePlanes): plane per parameter, Gaussian i
+// at index i. SH plane (k*3 + c) holds coefficient k of channel c: sh[(k*3 + c)*sh_plane + i];
+// `sh` is 64-byte aligned and sh_plane a multiple of 16 floats, so a run of 16 Gaussians from a
+// multiple of 16 is one cache line of each SH plane.
+struct ScenePlanes {
+  size_t n = 0;
+  int sh_degree = 0;
+  float* mean[3] = {};
+  float* log_scale[3] = {};
+  float* rotation[4] = {};  // w, x, y, z
+  float* opacity_logit = nullptr;
+  float* sh = nullptr;
+  size_t sh_plane = 0;
+};
+
 // A scene living in a backend's memory. Opaque; created by Engine::Upload.
 class DeviceScene {
  public:
@@ -187,6 +202,16 @@ class Engine {
   virtual absl::Status UpdateSceneRows(const GaussianParamsView& params, const ParamsChange& change,
                                        std::unique_ptr<DeviceScene>* scene) {
     return UpdateSceneParams(params, scene);
+  }
+
+  // Serving: the engine's own copy of `scene` as planes that a writer overwrites in place between
+  // renders (field::HostPlanesWriter writes the serving form's new time there, instead of into a
+  // store that UpdateSceneRows then copies), for backends whose copy lives in host memory in that
+  // layout (the cpu backend in float precision); Unimplemented elsewhere. Valid until the scene is
+  // next uploaded, updated or destroyed. Nothing checks what is written: the writer must write
+  // finite values and non-zero rotations.
+  virtual absl::StatusOr<ScenePlanes> WritablePlanes(DeviceScene* scene) {
+    return absl::UnimplementedError(absl::StrCat(device_name(), ": no writable planes of a scene"));
   }
 };
 

@@ -50,6 +50,10 @@ absl::StatusOr<std::shared_ptr<const HostScene>> ClipSetSceneField::HostAt(int64
   return clips_[ClipAt(time_us)].field->HostAt(time_us);
 }
 
+absl::StatusOr<std::shared_ptr<const HostScene>> ClipSetSceneField::GeometryAt(int64_t time_us) const {
+  return clips_[ClipAt(time_us)].field->GeometryAt(time_us);
+}
+
 size_t ClipSetSceneField::num_gaussians() const {
   size_t n = 0;
   for (const Clip& c : clips_) n += c.field->num_gaussians();

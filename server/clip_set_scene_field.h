@@ -33,6 +33,7 @@ class ClipSetSceneField : public SceneField {
 
   absl::StatusOr<const DeviceScene*> At(int64_t time_us, Engine& engine) const override;
   absl::StatusOr<std::shared_ptr<const HostScene>> HostAt(int64_t time_us) const override;
+  absl::StatusOr<std::shared_ptr<const HostScene>> GeometryAt(int64_t time_us) const override;
   size_t num_gaussians() const override;  // sum over the clips
   FieldStats stats() const override;      // sums; has_field when any clip has one; device: the
                                           // clips' when they agree, else "mixed"

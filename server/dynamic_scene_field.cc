@@ -1,5 +1,7 @@
 #include "server/dynamic_scene_field.h"
 
+#include <algorithm>
+
 #include "absl/strings/str_cat.h"
 #include "render/params_view.h"
 #include "render/common/log.h"
@@ -26,17 +28,34 @@ absl::StatusOr<std::unique_ptr<DynamicSceneField>> DynamicSceneField::Create(
   if (!device.ok()) return device.status();
   f->device_ = std::move(*device);
   f->device_evaluation_ = f->serving_->field_evaluations();
-  f->evaluations_.store(f->serving_->field_evaluations());
+  f->timestamps_ = f->serving_->field_evaluations();
+  f->counted_time_us_ = f->serving_->time_range().start_us;
+  f->evaluations_.store(f->timestamps_);
   f->device_name_ = f->serving_->device();
   f->on_device_.store(f->serving_->device() != "cpu");
   f->make_writer_ = std::move(make_writer);
   return f;
 }
 
-absl::StatusOr<const GaussianStore*> DynamicSceneField::EvaluateLocked(int64_t time_us) const {
+int64_t DynamicSceneField::ClampedLocked(int64_t time_us) const {
+  // As the served scene clamps, here too: times past either end are one time (one write, one count).
+  const field::FieldTimeRange r = serving_->time_range();
+  return std::clamp(time_us, r.start_us, std::max(r.start_us, r.end_us));
+}
+
+void DynamicSceneField::CountLocked(int64_t time_us) const {
+  if (counted_time_us_ == time_us) return;
+  ++timestamps_;
+  counted_time_us_ = time_us;
+  evaluations_.store(timestamps_);
+}
+
+absl::StatusOr<const GaussianStore*> DynamicSceneField::EvaluateLocked(int64_t time_us, bool geometry_only) const {
   // Clamps to the log's range; a repeated time coordinate is free.
-  absl::StatusOr<const GaussianStore*> store = serving_->At(time_us, *pool_);
-  evaluations_.store(serving_->field_evaluations() + device_writes_);
+  const int64_t before = serving_->field_evaluations();
+  absl::StatusOr<const GaussianStore*> store =
+      geometry_only ? serving_->GeometryAt(time_us, *pool_) : serving_->At(time_us, *pool_);
+  if (serving_->field_evaluations() != before) CountLocked(time_us);
   on_device_.store(serving_->device() != "cpu");
   return store;
 }
@@ -65,13 +84,13 @@ bool DynamicSceneField::WriteOnDeviceLocked(int64_t time_us, Engine& engine) con
     return false;
   }
   writer_time_us_ = time_us;
-  ++device_writes_;
-  evaluations_.store(serving_->field_evaluations() + device_writes_);
+  CountLocked(time_us);
   return true;
 }
 
 absl::StatusOr<const DeviceScene*> DynamicSceneField::At(int64_t time_us, Engine& engine) const {
   std::lock_guard<std::mutex> lock(mu_);
+  time_us = ClampedLocked(time_us);
   if (WriteOnDeviceLocked(time_us, engine)) return device_.get();
   absl::StatusOr<const GaussianStore*> store = EvaluateLocked(time_us);
   if (!store.ok()) return store.status();
@@ -95,7 +114,17 @@ absl::StatusOr<const DeviceScene*> DynamicSceneField::At(int64_t time_us, Engine
 
 absl::StatusOr<std::shared_ptr<const HostScene>> DynamicSceneField::HostAt(int64_t time_us) const {
   std::lock_guard<std::mutex> lock(mu_);
-  absl::StatusOr<const GaussianStore*> store = EvaluateLocked(time_us);
+  return HostLocked(time_us, false);
+}
+
+absl::StatusOr<std::shared_ptr<const HostScene>> DynamicSceneField::GeometryAt(int64_t time_us) const {
+  std::lock_guard<std::mutex> lock(mu_);
+  return HostLocked(time_us, true);
+}
+
+absl::StatusOr<std::shared_ptr<const HostScene>> DynamicSceneField::HostLocked(int64_t time_us,
+                                                                               bool geometry_only) const {
+  absl::StatusOr<const GaussianStore*> store = EvaluateLocked(ClampedLocked(time_us), geometry_only);
   if (!store.ok()) return store.status();
   if (serving_->field_evaluations() != host_evaluation_) {
     // A view of the serving field's Gaussians (no copy of 500k Gaussians per time); a new

@@ -137,7 +137,7 @@ absl::StatusOr<RenderResult> RenderCore::Render(const SceneField& field, int64_t
   LidarRenderOutput lidar_out;
   if (extras.lidar) {
     if (absl::Status s = cancel(); !s.ok()) return s;
-    absl::StatusOr<std::shared_ptr<const HostScene>> host = field.HostAt(time_us);
+    absl::StatusOr<std::shared_ptr<const HostScene>> host = field.GeometryAt(time_us);
     if (!host.ok()) return host.status();
     if (absl::Status s = RenderLidar(*host, *extras.lidar, &lidar_out); !s.ok()) return s;
   }

@@ -64,6 +64,12 @@ class SceneField {
   // The host Gaussians at `time_us` (LiDAR). The pointer identifies the Gaussian set: the same
   // pointer means the same Gaussians (renderers may keep an upload of it).
   virtual absl::StatusOr<std::shared_ptr<const HostScene>> HostAt(int64_t time_us) const = 0;
+  // What a LiDAR sweep reads: HostAt's Gaussians with their geometry (positions, scales, rotations,
+  // opacities) at `time_us` and their colours possibly another time's (a dynamic scene evaluates
+  // only what the sweep needs). The default is HostAt.
+  virtual absl::StatusOr<std::shared_ptr<const HostScene>> GeometryAt(int64_t time_us) const {
+    return HostAt(time_us);
+  }
   virtual size_t num_gaussians() const = 0;
   virtual FieldStats stats() const { return {}; }
   // The learned background at `time_us` when it depends on the time (a clip set: each clip's

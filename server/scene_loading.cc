@@ -11,6 +11,7 @@
 #include "render/vulkan/field/vulkan_serving.h"
 #include "scene/field/extended/extended_io.h"
 #include "scene/field/field_io.h"
+#include "scene/field/host_planes_writer.h"
 #include "scene/gaussians/ply_io.h"
 #include "scene/eval/lidar_eval.h"
 #include "scene/eval/served_scene.h"
@@ -134,7 +135,7 @@ absl::StatusOr<std::shared_ptr<LoadedScene>> LoadSceneFile(const std::string& pa
         DynamicSceneField::Create(std::move(*served), std::move(*reflectance), upload,
                                   load.field_device == train::FieldDevice::kVulkan
                                       ? DeviceWriterMaker(&field::DeviceWriterFor)
-                                      : DeviceWriterMaker());
+                                      : DeviceWriterMaker(&field::HostPlanesWriterFor));
     if (!dynamic.ok()) return InFieldFile(extended ? ext_path : field_path, dynamic.status());
     loaded->field = std::move(*dynamic);
     return loaded;

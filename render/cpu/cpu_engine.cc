@@ -141,6 +141,25 @@ class CpuEngine final : public Engine {
     return s;
   }
 
+  absl::StatusOr<ScenePlanes> WritablePlanes(DeviceScene* scene) override {
+    auto* cpu_scene = dynamic_cast<CpuScene*>(scene);
+    if (cpu_scene == nullptr || options_.precision != CpuPrecision::kFloatSimd) {
+      return Engine::WritablePlanes(scene);
+    }
+    if (kept_scene_ == cpu_scene) kept_scene_ = nullptr;  // the kept forward no longer matches
+    cpu::SceneSoa& s = cpu_scene->mutable_soa();
+    ScenePlanes p;
+    p.n = s.n;
+    p.sh_degree = s.sh_degree;
+    p.mean[0] = s.mx.data(), p.mean[1] = s.my.data(), p.mean[2] = s.mz.data();
+    p.log_scale[0] = s.ls0.data(), p.log_scale[1] = s.ls1.data(), p.log_scale[2] = s.ls2.data();
+    p.rotation[0] = s.qw.data(), p.rotation[1] = s.qx.data(), p.rotation[2] = s.qy.data(), p.rotation[3] = s.qz.data();
+    p.opacity_logit = s.opacity_logit.data();
+    p.sh = s.sh.data();
+    p.sh_plane = s.sh_plane;
+    return p;
+  }
+
   absl::Status RenderBackward(const DeviceScene& scene, const RenderOutputGrads& grads,
                               const BackwardOptions& options, GaussianGrads* out) override {
     const auto t0 = Clock::now();

@@ -10,6 +10,7 @@
 #endif
 
 #include "absl/strings/str_cat.h"
+#include "render/common/plane_tiles.h"
 
 namespace streetsim::cpu {
 namespace {
@@ -48,78 +49,7 @@ SceneSoa SceneSoa::FromStore(const GaussianStore& s) {
 }
 
 namespace {
-// 1 where the float is inf or nan (exponent all ones); integer test, immune to -ffast-math.
-inline uint32_t NonFinite(float v) {
-  uint32_t b;
-  std::memcpy(&b, &v, 4);
-  return (b & 0x7f800000u) == 0x7f800000u;
-}
-#if defined(__AVX2__)
-// Rows i .. i+7, values kc0 .. kc0+7 of the interleaved SH, transposed: out[j] holds value
-// kc0 + j of the eight rows. Flags a non-finite value in `bad`.
-inline void Transpose8x8(const float* src, size_t stride, size_t i, int kc0, __m256 out[8], __m256i& bad) {
-  const __m256i exp_mask = _mm256_set1_epi32(0x7f800000);
-  __m256 r[8];
-  for (int k = 0; k < 8; ++k) {
-    r[k] = _mm256_loadu_ps(src + (i + k) * stride + kc0);
-    const __m256i e = _mm256_and_si256(_mm256_castps_si256(r[k]), exp_mask);
-    bad = _mm256_or_si256(bad, _mm256_cmpeq_epi32(e, exp_mask));
-  }
-  const __m256 t0 = _mm256_unpacklo_ps(r[0], r[1]), t1 = _mm256_unpackhi_ps(r[0], r[1]);
-  const __m256 t2 = _mm256_unpacklo_ps(r[2], r[3]), t3 = _mm256_unpackhi_ps(r[2], r[3]);
-  const __m256 t4 = _mm256_unpacklo_ps(r[4], r[5]), t5 = _mm256_unpackhi_ps(r[4], r[5]);
-  const __m256 t6 = _mm256_unpacklo_ps(r[6], r[7]), t7 = _mm256_unpackhi_ps(r[6], r[7]);
-  // Per 128-bit half h: u_j = column 4h + j of rows 0-3 (u0..u3) and rows 4-7 (u4..u7).
-  const __m256 u0 = _mm256_shuffle_ps(t0, t2, 0x44), u1 = _mm256_shuffle_ps(t0, t2, 0xee);
-  const __m256 u2 = _mm256_shuffle_ps(t1, t3, 0x44), u3 = _mm256_shuffle_ps(t1, t3, 0xee);
-  const __m256 u4 = _mm256_shuffle_ps(t4, t6, 0x44), u5 = _mm256_shuffle_ps(t4, t6, 0xee);
-  const __m256 u6 = _mm256_shuffle_ps(t5, t7, 0x44), u7 = _mm256_shuffle_ps(t5, t7, 0xee);
-  out[0] = _mm256_permute2f128_ps(u0, u4, 0x20);
-  out[1] = _mm256_permute2f128_ps(u1, u5, 0x20);
-  out[2] = _mm256_permute2f128_ps(u2, u6, 0x20);
-  out[3] = _mm256_permute2f128_ps(u3, u7, 0x20);
-  out[4] = _mm256_permute2f128_ps(u0, u4, 0x31);
-  out[5] = _mm256_permute2f128_ps(u1, u5, 0x31);
-  out[6] = _mm256_permute2f128_ps(u2, u6, 0x31);
-  out[7] = _mm256_permute2f128_ps(u3, u7, 0x31);
-}
-
-// Coefficients [0, kc_end) (a multiple of 8) of Gaussians [i0, i0 + count) (count a multiple of
-// 8): src[i * stride + kc] -> dst[kc * plane + i], 8 x 8 at a time through registers. Returns 1 if
-// any moved value is inf or nan.
-uint32_t TransposeSh8(const float* src, size_t stride, size_t i0, int count, int kc_end, float* dst, size_t plane) {
-  __m256i bad = _mm256_setzero_si256();
-  for (int g = 0; g < count; g += 8) {
-    const size_t i = i0 + static_cast<size_t>(g);
-    for (int kc0 = 0; kc0 < kc_end; kc0 += 8) {
-      __m256 t[8];
-      Transpose8x8(src, stride, i, kc0, t, bad);
-      float* d = dst + static_cast<size_t>(kc0) * plane + i;
-      for (int j = 0; j < 8; ++j) _mm256_storeu_ps(d + j * plane, t[j]);
-    }
-  }
-  return _mm256_testz_si256(bad, bad) ? 0u : 1u;
-}
-
-// Sixteen rows from i0 (a multiple of 16) into their planes, values 0 .. kc_end (a multiple of 8):
-// each plane gets one whole, aligned cache line, written with streaming stores. A served scene's
-// update writes ~100 MB that the render reads back from memory anyway; streaming skips reading
-// every destination line first. The caller fences (_mm_sfence) before the rows are read.
-uint32_t StreamShTile16(const float* src, size_t stride, size_t i0, int kc_end, float* dst, size_t plane) {
-  __m256i bad = _mm256_setzero_si256();
-  for (int kc0 = 0; kc0 < kc_end; kc0 += 8) {
-    __m256 lo[8], hi[8];
-    Transpose8x8(src, stride, i0, kc0, lo, bad);
-    Transpose8x8(src, stride, i0 + 8, kc0, hi, bad);
-    float* d = dst + static_cast<size_t>(kc0) * plane + i0;
-    for (int j = 0; j < 8; ++j) {
-      _mm256_stream_ps(d + j * plane, lo[j]);
-      _mm256_stream_ps(d + j * plane + 8, hi[j]);
-    }
-  }
-  return _mm256_testz_si256(bad, bad) ? 0u : 1u;
-}
-#endif
+using planes::NonFinite;
 
 // Names the first offending Gaussian and value, so that a diverging trainer says where (the error
 // path only: a serial scan).
@@ -187,7 +117,7 @@ absl::Status SceneSoa::Assign(ThreadPool& pool, const GaussianParamsView& p) {
       // 8 x 8 blocks transposed in registers (a strided scalar copy was most of this pass).
       if (i1 - i0 == static_cast<size_t>(kBlock)) {
         kc_done = (K * 3) / 8 * 8;
-        nf |= TransposeSh8(p.sh, stride, i0, kBlock, kc_done, sh.data(), sh_plane);
+        nf |= planes::TransposeRows8(p.sh + i0 * stride, stride, kBlock, kc_done, sh.data() + i0, sh_plane);
       }
 #endif
       for (int kc = kc_done; kc < K * 3; ++kc) {
@@ -262,7 +192,7 @@ absl::Status SceneSoa::AssignRows(ThreadPool& pool, const GaussianParamsView& p,
 #if defined(__AVX2__)
       if (sh_values % 8 == 0) {
         if (run && i0 % kTile == 0) {
-          nf |= StreamShTile16(p.sh, stride, i0, sh_values, sh.data(), sh_plane);
+          nf |= planes::StreamRows16(p.sh + i0 * stride, stride, sh_values, sh.data() + i0, sh_plane);
           streamed = true;
           r += kTile;
           continue;

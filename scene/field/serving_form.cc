@@ -111,22 +111,66 @@ ServingForm::Spline ServingForm::SplineAxis::AtTau(double tau) const {
   return sp;
 }
 
-void ServingForm::EvaluateInto(double tau, GaussianStore* out, ThreadPool& pool) const {
+void ServingForm::EvaluateInto(double tau, GaussianStore* out, ThreadPool& pool, uint32_t groups) const {
   const Spline sp = spline_axis().AtTau(tau);
   if (degree_ == 1) {
-    tables_.Evaluate<2>(sp.k, sp.w, sp.line, rows_.data(), out, pool);
+    tables_.Evaluate<2>(sp.k, sp.w, sp.line, rows_.data(), out, pool, groups);
   } else {
-    tables_.Evaluate<4>(sp.k, sp.w, sp.line, rows_.data(), out, pool);
+    tables_.Evaluate<4>(sp.k, sp.w, sp.line, rows_.data(), out, pool, groups);
   }
 }
+
+namespace {
+constexpr uint32_t kAppearanceGroups =
+    (1u << static_cast<int>(FormGroup::kColour)) | (1u << static_cast<int>(FormGroup::kShBands));
+}  // namespace
 
 absl::StatusOr<const GaussianStore*> ServingForm::At(int64_t time_us, ThreadPool& pool) {
   const double tau = Tau(time_us);
   if (tau == last_tau_) return &current_;
-  EvaluateInto(tau, &current_, pool);
-  last_tau_ = tau;
+  if (tau == geometry_tau_) {
+    EvaluateInto(tau, &current_, pool, kAppearanceGroups);  // the same evaluation, completed
+  } else {
+    EvaluateInto(tau, &current_, pool);
+    ++evaluations_;
+  }
+  last_tau_ = geometry_tau_ = tau;
+  return &current_;
+}
+
+absl::StatusOr<const GaussianStore*> ServingForm::GeometryAt(int64_t time_us, ThreadPool& pool) {
+  const double tau = Tau(time_us);
+  if (tau == last_tau_ || tau == geometry_tau_) return &current_;
+  EvaluateInto(tau, &current_, pool, ~kAppearanceGroups);
+  geometry_tau_ = tau;
+  last_tau_ = -1;  // the appearance is another time's
   ++evaluations_;
   return &current_;
+}
+
+absl::Status ServingForm::WritePlanesAt(int64_t time_us, const ScenePlanes& planes, ThreadPool& pool) {
+  if (planes.n != current_.size() || planes.sh_degree != current_.sh_degree) {
+    return absl::InvalidArgumentError(absl::StrCat("serving form: planes of ", planes.n, " Gaussians of SH degree ",
+                                                   planes.sh_degree, " for a form of ", current_.size(),
+                                                   " of degree ", current_.sh_degree));
+  }
+  const double tau = Tau(time_us);
+  const Spline sp = spline_axis().AtTau(tau);
+  // The store's geometry too, unless it already holds this time's.
+  GaussianStore* geometry = tau == last_tau_ || tau == geometry_tau_ ? nullptr : &current_;
+  const bool ok = degree_ == 1
+                      ? tables_.EvaluateIntoPlanes<2>(sp.k, sp.w, sp.line, rows_.data(), planes, pool, geometry)
+                      : tables_.EvaluateIntoPlanes<4>(sp.k, sp.w, sp.line, rows_.data(), planes, pool, geometry);
+  if (!ok) {
+    last_tau_ = geometry_tau_ = -1;  // the store may be part-written: the next At evaluates it whole
+    return absl::InternalError("serving form: a value came out non-finite or a rotation zero");
+  }
+  if (geometry) {
+    geometry_tau_ = tau;
+    last_tau_ = -1;
+    ++evaluations_;
+  }
+  return absl::OkStatus();
 }
 
 ParamsChange ServingForm::changes() const {

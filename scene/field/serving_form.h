@@ -69,6 +69,15 @@ class ServingForm : public ServedScene {
                                                           int appearance_rank = kDefaultAppearanceRank);
 
   absl::StatusOr<const GaussianStore*> At(int64_t time_us, ThreadPool& pool) override;
+  // Only the groups that are not the appearance (a tenth of the work for S3Gaussian's field); a
+  // later At of the same time completes the appearance without counting a new evaluation.
+  absl::StatusOr<const GaussianStore*> GeometryAt(int64_t time_us, ThreadPool& pool) override;
+  // The form at `time_us` into an engine's planes of these Gaussians (Engine::WritablePlanes),
+  // every modelled channel of the moving rows, and in the same pass the current store's geometry
+  // (as GeometryAt: a GeometryAt of the same time is then free, and this counts as its
+  // evaluation). InvalidArgument for planes of another size or SH degree; Internal when a value
+  // came out non-finite (the planes' moving rows are then unspecified).
+  absl::Status WritePlanesAt(int64_t time_us, const ScenePlanes& planes, ThreadPool& pool);
   size_t size() const override { return current_.size(); }
   size_t num_dynamic() const override { return rows_.size(); }
   int64_t field_evaluations() const override { return evaluations_; }
@@ -112,7 +121,7 @@ class ServingForm : public ServedScene {
   ServingForm() = default;
   int modelled_channels() const;  // channels of every modelled group but position
   // Writes the form at tau into `out` (only the moving rows' modelled channels).
-  void EvaluateInto(double tau, GaussianStore* out, ThreadPool& pool) const;
+  void EvaluateInto(double tau, GaussianStore* out, ThreadPool& pool, uint32_t groups = ~0u) const;
   double Tau(int64_t time_us) const { return spline_axis().Tau(time_us); }
   // Fit's last step: the form against `exact` halfway between the fit samples (error_,
   // position_error_m_).
@@ -127,7 +136,8 @@ class ServingForm : public ServedScene {
   FormTables tables_;            // the moving Gaussians' control points, row r for rows_[r]
   ServingFormError error_;
   std::vector<float> position_error_m_;
-  double last_tau_ = -1;
+  double last_tau_ = -1;           // current_ holds every modelled group at this time
+  double geometry_tau_ = -1;       // current_ holds the groups GeometryAt evaluates at this time
   int64_t evaluations_ = 0;
 };
 

@@ -1,10 +1,16 @@
 #include "scene/field/serving_form_tables.h"
 
 #include <algorithm>
+#include <atomic>
 #include <bit>
 #include <cmath>
 #include <cstddef>
 #include <cstring>
+#if defined(__AVX2__)
+#include <immintrin.h>
+#endif
+
+#include "render/common/plane_tiles.h"
 
 namespace streetsim::field {
 
@@ -220,74 +226,95 @@ FormTables FormTables::Quantise(const std::vector<float>& coef, size_t rows, int
 }
 
 template <int kTaps>
-void FormTables::Evaluate(int k, const float* w, float line, const uint32_t* rows, GaussianStore* out,
-                          ThreadPool& pool) const {
+void FormTables::PositionAt(size_t r, int k, const float* w, float line, float p[3]) const {
+  const float* ends = &position_ends_[r * 6];
+  const int8_t* qp = &q_position_[(r * control_points_ + k) * 3];
+  for (int c = 0; c < 3; ++c) {
+    float s = 0;
+    for (int j = 0; j < kTaps; ++j) s += w[j] * qp[3 * j + c];
+    p[c] = ends[c] + (ends[3 + c] - ends[c]) * line + FromBf16(position_step_[r * 3 + c]) * s;
+  }
+}
+
+template <int kTaps>
+void FormTables::AppearanceRank1At(size_t r, int k, const float* w, float* __restrict sh48) const {
+  const Block& bl = blocks_[0];
+  const int8_t* qu = &bl.q_u[r * control_points_ + k];
+  float s = 0;
+  for (int t = 0; t < kTaps; ++t) s += w[t] * qu[t];
+  const float a = FromBf16(bl.scale[r]) * s;
+  AppearanceRank1(sh48, &bl.q_base[r * 48], &bl.q_v[r * 48], bl.base_offset[r * 2], FromBf16(bl.base_step[r * 2]),
+                  bl.base_offset[r * 2 + 1], FromBf16(bl.base_step[r * 2 + 1]), a);
+}
+
+template <int kTaps>
+void FormTables::BlockAt(const Block& bl, size_t r, int k, const float* w, float* vals) const {
   const int M = control_points_;
+  const int n = bl.channels, R = bl.rank, G = bl.group_count();
+  float ut[kMaxAppearanceRank + 4];
+  for (int j = 0; j < R; ++j) {
+    const int8_t* qu = &bl.q_u[(r * R + j) * M + k];
+    float s = 0;
+    for (int t = 0; t < kTaps; ++t) s += w[t] * qu[t];
+    ut[j] = FromBf16(bl.scale[r * R + j]) * s;
+  }
+  // One pass per group for the time-mean and one per term, in `vals` (nothing aliases it, so the
+  // loops vectorise).
+  const int8_t* qb = &bl.q_base[r * n];
+  const int8_t* qv = &bl.q_v[r * R * n];
+  int c0 = 0, gi = 0;
+  for (int g = 1; g < kFormGroups; ++g) {
+    if (!(bl.groups & (1u << g))) continue;
+    const int count = kFormGroupChannels[g];
+    const float off = bl.base_offset[r * G + gi], step = FromBf16(bl.base_step[r * G + gi]);
+    for (int c = c0; c < c0 + count; ++c) vals[c] = off + step * static_cast<float>(qb[c]);
+    c0 += count;
+    ++gi;
+  }
+  for (int j = 0; j < R; ++j) {
+    const float a = ut[j];
+    const int8_t* q = qv + j * n;
+    for (int c = 0; c < n; ++c) vals[c] += a * static_cast<float>(q[c]);
+  }
+}
+
+bool FormTables::IsS3Rank1(int sh_degree) const {
+  return blocks_.size() == 1 && blocks_[0].groups == kAppearance && blocks_[0].rank == 1 && sh_degree == 3;
+}
+
+template <int kTaps>
+void FormTables::Evaluate(int k, const float* w, float line, const uint32_t* rows, GaussianStore* out,
+                          ThreadPool& pool, uint32_t groups) const {
+  const bool position = groups & (1u << static_cast<int>(FormGroup::kPosition));
   struct Run {
     GroupSpan<float> span;
     int count;
   };
-  std::vector<std::vector<Run>> runs(blocks_.size());
-  for (size_t bi = 0; bi < blocks_.size(); ++bi) {
+  std::vector<const Block*> blocks;
+  std::vector<std::vector<Run>> runs;
+  for (const Block& bl : blocks_) {
+    if (!(bl.groups & groups)) continue;
+    blocks.push_back(&bl);
+    runs.emplace_back();
     for (int g = 1; g < kFormGroups; ++g) {
-      if (blocks_[bi].groups & (1u << g)) runs[bi].push_back({SpanOf(static_cast<FormGroup>(g), out), kFormGroupChannels[g]});
+      if (bl.groups & (1u << g)) runs.back().push_back({SpanOf(static_cast<FormGroup>(g), out), kFormGroupChannels[g]});
     }
   }
-  const bool s3_rank1 = blocks_.size() == 1 && blocks_[0].groups == kAppearance && blocks_[0].rank == 1 &&
-                        out->sh_degree == 3;
+  // S3Gaussian's form at the default rank: the DC and the bands are one run of 48 floats in the
+  // store, written with fixed trip counts (the general path takes ~2x as long).
+  const bool s3_rank1 = !blocks.empty() && IsS3Rank1(out->sh_degree);
   pool.ParallelFor(static_cast<int64_t>(rows_), 4096, [&](int64_t b, int64_t e, int) {
-    float ut[kMaxAppearanceRank + 4];
     float vals[64];  // a block's channels (48 at most)
     for (int64_t r = b; r < e; ++r) {
       const size_t i = rows[r];
-      const float* ends = &position_ends_[r * 6];
-      const int8_t* qp = &q_position_[(static_cast<size_t>(r) * M + k) * 3];
-      for (int c = 0; c < 3; ++c) {
-        float s = 0;
-        for (int j = 0; j < kTaps; ++j) s += w[j] * qp[3 * j + c];
-        out->means[i * 3 + c] = ends[c] + (ends[3 + c] - ends[c]) * line + FromBf16(position_step_[r * 3 + c]) * s;
-      }
+      if (position) PositionAt<kTaps>(r, k, w, line, &out->means[i * 3]);
       if (s3_rank1) {
-        // S3Gaussian's form at the default rank: the DC and the bands are one run of 48 floats in
-        // the store, written with fixed trip counts (the general path below takes ~2x as long).
-        const Block& bl = blocks_[0];
-        const int8_t* qu = &bl.q_u[r * M + k];
-        float s = 0;
-        for (int t = 0; t < kTaps; ++t) s += w[t] * qu[t];
-        const float a = FromBf16(bl.scale[r]) * s;
-        const int8_t* qb = &bl.q_base[r * 48];
-        const int8_t* qv = &bl.q_v[r * 48];
-        const float off0 = bl.base_offset[r * 2], st0 = FromBf16(bl.base_step[r * 2]);
-        const float off1 = bl.base_offset[r * 2 + 1], st1 = FromBf16(bl.base_step[r * 2 + 1]);
-        AppearanceRank1(out->sh.data() + i * 48, qb, qv, off0, st0, off1, st1, a);
+        AppearanceRank1At<kTaps>(r, k, w, out->sh.data() + i * 48);
         continue;
       }
-      for (size_t bi = 0; bi < blocks_.size(); ++bi) {
-        const Block& bl = blocks_[bi];
-        const int n = bl.channels, R = bl.rank, G = bl.group_count();
-        for (int j = 0; j < R; ++j) {
-          const int8_t* qu = &bl.q_u[(r * R + j) * M + k];
-          float s = 0;
-          for (int t = 0; t < kTaps; ++t) s += w[t] * qu[t];
-          ut[j] = FromBf16(bl.scale[r * R + j]) * s;
-        }
-        // The block's values in a local buffer (nothing aliases it, so the loops vectorise), one
-        // pass per group for the time-mean and one per term, then copied into the store's runs.
-        const int8_t* qb = &bl.q_base[r * n];
-        const int8_t* qv = &bl.q_v[r * R * n];
+      for (size_t bi = 0; bi < blocks.size(); ++bi) {
+        BlockAt<kTaps>(*blocks[bi], r, k, w, vals);
         int c0 = 0;
-        for (int gi = 0; gi < G; ++gi) {
-          const int count = runs[bi][gi].count;
-          const float off = bl.base_offset[r * G + gi], step = FromBf16(bl.base_step[r * G + gi]);
-          for (int c = c0; c < c0 + count; ++c) vals[c] = off + step * static_cast<float>(qb[c]);
-          c0 += count;
-        }
-        for (int j = 0; j < R; ++j) {
-          const float a = ut[j];
-          const int8_t* q = qv + j * n;
-          for (int c = 0; c < n; ++c) vals[c] += a * static_cast<float>(q[c]);
-        }
-        c0 = 0;
         for (const Run& run : runs[bi]) {
           std::copy_n(vals + c0, run.count, run.span.data + i * run.span.stride + run.span.offset);
           c0 += run.count;
@@ -295,6 +322,106 @@ void FormTables::Evaluate(int k, const float* w, float line, const uint32_t* row
       }
     }
   });
+}
+
+namespace {
+
+float* PlaneOf(FormGroup g, int c, const ScenePlanes& p) {
+  switch (g) {
+    case FormGroup::kPosition: return p.mean[c];
+    case FormGroup::kColour: return p.sh + static_cast<size_t>(c) * p.sh_plane;
+    case FormGroup::kLogScale: return p.log_scale[c];
+    case FormGroup::kRotation: return p.rotation[c];
+    case FormGroup::kOpacity: return p.opacity_logit;
+    case FormGroup::kShBands: return p.sh + static_cast<size_t>(3 + c) * p.sh_plane;
+  }
+  return nullptr;
+}
+
+}  // namespace
+
+template <int kTaps>
+bool FormTables::EvaluateIntoPlanes(int k, const float* w, float line, const uint32_t* rows, const ScenePlanes& out,
+                                    ThreadPool& pool, GaussianStore* geometry) const {
+  using planes::NonFinite;
+  // Per block: the plane of each channel and, for a geometric block with `geometry`, the store's
+  // place of each channel (element i * stride + offset).
+  struct StoreChannel {
+    float* data;
+    int stride, offset;
+  };
+  std::vector<std::vector<float*>> block_planes(blocks_.size());
+  std::vector<std::vector<StoreChannel>> block_store(blocks_.size());
+  for (size_t bi = 0; bi < blocks_.size(); ++bi) {
+    for (int g = 1; g < kFormGroups; ++g) {
+      if (!(blocks_[bi].groups & (1u << g))) continue;
+      for (int c = 0; c < kFormGroupChannels[g]; ++c) {
+        block_planes[bi].push_back(PlaneOf(static_cast<FormGroup>(g), c, out));
+        if (geometry && !(blocks_[bi].groups & kAppearance)) {
+          const GroupSpan<float> span = SpanOf(static_cast<FormGroup>(g), geometry);
+          block_store[bi].push_back({span.data, span.stride, span.offset + c});
+        }
+      }
+    }
+  }
+  float* means = geometry ? geometry->means.data() : nullptr;
+  const bool s3_rank1 = IsS3Rank1(out.sh_degree);
+  const bool rotation = groups_ & (1u << static_cast<int>(FormGroup::kRotation));
+  const size_t plane = out.sh_plane;
+  const bool lines = plane % 16 == 0 && reinterpret_cast<uintptr_t>(out.sh) % 64 == 0;
+  std::atomic<bool> bad{false};
+  pool.ParallelFor(static_cast<int64_t>(rows_), 4096, [&](int64_t b, int64_t e, int) {
+    uint32_t nf = 0;
+    bool streamed = false;
+    alignas(64) float tile[16 * 48];  // [row][value]
+    float vals[64];
+    for (int64_t r = b; r < e;) {
+      const size_t i = rows[r];
+      float p[3];
+#if defined(__AVX2__)
+      // Sixteen consecutive rows from a cache-line start: one whole line of each SH plane, computed
+      // row by row into `tile` and streamed out through registers (one pass over the planes).
+      if (s3_rank1 && lines && i % 16 == 0 && r + 16 <= e && rows[r + 15] == i + 15) {
+        for (int j = 0; j < 16; ++j) {
+          PositionAt<kTaps>(r + j, k, w, line, p);
+          for (int c = 0; c < 3; ++c) out.mean[c][i + j] = p[c], nf |= NonFinite(p[c]);
+          if (means) std::copy_n(p, 3, means + (i + j) * 3);
+          AppearanceRank1At<kTaps>(r + j, k, w, tile + j * 48);
+        }
+        nf |= planes::StreamRows16(tile, 48, 48, out.sh + i, plane);
+        streamed = true;
+        r += 16;
+        continue;
+      }
+#endif
+      PositionAt<kTaps>(r, k, w, line, p);
+      for (int c = 0; c < 3; ++c) out.mean[c][i] = p[c], nf |= NonFinite(p[c]);
+      if (means) std::copy_n(p, 3, means + i * 3);
+      if (s3_rank1) {
+        AppearanceRank1At<kTaps>(r, k, w, vals);
+        for (int c = 0; c < 48; ++c) out.sh[c * plane + i] = vals[c], nf |= NonFinite(vals[c]);
+      } else {
+        for (size_t bi = 0; bi < blocks_.size(); ++bi) {
+          BlockAt<kTaps>(blocks_[bi], r, k, w, vals);
+          const std::vector<float*>& dst = block_planes[bi];
+          for (size_t c = 0; c < dst.size(); ++c) dst[c][i] = vals[c], nf |= NonFinite(vals[c]);
+          const std::vector<StoreChannel>& st = block_store[bi];
+          for (size_t c = 0; c < st.size(); ++c) st[c].data[i * st[c].stride + st[c].offset] = vals[c];
+        }
+        if (rotation) {
+          float q2 = 0;
+          for (int c = 0; c < 4; ++c) q2 += out.rotation[c][i] * out.rotation[c][i];
+          nf |= q2 < 1e-20f;
+        }
+      }
+      ++r;
+    }
+#if defined(__AVX2__)
+    if (streamed) _mm_sfence();  // streaming stores are weakly ordered: publish them before the join
+#endif
+    if (nf) bad.store(true, std::memory_order_relaxed);
+  });
+  return !bad.load();
 }
 
 FormTables::RecordLayout FormTables::MakeRecordLayout() const {
@@ -353,7 +480,13 @@ void FormTables::PackRecords(const RecordLayout& l, const uint32_t* rows, size_t
   }
 }
 
-template void FormTables::Evaluate<2>(int, const float*, float, const uint32_t*, GaussianStore*, ThreadPool&) const;
-template void FormTables::Evaluate<4>(int, const float*, float, const uint32_t*, GaussianStore*, ThreadPool&) const;
+template void FormTables::Evaluate<2>(int, const float*, float, const uint32_t*, GaussianStore*, ThreadPool&,
+                                      uint32_t) const;
+template void FormTables::Evaluate<4>(int, const float*, float, const uint32_t*, GaussianStore*, ThreadPool&,
+                                      uint32_t) const;
+template bool FormTables::EvaluateIntoPlanes<2>(int, const float*, float, const uint32_t*, const ScenePlanes&,
+                                                ThreadPool&, GaussianStore*) const;
+template bool FormTables::EvaluateIntoPlanes<4>(int, const float*, float, const uint32_t*, const ScenePlanes&,
+                                                ThreadPool&, GaussianStore*) const;
 
 }  // namespace streetsim::field

@@ -21,6 +21,7 @@
 #include <vector>
 
 #include "render/common/thread_pool.h"
+#include "render/engine.h"
 #include "scene/gaussians/gaussian_store.h"
 
 namespace streetsim::field {
@@ -62,11 +63,21 @@ class FormTables {
   static FormTables Quantise(const std::vector<float>& coef, size_t rows, int control_points, uint32_t groups,
                              int appearance_rank, ThreadPool& pool);
 
-  // Writes the rows' modelled channels (row r of the tables is Gaussian rows[r] of `out`) at the
-  // spline's weights w[0..kTaps) of the control points k, k + 1, ..., which fall at `line` on
-  // the line between the first and the last control point (ServingForm::Spline).
+  // Writes the rows' modelled channels of `groups` (FormGroup bits; row r of the tables is Gaussian
+  // rows[r] of `out`) at the spline's weights w[0..kTaps) of the control points k, k + 1, ...,
+  // which fall at `line` on the line between the first and the last control point
+  // (ServingForm::Spline).
   template <int kTaps>
-  void Evaluate(int k, const float* w, float line, const uint32_t* rows, GaussianStore* out, ThreadPool& pool) const;
+  void Evaluate(int k, const float* w, float line, const uint32_t* rows, GaussianStore* out, ThreadPool& pool,
+                uint32_t groups = ~0u) const;
+  // The same values, every modelled channel, into an engine's planes (Engine::WritablePlanes) of
+  // the same Gaussians; `rows` ascending. With `geometry`, the same pass also writes every group
+  // but the appearance into that store (Evaluate's values: what the LiDAR reads). Returns false,
+  // with the rows written or not, when a value came out non-finite or a rotation zero (what a
+  // render must not read).
+  template <int kTaps>
+  bool EvaluateIntoPlanes(int k, const float* w, float line, const uint32_t* rows, const ScenePlanes& out,
+                          ThreadPool& pool, GaussianStore* geometry = nullptr) const;
 
   size_t rows() const { return rows_; }
   int control_points() const { return control_points_; }
@@ -109,6 +120,16 @@ class FormTables {
   };
   // The blocks a form of `groups` has, with their ranks (the codec rebuilds them from the file).
   static std::vector<Block> BlocksOf(uint32_t groups, int appearance_rank, int control_points);
+  // One row's values at the spline (Evaluate's and EvaluateIntoPlanes's common parts): its
+  // position; S3Gaussian's appearance at rank 1 (48 SH floats, store order); a block's channels.
+  template <int kTaps>
+  void PositionAt(size_t r, int k, const float* w, float line, float p[3]) const;
+  template <int kTaps>
+  void AppearanceRank1At(size_t r, int k, const float* w, float* sh48) const;
+  template <int kTaps>
+  void BlockAt(const Block& bl, size_t r, int k, const float* w, float* vals) const;
+  // The one appearance block at rank 1 over SH degree 3 Gaussians (the fixed-count fast path).
+  bool IsS3Rank1(int sh_degree) const;
 
   size_t rows_ = 0;
   int control_points_ = 0;

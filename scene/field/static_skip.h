@@ -102,6 +102,12 @@ class ServedScene {
   // The deformed scene at a timestamp (clamped to the log's range: after the log end dynamic
   // content holds its last state). Valid until the next call.
   virtual absl::StatusOr<const GaussianStore*> At(int64_t time_us, ThreadPool& pool) = 0;
+  // What a LiDAR sweep needs: the scene at `time_us` with its geometry (positions, and the scales,
+  // rotations and opacities where the field changes them) at that time; its colours may be another
+  // time's. Valid until the next call. The default evaluates everything (At).
+  virtual absl::StatusOr<const GaussianStore*> GeometryAt(int64_t time_us, ThreadPool& pool) {
+    return At(time_us, pool);
+  }
   virtual size_t size() const = 0;
   virtual size_t num_dynamic() const = 0;           // Gaussians evaluated per timestamp
   virtual int64_t field_evaluations() const = 0;    // how often the field ran
@@ -128,10 +134,11 @@ class ServedScene {
   std::string device_ = "cpu";
 };
 
-// A served scene written straight into a render engine's copy of it by the engine's own device
+// A served scene written straight into a render engine's copy of it: by the engine's own device
 // (the serving form's kernel on a Vulkan engine: render/vulkan/field/vulkan_serving.h
-// DeviceWriterFor), so that a new time moves nothing across the bus. The host's ServedScene::At
-// stays what the LiDAR renders.
+// DeviceWriterFor), so that a new time moves nothing across the bus, or into the cpu engine's
+// planes (host_planes_writer.h), so that a new time is one pass over them. The host's
+// ServedScene::GeometryAt stays what the LiDAR renders.
 class DeviceSceneWriter {
  public:
   virtual ~DeviceSceneWriter() = default;

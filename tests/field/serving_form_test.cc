@@ -173,6 +173,72 @@ TEST(ServingForm, StaticGaussiansAreUntouchedAndTheEndsClamp) {
   EXPECT_EQ(mid.opacity_logits, g.opacity_logits);
 }
 
+// The LiDAR's part of a time (GeometryAt) is the positions At gives, a tenth of the work; At of the
+// same time then completes the colours without counting another evaluation. WritePlanesAt writes
+// what At holds into an engine's planes.
+TEST(ServingForm, GeometryAtAndWritePlanesAtAgreeWithAt) {
+  ThreadPool pool(2);
+  const DeformationField f = MovingField(false);
+  const GaussianStore g = Gaussians(300);
+  std::unique_ptr<ServingField> exact = Exact(f, g, false, pool);
+  absl::StatusOr<std::unique_ptr<ServingForm>> built = ServingForm::Build(*exact, ServingFormOptions{}, pool);
+  ASSERT_TRUE(built.ok()) << built.status();
+  ServingForm& form = **built;
+  const GaussianStore at_a = **form.At(kEndUs / 5, pool);
+  const GaussianStore at_b = **form.At(kEndUs / 2, pool);
+  ASSERT_NE(at_a.means, at_b.means);
+  ASSERT_NE(at_a.sh, at_b.sh);
+
+  const int64_t e0 = form.field_evaluations();
+  const GaussianStore geometry_a = **form.GeometryAt(kEndUs / 5, pool);
+  EXPECT_EQ(form.field_evaluations(), e0 + 1);
+  EXPECT_EQ(geometry_a.means, at_a.means);
+  EXPECT_EQ(geometry_a.sh, at_b.sh) << "the colours are the last full time's";
+  EXPECT_EQ((**form.GeometryAt(kEndUs / 5, pool)).means, at_a.means);
+  const GaussianStore completed = **form.At(kEndUs / 5, pool);
+  EXPECT_EQ(form.field_evaluations(), e0 + 1) << "completing a time is not a new evaluation";
+  EXPECT_EQ(completed.means, at_a.means);
+  EXPECT_EQ(completed.sh, at_a.sh);
+  EXPECT_EQ((**form.GeometryAt(kEndUs / 5, pool)).sh, at_a.sh);  // already whole: nothing to do
+  EXPECT_EQ(form.field_evaluations(), e0 + 1);
+
+  // Planes laid out as the cpu engine's (render/cpu/scene_soa.h), filled from the start's store.
+  const GaussianStore start = **form.At(0, pool);
+  const size_t n = start.size(), plane = (n + 15) / 16 * 16;
+  std::vector<std::vector<float>> scalar(11, std::vector<float>(n));
+  std::vector<float> sh(48 * plane + 16);
+  float* sh0 = sh.data();
+  while (reinterpret_cast<uintptr_t>(sh0) % 64 != 0) ++sh0;
+  ScenePlanes p;
+  p.n = n;
+  p.sh_degree = 3;
+  p.sh = sh0;
+  p.sh_plane = plane;
+  for (int c = 0; c < 3; ++c) p.mean[c] = scalar[c].data(), p.log_scale[c] = scalar[3 + c].data();
+  for (int c = 0; c < 4; ++c) p.rotation[c] = scalar[6 + c].data();
+  p.opacity_logit = scalar[10].data();
+  for (size_t i = 0; i < n; ++i) {
+    for (int c = 0; c < 3; ++c) p.mean[c][i] = start.means[i * 3 + c];
+    for (int kc = 0; kc < 48; ++kc) p.sh[kc * plane + i] = start.sh[i * 48 + kc];
+  }
+  const int64_t e1 = form.field_evaluations();
+  ASSERT_TRUE(form.WritePlanesAt(kEndUs / 2, p, pool).ok());
+  EXPECT_EQ(form.field_evaluations(), e1 + 1);
+  EXPECT_EQ((**form.GeometryAt(kEndUs / 2, pool)).means, at_b.means) << "written in the planes' pass";
+  EXPECT_EQ(form.field_evaluations(), e1 + 1);
+  EXPECT_EQ((**form.At(kEndUs / 2, pool)).sh, at_b.sh);
+  for (size_t i = 0; i < n; ++i) {
+    for (int c = 0; c < 3; ++c) ASSERT_NEAR(p.mean[c][i], at_b.means[i * 3 + c], 1e-5) << i;
+    for (int kc = 0; kc < 48; ++kc) ASSERT_NEAR(p.sh[kc * plane + i], at_b.sh[i * 48 + kc], 1e-5) << i << " " << kc;
+  }
+  ScenePlanes other = p;
+  other.n = n - 1;
+  EXPECT_EQ(form.WritePlanesAt(0, other, pool).code(), absl::StatusCode::kInvalidArgument);
+  other = p;
+  other.sh_degree = 1;
+  EXPECT_EQ(form.WritePlanesAt(0, other, pool).code(), absl::StatusCode::kInvalidArgument);
+}
+
 TEST(ServingForm, BadOptionsAreRefused) {
   ThreadPool pool(1);
   const GaussianStore g = Gaussians(10);

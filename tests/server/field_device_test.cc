@@ -17,6 +17,8 @@
 #include "scene/field/extended/extended_serving.h"
 #include "scene/field/field_eval.h"
 #include "scene/field/field_io.h"
+#include "scene/field/host_planes_writer.h"
+#include "scene/field/serving_form.h"
 #include "scene/field/static_skip.h"
 #include "render/vulkan/field/vulkan_serving.h"
 #include "tests/common/cli_runner.h"
@@ -344,6 +346,88 @@ TEST(DynamicSceneFieldWriter, AWriterThatFailsFallsBackToTheHostWithAWholeUpload
     const std::vector<float> from_unmade = render(**a);
     EXPECT_EQ(from_unmade, render(**host->At(kTimesUs[2], **engine))) << fails;
     EXPECT_EQ(unmade->stats().device, "cpu");
+  }
+}
+
+// The cpu engine's writer (field::HostPlanesWriter): the serving form written straight into the
+// engine's planes renders as the host form uploaded, at every time and back again; a served
+// dynamic scene with it renders as one without it, and its LiDAR geometry is the host's. No
+// writer for the exact field, for a scene without moving Gaussians or for another engine's
+// scenes.
+TEST(HostPlanesWriter, TheFormWrittenIntoTheCpuEnginesPlanesRendersAsTheHostForm) {
+  const GaussianStore g = Street(6, 1500);
+  const field::DeformationField f = PartlyStaticField(g);
+  ThreadPool pool(0);
+  absl::StatusOr<std::unique_ptr<Engine>> engine = CreateEngine(Backend::kCpu);
+  ASSERT_TRUE(engine.ok()) << engine.status();
+  auto exact = [&] {
+    absl::StatusOr<field::ServingField> served = field::ServingField::Create(f, g, {}, pool);
+    EXPECT_TRUE(served.ok()) << served.status();
+    return std::make_unique<field::ServingField>(std::move(*served));
+  };
+  auto form_of = [&] {
+    std::unique_ptr<field::ServingField> e = exact();
+    absl::StatusOr<std::unique_ptr<field::ServingForm>> form = field::ServingForm::Build(*e, {}, pool);
+    EXPECT_TRUE(form.ok()) << form.status();
+    return std::move(*form);
+  };
+  auto render = [&](const DeviceScene& scene) {
+    RenderOutput out;
+    EXPECT_TRUE((*engine)->Render(scene, FrontCamera(0.0), RenderOptions{}, &out).ok());
+    return out.rgb;
+  };
+  std::unique_ptr<field::ServingForm> form = form_of();
+  ASSERT_GT(form->num_dynamic(), 0u);
+  ASSERT_LT(form->num_dynamic(), g.size());
+  absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>> writer = field::HostPlanesWriterFor(**engine, *form);
+  ASSERT_TRUE(writer.ok() && *writer) << writer.status();
+  EXPECT_EQ((*writer)->device(), "cpu");
+  absl::StatusOr<std::unique_ptr<DeviceScene>> written = (*engine)->Upload(**form->At(kTimesUs[0], pool));
+  ASSERT_TRUE(written.ok());
+  std::vector<float> first;
+  for (int64_t t : {kTimesUs[1], kTimesUs[2], kTimesUs[3], kTimesUs[0]}) {
+    ASSERT_TRUE((*writer)->WriteAt(t, written->get()).ok()) << t;
+    absl::StatusOr<std::unique_ptr<DeviceScene>> uploaded = (*engine)->Upload(**form->At(t, pool));
+    ASSERT_TRUE(uploaded.ok());
+    const std::vector<float> rgb = render(**written);
+    EXPECT_EQ(rgb, render(**uploaded)) << "t=" << t;
+    if (first.empty()) first = rgb;
+  }
+  EXPECT_NE(first, render(**written)) << "the field must move something in view for the test to bite";
+
+  // A scene of another size is refused, not written past its end.
+  absl::StatusOr<std::unique_ptr<DeviceScene>> small = (*engine)->Upload(Street(7, 100));
+  ASSERT_TRUE(small.ok());
+  EXPECT_EQ((*writer)->WriteAt(kTimesUs[1], small->get()).code(), absl::StatusCode::kInvalidArgument);
+
+  // Served: with the writer (what scene_loading.cc gives a cpu engine) and without.
+  const server::SceneUploader upload = [&](const GaussianStore& s) { return (*engine)->Upload(s); };
+  absl::StatusOr<std::unique_ptr<server::DynamicSceneField>> planes =
+      server::DynamicSceneField::Create(form_of(), std::nullopt, upload, &field::HostPlanesWriterFor);
+  absl::StatusOr<std::unique_ptr<server::DynamicSceneField>> host =
+      server::DynamicSceneField::Create(form_of(), std::nullopt, upload);
+  ASSERT_TRUE(planes.ok() && host.ok());
+  for (int64_t t : {kTimesUs[2], kTimesUs[1], kTimesUs[3]}) {
+    const int64_t evaluations = (*planes)->stats().field_evaluations;
+    absl::StatusOr<const DeviceScene*> a = (*planes)->At(t, **engine);
+    ASSERT_TRUE(a.ok()) << a.status();
+    const std::vector<float> from_planes = render(**a);
+    EXPECT_EQ(from_planes, render(**(*host)->At(t, **engine))) << "t=" << t;
+    absl::StatusOr<std::shared_ptr<const server::HostScene>> lidar = (*planes)->GeometryAt(t);
+    ASSERT_TRUE(lidar.ok());
+    EXPECT_EQ((*lidar)->gaussians().means, (**(*host)->HostAt(t)).gaussians().means) << "t=" << t;
+    EXPECT_EQ((*planes)->stats().field_evaluations, evaluations + 1) << "the camera and the LiDAR share a time";
+  }
+  EXPECT_EQ((*planes)->stats().device, "cpu");
+
+  std::unique_ptr<field::ServingField> not_a_form = exact();
+  absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>> none = field::HostPlanesWriterFor(**engine, *not_a_form);
+  EXPECT_TRUE(none.ok() && !*none);
+  if (HaveVulkan()) {
+    absl::StatusOr<std::unique_ptr<Engine>> vk = CreateEngine(Backend::kVulkan);
+    ASSERT_TRUE(vk.ok());
+    none = field::HostPlanesWriterFor(**vk, *form);
+    EXPECT_TRUE(none.ok() && !*none);
   }
 }
 
