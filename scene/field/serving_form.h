@@ -112,6 +112,9 @@ class ServingForm : public ServedScene {
   // Per moving Gaussian (dynamic_rows order): its largest position error at the check samples (m).
   // Only after Build (a form read from a cache has its summary, error(), not this).
   const std::vector<float>& position_error_m() const { return position_error_m_; }
+  // Frees position_error_m() (4 B per moving Gaussian), so that a form served after its build
+  // holds what one read from its cache holds.
+  void ForgetPositionErrors() { std::vector<float>().swap(position_error_m_); }
   // Host bytes of the per-Gaussian tables beyond the Gaussians themselves.
   size_t table_bytes() const { return rows_.size() * sizeof(uint32_t) + tables_.bytes(); }
   int appearance_rank() const { return tables_.appearance_rank(); }

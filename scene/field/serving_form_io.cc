@@ -245,6 +245,7 @@ absl::StatusOr<CachedServingForm> LoadOrBuildServingForm(
             << std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() << " s: position error max "
             << e.max[0] * 1000 << " mm, p99 " << e.position_p99_m * 1000 << " mm over " << e.check_samples
             << " check samples";
+  out.form->ForgetPositionErrors();  // the summary, error(), is what is served and cached
   if (absl::Status s = checked_file::WriteAtomically(cache_path, EncodeServingForm(*out.form, key)); !s.ok()) {
     const std::string why = absl::StrCat("cannot write the serving form cache ", cache_path, " (", s.message(),
                                          "): served from memory, rebuilt at the next load");

@@ -258,6 +258,21 @@ TEST(ServedFieldOnVulkan, ADeviceThatFailsFallsBackToTheCpu) {
   EXPECT_EQ((*dev)->device(), "cpu");
 }
 
+// The exact field of `f` over `g` served on the cpu (no skip options).
+std::unique_ptr<field::ServingField> ExactServed(const field::DeformationField& f, const GaussianStore& g,
+                                                 ThreadPool& pool) {
+  absl::StatusOr<field::ServingField> served = field::ServingField::Create(f, g, {}, pool);
+  EXPECT_TRUE(served.ok()) << served.status();
+  return std::make_unique<field::ServingField>(std::move(*served));
+}
+
+// The RGB of FrontCamera(0) rendered from `scene` by `engine`.
+std::vector<float> FrontRgb(Engine& engine, const DeviceScene& scene) {
+  RenderOutput out;
+  EXPECT_TRUE(engine.Render(scene, FrontCamera(0.0), RenderOptions{}, &out).ok());
+  return out.rgb;
+}
+
 // Stands in for the serving form's kernel in DynamicSceneField: its "writes" put every
 // Gaussian, the static ones too, 3 m up (not the scene at any time), and the call numbered
 // `fail_at` fails.
@@ -298,20 +313,15 @@ TEST(DynamicSceneFieldWriter, AWriterThatFailsFallsBackToTheHostWithAWholeUpload
   ASSERT_TRUE(engine.ok()) << engine.status();
   const server::SceneUploader upload = [&](const GaussianStore& s) { return (*engine)->Upload(s); };
   auto make = [&](server::DeviceWriterMaker writer) {
-    absl::StatusOr<field::ServingField> served = field::ServingField::Create(f, g, {}, pool);
-    EXPECT_TRUE(served.ok()) << served.status();
+    std::unique_ptr<field::ServingField> served = ExactServed(f, g, pool);
     EXPECT_GT(served->num_dynamic(), 0u);
     EXPECT_LT(served->num_dynamic(), g.size()) << "the test needs static Gaussians";
-    absl::StatusOr<std::unique_ptr<server::DynamicSceneField>> d = server::DynamicSceneField::Create(
-        std::make_unique<field::ServingField>(std::move(*served)), std::nullopt, upload, std::move(writer));
+    absl::StatusOr<std::unique_ptr<server::DynamicSceneField>> d =
+        server::DynamicSceneField::Create(std::move(served), std::nullopt, upload, std::move(writer));
     EXPECT_TRUE(d.ok()) << d.status();
     return std::move(*d);
   };
-  auto render = [&](const DeviceScene& scene) {
-    RenderOutput out;
-    EXPECT_TRUE((*engine)->Render(scene, FrontCamera(0.0), RenderOptions{}, &out).ok());
-    return out.rgb;
-  };
+  auto render = [&](const DeviceScene& scene) { return FrontRgb(**engine, scene); };
   std::unique_ptr<server::DynamicSceneField> host = make({});
   auto calls = std::make_shared<int>(0);
   std::unique_ptr<server::DynamicSceneField> kernel = make([&](Engine& e, const field::ServedScene&) {
@@ -360,22 +370,13 @@ TEST(HostPlanesWriter, TheFormWrittenIntoTheCpuEnginesPlanesRendersAsTheHostForm
   ThreadPool pool(0);
   absl::StatusOr<std::unique_ptr<Engine>> engine = CreateEngine(Backend::kCpu);
   ASSERT_TRUE(engine.ok()) << engine.status();
-  auto exact = [&] {
-    absl::StatusOr<field::ServingField> served = field::ServingField::Create(f, g, {}, pool);
-    EXPECT_TRUE(served.ok()) << served.status();
-    return std::make_unique<field::ServingField>(std::move(*served));
-  };
   auto form_of = [&] {
-    std::unique_ptr<field::ServingField> e = exact();
+    std::unique_ptr<field::ServingField> e = ExactServed(f, g, pool);
     absl::StatusOr<std::unique_ptr<field::ServingForm>> form = field::ServingForm::Build(*e, {}, pool);
     EXPECT_TRUE(form.ok()) << form.status();
     return std::move(*form);
   };
-  auto render = [&](const DeviceScene& scene) {
-    RenderOutput out;
-    EXPECT_TRUE((*engine)->Render(scene, FrontCamera(0.0), RenderOptions{}, &out).ok());
-    return out.rgb;
-  };
+  auto render = [&](const DeviceScene& scene) { return FrontRgb(**engine, scene); };
   std::unique_ptr<field::ServingForm> form = form_of();
   ASSERT_GT(form->num_dynamic(), 0u);
   ASSERT_LT(form->num_dynamic(), g.size());
@@ -420,7 +421,7 @@ TEST(HostPlanesWriter, TheFormWrittenIntoTheCpuEnginesPlanesRendersAsTheHostForm
   }
   EXPECT_EQ((*planes)->stats().device, "cpu");
 
-  std::unique_ptr<field::ServingField> not_a_form = exact();
+  std::unique_ptr<field::ServingField> not_a_form = ExactServed(f, g, pool);
   absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>> none = field::HostPlanesWriterFor(**engine, *not_a_form);
   EXPECT_TRUE(none.ok() && !*none);
   if (HaveVulkan()) {
