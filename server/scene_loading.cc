@@ -131,11 +131,17 @@ absl::StatusOr<std::shared_ptr<LoadedScene>> LoadSceneFile(const std::string& pa
         load.exact_field ? ExactServedScene(field_path, ext, std::move(*store), load)
                          : ServingFormOf(field_path, ext, std::move(*store), load);
     if (!served.ok()) return served.status();  // naming the file
+    // The form's writer for the engine it renders on: the Vulkan kernel when the field's device
+    // is Vulkan too, else the cpu engine's planes (null for any other pair: the host path).
+    const bool vulkan_field = load.field_device == train::FieldDevice::kVulkan;
+    DeviceWriterMaker writer = [vulkan_field](Engine& engine, field::ServedScene& served) {
+      absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>> w =
+          vulkan_field ? field::DeviceWriterFor(engine, served) : std::unique_ptr<field::DeviceSceneWriter>();
+      if (!w.ok() || *w) return w;
+      return field::HostPlanesWriterFor(engine, served);
+    };
     absl::StatusOr<std::unique_ptr<DynamicSceneField>> dynamic =
-        DynamicSceneField::Create(std::move(*served), std::move(*reflectance), upload,
-                                  load.field_device == train::FieldDevice::kVulkan
-                                      ? DeviceWriterMaker(&field::DeviceWriterFor)
-                                      : DeviceWriterMaker(&field::HostPlanesWriterFor));
+        DynamicSceneField::Create(std::move(*served), std::move(*reflectance), upload, std::move(writer));
     if (!dynamic.ok()) return InFieldFile(extended ? ext_path : field_path, dynamic.status());
     loaded->field = std::move(*dynamic);
     return loaded;
