@@ -120,11 +120,6 @@ void ServingForm::EvaluateInto(double tau, GaussianStore* out, ThreadPool& pool,
   }
 }
 
-namespace {
-constexpr uint32_t kAppearanceGroups =
-    (1u << static_cast<int>(FormGroup::kColour)) | (1u << static_cast<int>(FormGroup::kShBands));
-}  // namespace
-
 absl::StatusOr<const GaussianStore*> ServingForm::At(int64_t time_us, ThreadPool& pool) {
   const double tau = Tau(time_us);
   if (tau == last_tau_) return &current_;

@@ -16,8 +16,6 @@ namespace streetsim::field {
 
 namespace {
 
-constexpr uint32_t kAppearance =
-    (1u << static_cast<int>(FormGroup::kColour)) | (1u << static_cast<int>(FormGroup::kShBands));
 constexpr int kPowerIterations = 30;
 
 template <typename F, typename Store>
@@ -85,9 +83,9 @@ void FormTables::Block::Resize(size_t rows, int control_points) {
 
 std::vector<FormTables::Block> FormTables::BlocksOf(uint32_t groups, int appearance_rank, int control_points) {
   std::vector<Block> blocks;
-  if (groups & kAppearance) {
+  if (groups & kAppearanceGroups) {
     Block b;
-    b.groups = groups & kAppearance;
+    b.groups = groups & kAppearanceGroups;
     for (int g = 0; g < kFormGroups; ++g) b.channels += (b.groups & (1u << g)) ? kFormGroupChannels[g] : 0;
     b.rank = std::clamp(appearance_rank, 1, std::min(b.channels, control_points));
     blocks.push_back(b);
@@ -105,7 +103,7 @@ std::vector<FormTables::Block> FormTables::BlocksOf(uint32_t groups, int appeara
 }
 
 int FormTables::appearance_rank() const {
-  return !blocks_.empty() && (blocks_[0].groups & kAppearance) ? blocks_[0].rank : 0;
+  return !blocks_.empty() && (blocks_[0].groups & kAppearanceGroups) ? blocks_[0].rank : 0;
 }
 
 size_t FormTables::bytes() const {
@@ -279,7 +277,7 @@ void FormTables::BlockAt(const Block& bl, size_t r, int k, const float* w, float
 }
 
 bool FormTables::IsS3Rank1(int sh_degree) const {
-  return blocks_.size() == 1 && blocks_[0].groups == kAppearance && blocks_[0].rank == 1 && sh_degree == 3;
+  return blocks_.size() == 1 && blocks_[0].groups == kAppearanceGroups && blocks_[0].rank == 1 && sh_degree == 3;
 }
 
 template <int kTaps>
@@ -357,7 +355,7 @@ bool FormTables::EvaluateIntoPlanes(int k, const float* w, float line, const uin
       if (!(blocks_[bi].groups & (1u << g))) continue;
       for (int c = 0; c < kFormGroupChannels[g]; ++c) {
         block_planes[bi].push_back(PlaneOf(static_cast<FormGroup>(g), c, out));
-        if (geometry && !(blocks_[bi].groups & kAppearance)) {
+        if (geometry && !(blocks_[bi].groups & kAppearanceGroups)) {
           const GroupSpan<float> span = SpanOf(static_cast<FormGroup>(g), geometry);
           block_store[bi].push_back({span.data, span.stride, span.offset + c});
         }

@@ -39,6 +39,9 @@ enum class FormGroup : uint8_t {
 };
 inline constexpr int kFormGroups = 6;
 inline constexpr int kFormGroupChannels[kFormGroups] = {3, 3, 3, 4, 1, 45};
+// The appearance's groups (FormGroup bits): one block of the tables; every other group is geometry.
+inline constexpr uint32_t kAppearanceGroups =
+    (1u << static_cast<int>(FormGroup::kColour)) | (1u << static_cast<int>(FormGroup::kShBands));
 inline constexpr int kDefaultAppearanceRank = 1;
 inline constexpr int kMaxAppearanceRank = 8;
 

@@ -362,8 +362,7 @@ TEST(DynamicSceneFieldWriter, AWriterThatFailsFallsBackToTheHostWithAWholeUpload
 // The cpu engine's writer (field::HostPlanesWriter): the serving form written straight into the
 // engine's planes renders as the host form uploaded, at every time and back again; a served
 // dynamic scene with it renders as one without it, and its LiDAR geometry is the host's. No
-// writer for the exact field, for a scene without moving Gaussians or for another engine's
-// scenes.
+// writer for the exact field or for another engine's scenes.
 TEST(HostPlanesWriter, TheFormWrittenIntoTheCpuEnginesPlanesRendersAsTheHostForm) {
   const GaussianStore g = Street(6, 1500);
   const field::DeformationField f = PartlyStaticField(g);

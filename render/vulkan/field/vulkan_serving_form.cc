@@ -59,9 +59,8 @@ absl::StatusOr<std::unique_ptr<VulkanServingForm>> VulkanServingForm::Create(Eng
   const FormTables& t = form.tables();
   const FormTables::RecordLayout layout = t.MakeRecordLayout();
   impl->record_words = layout.record_words;
-  constexpr uint32_t kAppearance =
-      (1u << static_cast<int>(FormGroup::kColour)) | (1u << static_cast<int>(FormGroup::kShBands));
-  impl->s3_rank1 = layout.blocks.size() == 1 && layout.blocks[0].groups == kAppearance && layout.blocks[0].rank == 1;
+  impl->s3_rank1 =
+      layout.blocks.size() == 1 && layout.blocks[0].groups == kAppearanceGroups && layout.blocks[0].rank == 1;
 
   std::vector<uint32_t> desc = {static_cast<uint32_t>(layout.blocks.size()), layout.ends, layout.position_step,
                                 layout.q_position, static_cast<uint32_t>(t.control_points())};
