@@ -8,6 +8,7 @@
 #include "absl/strings/str_cat.h"
 #include "scene/init/knn_scales.h"
 #include "scene/init/point_colouring.h"
+#include "scene/init/triangulated_points.h"
 #include "scene/log/undistort.h"
 
 namespace streetsim {
@@ -58,6 +59,38 @@ absl::Status RandomFrustumPoints(const DriveLog& log, const InitOptions& options
       }
     }
   }
+  return absl::OkStatus();
+}
+
+// A camera-only log without sparse points: points triangulated from its images with its own poses,
+// or random points in the frusta where too few triangulate (a camera that barely moves, poses that
+// do not fit). Not both: random points beside the triangulated ones cost the odometry excerpt's
+// static model 3-11 dB held-out (docs/logs.md "Initial scene").
+absl::Status CameraOnlyPoints(const DriveLog& log, const InitOptions& options, InitStats* st,
+                              std::vector<Eigen::Vector3f>* points, std::vector<Eigen::Vector3f>* rgb) {
+  TriangulationOptions tri;
+  tri.frames = options.frames;
+  tri.voxel_m = options.voxel_m;
+  absl::StatusOr<TriangulatedPoints> found = TriangulateWithKnownPoses(log, tri);
+  if (!found.ok()) return found.status();
+  if (found->points.size() >= static_cast<size_t>(options.min_triangulated_points)) {
+    st->source = "triangulated";
+    st->notes.push_back(absl::StrCat("camera-only log without sparse points: ", found->points.size(),
+                                     " points triangulated with the log's poses (", found->triangulated, " of ",
+                                     found->matches, " feature matches in ", found->image_pairs, " image pairs)"));
+    *points = std::move(found->points);
+    *rgb = std::move(found->rgb);
+  } else {
+    st->source = "random_frusta";
+    st->notes.push_back(absl::StrCat("camera-only log without sparse points: ", found->points.size(),
+                                     " points triangulated (too few: a camera that barely moves, or poses that do not "
+                                     "fit the images); ",
+                                     options.random_points, " random points in the camera frusta (depth ",
+                                     options.random_min_depth_m, "-", options.random_max_depth_m,
+                                     " m), coloured by their pixel"));
+    if (absl::Status s = RandomFrustumPoints(log, options, points, rgb); !s.ok()) return s;
+  }
+  st->seen = points->size();
   return absl::OkStatus();
 }
 
@@ -142,12 +175,7 @@ absl::StatusOr<GaussianStore> BuildInitialScene(const DriveLog& log, const InitO
     }
     st.seen = points.size();
   } else {
-    st.source = "random_frusta";
-    st.notes.push_back(absl::StrCat("camera-only log without sparse points: ", options.random_points,
-                                    " random points in the camera frusta (depth ", options.random_min_depth_m, "-",
-                                    options.random_max_depth_m, " m), coloured by their pixel"));
-    if (absl::Status s = RandomFrustumPoints(log, options, &points, &rgb); !s.ok()) return s;
-    st.seen = points.size();
+    if (absl::Status s = CameraOnlyPoints(log, options, &st, &points, &rgb); !s.ok()) return s;
   }
   if (points.empty()) return absl::FailedPreconditionError("no point is seen by any camera");
   GaussianStore store = GaussiansFromPoints(points, rgb, options.opacity, &st.median_scale_m);

@@ -2,8 +2,10 @@
 //   LiDAR logs: LiDAR accumulated in the world (lidar_accumulation.h), kept where a camera sees
 //     it and coloured from the images (point_colouring.h); optionally far-background points on a
 //     sphere beyond the LiDAR range, kept only where the images show background (sky).
-//   Camera-only logs: the log's sparse points (COLMAP points3D) when present, else random points
-//     in the camera frusta coloured by the pixel they were drawn through (reported).
+//   Camera-only logs: the log's sparse points (COLMAP points3D) when present, else points
+//     triangulated from the images with the log's poses (triangulated_points.h), else (too few
+//     triangulate) random points in the camera frusta coloured by the pixel they were drawn
+//     through (reported).
 // Every point becomes an isotropic Gaussian: 3DGS's nearest-neighbour scale (knn_scales.h),
 // identity rotation, opacity 0.1, SH degree 0 with the DC term set to the colour.
 #pragma once
@@ -26,14 +28,15 @@ struct InitOptions {
   bool sky = false;
   double sky_radius_m = 0;     // 0: twice max_range_m
   int sky_points = 200'000;    // on the whole sphere before culling
-  int random_points = 100'000;  // camera-only logs without sparse points
+  int random_points = 100'000;  // camera-only logs without sparse points, where too few triangulate
+  int min_triangulated_points = 1000;  // camera-only logs: fewer, and random points are used
   double random_min_depth_m = 2.0, random_max_depth_m = 50.0;
   float opacity = 0.1f;
   unsigned seed = 1;
 };
 
 struct InitStats {
-  std::string source;  // "lidar", "colmap_points", "random_frusta"
+  std::string source;  // "lidar", "colmap_points", "triangulated", "random_frusta"
   int frames_used = 0;
   size_t lidar_points_raw = 0;
   size_t voxels = 0;

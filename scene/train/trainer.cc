@@ -56,6 +56,7 @@ absl::StatusOr<GaussianStore> BuildTrainingInitialScene(const DriveLog& log, int
   absl::StatusOr<GaussianStore> built = BuildInitialScene(train_log, iopt, &istats);
   if (!built.ok()) return built.status();
   LOG(INFO) << "initial scene: " << built->size() << " Gaussians (" << istats.source << ")";
+  for (const std::string& note : istats.notes) LOG(INFO) << "initial scene: " << note;
   return built;
 }
 

@@ -89,11 +89,12 @@ TEST(CliInit, SceneDirectoryGetsTheLogManifest) {
   EXPECT_FALSE(std::filesystem::exists(dir + "/other.json"));
 }
 
-TEST(CliInit, CameraOnlyLogSaysItUsesRandomPoints) {
-  const std::string ply = Scratch() + "/random.ply";
-  const Result r = Exec("init " + kData + "/kitti_odometry_excerpt/seq_a --out " + ply + " --random-points 2000 --frames 0:5");
+TEST(CliInit, CameraOnlyLogSaysItsPointsAreTriangulated) {
+  const std::string ply = Scratch() + "/triangulated.ply";
+  const Result r = Exec("init " + kData + "/kitti_odometry_excerpt/seq_a --out " + ply + " --frames 0:5");
   ASSERT_EQ(r.exit_code, 0) << r.err;
-  EXPECT_NE(r.err.find("random points in the camera frusta"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("from triangulated"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("points triangulated with the log's poses"), std::string::npos) << r.err;
 }
 
 TEST(CliInit, BadInputIsExitTwoAndOneLine) {
