@@ -172,14 +172,20 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   if (!lock.ok()) return Fail(2, lock.status());
   absl::StatusOr<DriveLog> log = OpenLog(*log_path);
   if (!log.ok()) return Fail(absl::IsInternal(log.status()) ? 1 : 2, log.status());
+  if (absl::Status s = train::config::FitFieldToLog(*log, &*run); !s.ok()) return Fail(2, s);
+  segments = train::config::Segments(run->config);
   std::fprintf(stderr, "streetsim train: %s%s -> %s/config.json\n", run->resumes ? "resuming " : "",
                Describe(*run, segments).c_str(), out->c_str());
   std::fprintf(stderr, "streetsim train: cameras: %s\n", CamerasSummary(*log, segments.back().settings).c_str());
+  if (!run->resumes && !run->config.notes.empty() && run->config.notes.back() == train::config::kCameraOnlyStaticNote) {
+    std::fprintf(stderr, "streetsim train: %s\n", train::config::kCameraOnlyStaticNote);
+  }
   if (run->migrated) {
     std::fprintf(stderr, "streetsim train: %s predates config.json: its settings were read from checkpoint.json\n",
                  out->c_str());
   }
-  if (log->lidars.empty() && segments.back().settings.GetDouble("field-motion-prior") > 0 &&
+  if (log->lidars.empty() && segments.back().settings.GetText("field") != "static" &&
+      segments.back().settings.GetDouble("field-motion-prior") > 0 &&
       !segments.back().settings.given("field-motion-prior")) {
     std::fprintf(stderr, "streetsim train: the log has no LiDAR: the preset's motion prior is left out\n");
   }

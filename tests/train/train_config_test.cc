@@ -204,6 +204,53 @@ TEST(RunConfigFiles, ConfigJsonRoundTripsAndRefusesDamage) {
   EXPECT_TRUE(Has(std::string(s.message()), "schema_version 9")) << s;
 }
 
+// `field auto` on a log without LiDAR trains the static model (measured on both shared
+// camera-only logs); what the user asked for, a log with LiDAR and a resume keep the field.
+TEST(RunResolution, FieldAutoOnACameraOnlyLogIsTheStaticModel) {
+  const std::string dir = testing::ScratchDir("streetsim_train_config", "camera_only");
+  DriveLog camera_only, with_lidar;
+  with_lidar.lidars.emplace_back();
+  for (const char* preset : {"quality", "preview"}) {
+    CommandLineConfig given;
+    given.preset = preset;
+    absl::StatusOr<ResolvedRun> run = ResolveRun(dir, false, given);
+    ASSERT_TRUE(run.ok()) << run.status();
+    ASSERT_TRUE(FitFieldToLog(with_lidar, &*run).ok());
+    EXPECT_EQ(run->config.settings.GetText("field"), "s3gaussian") << preset;
+    EXPECT_TRUE(run->config.notes.empty());
+    run = ResolveRun(dir, false, given);
+    ASSERT_TRUE(FitFieldToLog(camera_only, &*run).ok());
+    EXPECT_EQ(run->config.settings.GetText("field"), "static") << preset;
+    for (const Segment& s : Segments(run->config)) {
+      absl::StatusOr<TrainRunOptions> o = ResolveTrainOptions(s.settings, s.end);
+      ASSERT_TRUE(o.ok()) << o.status();
+      EXPECT_EQ(o->train.field.mode, FieldMode::kStatic);
+    }
+    ASSERT_EQ(run->config.notes.size(), 1u);
+    EXPECT_EQ(run->config.notes[0], kCameraOnlyStaticNote);
+    // Once is enough: a second call (a retried job) changes nothing more.
+    ASSERT_TRUE(FitFieldToLog(camera_only, &*run).ok());
+    EXPECT_EQ(run->config.notes.size(), 1u);
+  }
+  // Asked for, by name or by a field's setting: the field, camera-only or not.
+  for (const auto& g : {Given({{"field", "s3gaussian"}}), Given({{"static-iterations", "700"}, {"iterations", "1300"}}),
+                        Given({{"field-lr-scale", "3"}})}) {
+    absl::StatusOr<ResolvedRun> run = ResolveRun(dir, false, g);
+    ASSERT_TRUE(run.ok()) << run.status();
+    ASSERT_TRUE(FitFieldToLog(camera_only, &*run).ok());
+    EXPECT_EQ(run->config.settings.GetText("field"), "s3gaussian") << g.values[0].name;
+    EXPECT_TRUE(run->config.notes.empty());
+  }
+  // A resume keeps its recorded field.
+  absl::StatusOr<ResolvedRun> run = ResolveRun(dir, false, CommandLineConfig{});
+  ASSERT_TRUE(run.ok());
+  ASSERT_TRUE(WriteRunConfig(dir, run->config).ok());
+  run = ResolveRun(dir, true, CommandLineConfig{});
+  ASSERT_TRUE(run.ok()) << run.status();
+  ASSERT_TRUE(FitFieldToLog(camera_only, &*run).ok());
+  EXPECT_EQ(run->config.settings.GetText("field"), "s3gaussian");
+}
+
 // A new run: the preset, then the settings given, which hold through the preset's schedule.
 TEST(RunResolution, GivenSettingsHoldThroughThePresetsSchedule) {
   const std::string dir = testing::ScratchDir("streetsim_train_config", "new_run");

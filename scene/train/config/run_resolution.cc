@@ -60,15 +60,23 @@ absl::Status ApplyGiven(const CommandLineConfig& given, const std::optional<std:
 }
 
 // `field auto` resolved to what the run trains, so that a resume that changes its iterations
-// keeps its field (a static run grown past 5000 iterations stays static).
-void PinField(RunConfig* config) {
-  if (config->settings.GetText("field") != "auto") return;
+// keeps its field (a static run grown past 5000 iterations stays static). True when the run's
+// length chose the field and nothing the user gave asks for one (FitFieldToLog may undo it).
+bool PinField(RunConfig* config) {
+  if (config->settings.GetText("field") != "auto") return false;
   const Origin o = config->settings.origin("field");
   const std::vector<Segment> segments = Segments(*config);
   const Settings& last = segments.back().settings;
   const bool field =
       last.given("static-iterations") || last.GetInt("iterations") > last.GetInt("static-iterations");
   (void)config->settings.Set("field", std::string(field ? "s3gaussian" : "static"), o, "field auto");
+  if (!field) return false;
+  for (const Segment& segment : segments) {
+    for (const std::string& name : FieldOnlySettings()) {
+      if (segment.settings.given(name)) return false;
+    }
+  }
+  return true;
 }
 
 // Every segment resolves: the relations between settings hold over the whole run.
@@ -191,9 +199,18 @@ absl::StatusOr<ResolvedRun> ResolveRun(const std::string& out_dir, bool resume, 
     }
     HoldThroughSchedule(hold, &run.config);
   }
-  PinField(&run.config);
+  run.field_by_length = PinField(&run.config);
   if (absl::Status s = CheckSegments(run.config); !s.ok()) return s;
   return run;
+}
+
+absl::Status FitFieldToLog(const DriveLog& log, ResolvedRun* run) {
+  if (!run->field_by_length || !log.lidars.empty()) return absl::OkStatus();
+  run->field_by_length = false;
+  const Origin o = run->config.settings.origin("field");
+  (void)run->config.settings.Set("field", std::string("static"), o, "field auto");
+  run->config.notes.push_back(kCameraOnlyStaticNote);
+  return CheckSegments(run->config);
 }
 
 }  // namespace streetsim::train::config

@@ -41,7 +41,7 @@ std::vector<SettingDef> MakeDefs() {
   add({.name = "field", .type = T::kChoice, .default_value = std::string("auto"),
        .choices = {"auto", "static", "s3gaussian", "extended"}, .group = G::kCommon,
        .help = "the scene's time-dependent field; auto: S3Gaussian's when the run is longer than its static "
-               "stage, else static; extended: S3Gaussian's with the seed paper's modules",
+               "stage and the log has LiDAR, else static; extended: S3Gaussian's with the seed paper's modules",
        .apply = nullptr});
   add({.name = "static-iterations", .type = T::kInt, .default_value = int64_t{5000}, .min = 0, .max = kMaxIterations,
        .group = G::kCommon, .help = "the static stage before the field (below iterations)",
@@ -185,10 +185,6 @@ std::vector<SettingDef> MakeDefs() {
   return d;
 }
 
-// Settings that only a field run uses: given in a static run they are a mistake worth saying.
-constexpr const char* kFieldOnly[] = {
-    "static-iterations", "field-lr-scale", "field-lr-decay-iterations", "field-time-resolution", "field-lambda-dx", "field-lambda-dsh",
-    "field-l1-time-planes", "field-motion-prior", "field-motion-prior-scans", "field-init"};
 constexpr const char* kExtendedOnly[] = {"field-modules", "field-decoder-max-dlog-scale", "field-ext-lr-scale",
                                          "field-ext-lr-decay-iterations"};
 constexpr const char* kPoseOnly[] = {"pose-lr-scale", "pose-refine-from", "pose-refine-until"};
@@ -228,7 +224,7 @@ absl::Status ResolveField(const Settings& s, TrainRunOptions* o) {
   if (s.given("field-time-resolution") || s.GetText("field-size") != "small") {
     t.field.config.time_resolution = static_cast<int>(s.GetInt("field-time-resolution"));
   }
-  for (const char* name : kFieldOnly) {
+  for (const std::string& name : FieldOnlySettings()) {
     // Given at its default it asks for nothing (`--field-motion-prior 0` on a static run).
     const SettingDef* def = s.Find(name);
     if (s.given(name) && t.field.mode == FieldMode::kStatic && s.Get(name) != def->default_value) {
@@ -303,6 +299,15 @@ const std::vector<SettingDef>& TrainSettingDefs() {
 }
 
 Settings DefaultTrainSettings() { return Settings(&TrainSettingDefs()); }
+
+// Settings that only a field run uses: given in a static run they are a mistake worth saying.
+const std::vector<std::string>& FieldOnlySettings() {
+  static const std::vector<std::string> names = {
+      "static-iterations",    "field-lr-scale",     "field-lr-decay-iterations", "field-time-resolution",
+      "field-lambda-dx",      "field-lambda-dsh",   "field-l1-time-planes",      "field-motion-prior",
+      "field-motion-prior-scans", "field-init"};
+  return names;
+}
 
 absl::StatusOr<TrainRunOptions> ResolveTrainOptions(const Settings& settings, int64_t segment_end) {
   TrainRunOptions o;

@@ -4,6 +4,7 @@
 // (docs/training.md "Settings"; adding a setting: docs/contributing.md).
 #pragma once
 
+#include <string>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -23,6 +24,9 @@ struct TrainRunOptions {
 
 // The declarations, in the order help lists them.
 const std::vector<SettingDef>& TrainSettingDefs();
+
+// The settings only a field run uses (given in a static run: InvalidArgument).
+const std::vector<std::string>& FieldOnlySettings();
 
 // Every setting at its declared default.
 Settings DefaultTrainSettings();
