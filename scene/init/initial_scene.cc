@@ -90,6 +90,7 @@ absl::Status CameraOnlyPoints(const DriveLog& log, const InitOptions& options, I
                                      " m), coloured by their pixel"));
     if (absl::Status s = RandomFrustumPoints(log, options, points, rgb); !s.ok()) return s;
   }
+  st->frames_used = static_cast<int>(options.frames.Select(log).size());
   st->seen = points->size();
   return absl::OkStatus();
 }

@@ -1,9 +1,12 @@
 #include "scene/init/triangulated_points.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
+#include <functional>
 #include <map>
 #include <unordered_map>
+#include <thread>
 #include <utility>
 
 #include <opencv2/features2d.hpp>
@@ -98,6 +101,19 @@ void TriangulatePair(const ImageFeatures& a, const ImageFeatures& b, const Trian
   }
 }
 
+// fn(0..n-1) on up to as many threads as the machine has; each index once.
+void RunAll(size_t n, const std::function<void(size_t)>& fn) {
+  const size_t threads = std::min<size_t>(n, std::max(1u, std::thread::hardware_concurrency()));
+  std::atomic<size_t> next{0};
+  auto work = [&] {
+    for (size_t k = next++; k < n; k = next++) fn(k);
+  };
+  std::vector<std::thread> pool;
+  for (size_t t = 1; t < threads; ++t) pool.emplace_back(work);
+  work();
+  for (std::thread& t : pool) t.join();
+}
+
 // One point per voxel, the mean of what fell into it: the same corner seen in many pairs becomes
 // one Gaussian, not a cluster, and memory follows the scene, not the log's length.
 struct VoxelMeans {
@@ -138,39 +154,45 @@ bool TriangulateMidpoint(const Eigen::Vector3d& origin_a, const Eigen::Vector3d&
 absl::StatusOr<TriangulatedPoints> TriangulateWithKnownPoses(const DriveLog& log, const TriangulationOptions& options) {
   const std::vector<int> frames = options.frames.Select(log);
   if (frames.empty()) return absl::InvalidArgumentError("no frames selected");
-  cv::Ptr<cv::ORB> orb = cv::ORB::create(options.features_per_image);
   const int max_gap = options.frame_gaps.empty() ? 0 : *std::max_element(options.frame_gaps.begin(), options.frame_gaps.end());
   TriangulatedPoints result;
-  std::vector<std::pair<Eigen::Vector3d, Eigen::Vector3f>> found;  // this frame's pairs' points
   VoxelMeans merged(options.voxel_m);
   // A window of the last max_gap + 1 frames' images, keyed by (position in the selection, camera):
   // memory follows the rig, not the log's length.
   std::map<std::pair<int, int>, ImageFeatures> window;
   for (int i = 0; i < static_cast<int>(frames.size()); ++i) {
-    for (const CameraObservation& obs : log.frames[frames[i]].cameras) {
-      absl::StatusOr<ImageFeatures> f = DetectFeatures(log, frames[i], obs, *orb);
-      if (!f.ok()) return f.status();
-      window.emplace(std::make_pair(i, obs.camera), std::move(*f));
+    const std::vector<CameraObservation>& observations = log.frames[frames[i]].cameras;
+    std::vector<absl::StatusOr<ImageFeatures>> detected(observations.size(), absl::UnknownError("not run"));
+    RunAll(observations.size(), [&](size_t c) {
+      cv::Ptr<cv::ORB> orb = cv::ORB::create(options.features_per_image);
+      detected[c] = DetectFeatures(log, frames[i], observations[c], *orb);
+    });
+    for (size_t c = 0; c < observations.size(); ++c) {
+      if (!detected[c].ok()) return detected[c].status();
+      window.emplace(std::make_pair(i, observations[c].camera), *std::move(detected[c]));
     }
+    // This frame's pairs: each camera against itself some frames before (motion parallax) and
+    // against the rig's other cameras at this frame (a stereo pair's baseline), each pair once.
+    std::vector<std::pair<const ImageFeatures*, const ImageFeatures*>> pairs;
     for (auto b = window.lower_bound({i, -1}); b != window.end(); ++b) {
-      const int camera = b->first.second;
-      // The same camera some frames before (motion parallax).
       for (int gap : options.frame_gaps) {
-        auto a = window.find({i - gap, camera});
-        if (gap <= 0 || a == window.end()) continue;
-        TriangulatePair(a->second, b->second, options, &found, &result.matches);
-        ++result.image_pairs;
+        auto a = window.find({i - gap, b->first.second});
+        if (gap > 0 && a != window.end()) pairs.emplace_back(&a->second, &b->second);
       }
-      // The rig's other cameras at this frame (a stereo pair's baseline), each pair once.
-      for (auto a = window.lower_bound({i, -1}); a != b; ++a) {
-        TriangulatePair(a->second, b->second, options, &found, &result.matches);
-        ++result.image_pairs;
-      }
+      for (auto a = window.lower_bound({i, -1}); a != b; ++a) pairs.emplace_back(&a->second, &b->second);
+    }
+    std::vector<std::vector<std::pair<Eigen::Vector3d, Eigen::Vector3f>>> found(pairs.size());
+    std::vector<size_t> matches(pairs.size(), 0);
+    RunAll(pairs.size(), [&](size_t p) {
+      TriangulatePair(*pairs[p].first, *pairs[p].second, options, &found[p], &matches[p]);
+    });
+    for (size_t p = 0; p < pairs.size(); ++p) {  // in pair order: the result does not depend on threads
+      ++result.image_pairs;
+      result.matches += matches[p];
+      result.triangulated += found[p].size();
+      for (const auto& [x, rgb] : found[p]) merged.Add(x, rgb);
     }
     window.erase(window.begin(), window.lower_bound({i - max_gap, -1}));
-    result.triangulated += found.size();
-    for (const auto& [p, rgb] : found) merged.Add(p, rgb);
-    found.clear();
   }
   for (size_t v = 0; v < merged.sum.size(); ++v) {
     result.points.push_back((merged.sum[v] / merged.count[v]).cast<float>());
