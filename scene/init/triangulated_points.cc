@@ -21,8 +21,7 @@ namespace {
 
 // One image's features, with what triangulation needs of its view.
 struct ImageFeatures {
-  int frame = 0, camera = 0;
-  Eigen::Isometry3d T_world_from_cam;
+  Eigen::Isometry3d T_world_from_cam, T_cam_from_world;
   const CameraIntrinsics* k = nullptr;
   std::vector<cv::KeyPoint> keypoints;
   cv::Mat descriptors;
@@ -32,10 +31,9 @@ struct ImageFeatures {
 absl::StatusOr<ImageFeatures> DetectFeatures(const DriveLog& log, int frame, const CameraObservation& obs,
                                              cv::ORB& orb) {
   ImageFeatures f;
-  f.frame = frame;
-  f.camera = obs.camera;
   f.k = &log.cameras[obs.camera].intrinsics;
   f.T_world_from_cam = WorldFromCamera(log, log.frames[frame], obs);
+  f.T_cam_from_world = f.T_world_from_cam.inverse();
   absl::StatusOr<cv::Mat> image = LoadImageRgb(obs.path);
   if (!image.ok()) return image.status();
   if (!f.k->IsPinhole()) {
@@ -57,7 +55,7 @@ Eigen::Vector3d RayInCamera(const CameraIntrinsics& k, const cv::Point2f& px) {
 // Squared pixel distance between p (world) projected into the view and px; infinite behind it.
 double ReprojectionErrorSq(const ImageFeatures& view, const Eigen::Vector3d& p_world, const cv::Point2f& px,
                            double* depth_m) {
-  const Eigen::Vector3d c = view.T_world_from_cam.inverse() * p_world;
+  const Eigen::Vector3d c = view.T_cam_from_world * p_world;
   *depth_m = c.z();
   if (c.z() <= 0) return INFINITY;
   const double u = view.k->fx * c.x() / c.z() + view.k->cx, v = view.k->fy * c.y() / c.z() + view.k->cy;

@@ -33,7 +33,7 @@ struct TriangulationOptions {
 
 struct TriangulatedPoints {
   std::vector<Eigen::Vector3f> points;
-  std::vector<Eigen::Vector3f> rgb;  // linear [0,1], the mean of the images' pixels
+  std::vector<Eigen::Vector3f> rgb;  // [0,1], the mean of the pixels it was matched at
   int image_pairs = 0;
   size_t matches = 0;       // after the ratio test
   size_t triangulated = 0;  // that passed every check (before the voxel merge)
