@@ -137,8 +137,8 @@ TEST(Presets, QualityIsTheRecipesSegments) {
   ASSERT_EQ(Segments(*p).size(), 1u);
   absl::StatusOr<TrainRunOptions> o = ResolveTrainOptions(Segments(*p)[0].settings);
   ASSERT_TRUE(o.ok());
-  EXPECT_EQ(o->train.iterations, 1300);
-  EXPECT_EQ(o->train.field.static_iterations, 700);
+  EXPECT_EQ(o->train.iterations, 1700);
+  EXPECT_EQ(o->train.field.static_iterations, 1000);
   EXPECT_EQ(o->train.field.mode, FieldMode::kS3Gaussian);
   EXPECT_FALSE(PresetDescription("preview").empty());
   const absl::Status unknown = PresetConfig("best").status();
