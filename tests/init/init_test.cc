@@ -354,6 +354,12 @@ TEST(TriangulatedPoints, PointsOfASyntheticStreetLieOnItsSurfaces) {
   // sign is tens of percent.
   EXPECT_LT(rel[rel.size() / 2], 0.05);
   EXPECT_LT(rel[rel.size() * 9 / 10], 0.2);
+  // Images are detected and pairs matched on all cores; the points merge in pair order, so a
+  // second run gives the same points in the same order.
+  absl::StatusOr<TriangulatedPoints> again = TriangulateWithKnownPoses(street.log, options);
+  ASSERT_TRUE(again.ok());
+  ASSERT_EQ(again->points.size(), found->points.size());
+  for (size_t i = 0; i < found->points.size(); ++i) ASSERT_EQ(again->points[i], found->points[i]) << i;
   // Grey on grey: colours are the tiles' (equal channels in [0.15, 0.87]).
   for (const Eigen::Vector3f& c : found->rgb) {
     EXPECT_NEAR(c[0], c[1], 1e-6);
