@@ -172,14 +172,13 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   if (!lock.ok()) return Fail(2, lock.status());
   absl::StatusOr<DriveLog> log = OpenLog(*log_path);
   if (!log.ok()) return Fail(absl::IsInternal(log.status()) ? 1 : 2, log.status());
-  if (absl::Status s = train::config::FitFieldToLog(*log, &*run); !s.ok()) return Fail(2, s);
+  absl::StatusOr<bool> static_for_log = train::config::FitFieldToLog(*log, &*run);
+  if (!static_for_log.ok()) return Fail(2, static_for_log.status());
   segments = train::config::Segments(run->config);
   std::fprintf(stderr, "streetsim train: %s%s -> %s/config.json\n", run->resumes ? "resuming " : "",
                Describe(*run, segments).c_str(), out->c_str());
   std::fprintf(stderr, "streetsim train: cameras: %s\n", CamerasSummary(*log, segments.back().settings).c_str());
-  if (!run->resumes && !run->config.notes.empty() && run->config.notes.back() == train::config::kCameraOnlyStaticNote) {
-    std::fprintf(stderr, "streetsim train: %s\n", train::config::kCameraOnlyStaticNote);
-  }
+  if (*static_for_log) std::fprintf(stderr, "streetsim train: %s\n", train::config::kCameraOnlyStaticNote);
   if (run->migrated) {
     std::fprintf(stderr, "streetsim train: %s predates config.json: its settings were read from checkpoint.json\n",
                  out->c_str());

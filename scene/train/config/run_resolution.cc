@@ -204,13 +204,14 @@ absl::StatusOr<ResolvedRun> ResolveRun(const std::string& out_dir, bool resume, 
   return run;
 }
 
-absl::Status FitFieldToLog(const DriveLog& log, ResolvedRun* run) {
-  if (!run->field_by_length || !log.lidars.empty()) return absl::OkStatus();
+absl::StatusOr<bool> FitFieldToLog(const DriveLog& log, ResolvedRun* run) {
+  if (!run->field_by_length || !log.lidars.empty()) return false;
   run->field_by_length = false;
   const Origin o = run->config.settings.origin("field");
   (void)run->config.settings.Set("field", std::string("static"), o, "field auto");
   run->config.notes.push_back(kCameraOnlyStaticNote);
-  return CheckSegments(run->config);
+  if (absl::Status s = CheckSegments(run->config); !s.ok()) return s;
+  return true;
 }
 
 }  // namespace streetsim::train::config

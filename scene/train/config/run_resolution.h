@@ -50,8 +50,9 @@ absl::StatusOr<ResolvedRun> ResolveRun(const std::string& out_dir, bool resume, 
 // LiDAR's motion prior and depth and ends ~6 dB below the static model of the same iterations; on
 // colmap_plush (a photo collection, no time to follow) the two draw at the same iterations and the
 // static model takes a third of the time. Says so in the config's notes (kCameraOnlyStaticNote).
-// Only a new run's own choice changes: a field the user asked for (or a resume's) stays.
-absl::Status FitFieldToLog(const DriveLog& log, ResolvedRun* run);
+// Only a new run's own choice changes: a field the user asked for (or a resume's) stays. True
+// when it made the run static.
+absl::StatusOr<bool> FitFieldToLog(const DriveLog& log, ResolvedRun* run);
 inline constexpr char kCameraOnlyStaticNote[] =
     "field auto: the static model, as the log has no LiDAR (a camera-only log: docs/training.md \"Presets\")";
 
