@@ -2,8 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
-#include <thread>
 
+#include "render/common/thread_pool.h"
 #include "scene/log/kdtree.h"
 
 namespace streetsim {
@@ -27,14 +27,9 @@ std::vector<float> KnnLogScales(const std::vector<Eigen::Vector3f>& points, int 
       out[i] = static_cast<float>(0.5 * std::log(std::max(mean_sq, 1e-7)));  // 3DGS clamps at 1e-7
     }
   };
-  const size_t threads = std::max(1u, std::min(8u, std::thread::hardware_concurrency()));
-  std::vector<std::thread> pool;
-  const size_t chunk = (points.size() + threads - 1) / threads;
-  for (size_t t = 0; t < threads; ++t) {
-    const size_t b = t * chunk, e = std::min(points.size(), b + chunk);
-    if (b < e) pool.emplace_back(work, b, e);
-  }
-  for (std::thread& t : pool) t.join();
+  ThreadPool pool;
+  pool.ParallelFor(static_cast<int64_t>(points.size()), 4096,
+                   [&](int64_t begin, int64_t end, int) { work(static_cast<size_t>(begin), static_cast<size_t>(end)); });
   return out;
 }
 

@@ -3,12 +3,12 @@
 #include <algorithm>
 #include <cmath>
 #include <memory>
-#include <thread>
 #include <unordered_map>
 
 #include <Eigen/Eigenvalues>
 
 #include "absl/strings/str_cat.h"
+#include "render/common/thread_pool.h"
 #include "scene/log/kdtree.h"
 #include "scene/log/voxel_hash.h"
 
@@ -384,14 +384,10 @@ absl::StatusOr<MovingObjects> TrackMovingObjects(const DriveLog& log, const Movi
     }
     return absl::OkStatus();
   };
-  const size_t workers = std::max<size_t>(1, std::min<size_t>(std::thread::hardware_concurrency(), frames.size()));
-  std::vector<std::thread> pool;
-  for (size_t w = 0; w < workers; ++w) {
-    pool.emplace_back([&, w] {
-      for (size_t i = w; i < frames.size(); i += workers) status[i] = prepare(i);
-    });
-  }
-  for (std::thread& t : pool) t.join();
+  ThreadPool pool;
+  pool.ParallelFor(static_cast<int64_t>(frames.size()), 1, [&](int64_t begin, int64_t end, int) {
+    for (int64_t i = begin; i < end; ++i) status[i] = prepare(static_cast<size_t>(i));
+  });
   for (const absl::Status& s : status) {
     if (!s.ok()) return s;
   }

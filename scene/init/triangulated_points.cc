@@ -1,18 +1,17 @@
 #include "scene/init/triangulated_points.h"
 
 #include <algorithm>
-#include <atomic>
 #include <cmath>
 #include <functional>
 #include <map>
 #include <unordered_map>
-#include <thread>
 #include <utility>
 
 #include <opencv2/features2d.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include "absl/strings/str_cat.h"
+#include "render/common/thread_pool.h"
 #include "scene/log/undistort.h"
 #include "scene/log/voxel_hash.h"
 
@@ -99,17 +98,12 @@ void TriangulatePair(const ImageFeatures& a, const ImageFeatures& b, const Trian
   }
 }
 
-// fn(0..n-1) on up to as many threads as the machine has; each index once.
+// fn(0..n-1) on the machine's threads (STREETSIM_THREADS if set); each index once.
 void RunAll(size_t n, const std::function<void(size_t)>& fn) {
-  const size_t threads = std::min<size_t>(n, std::max(1u, std::thread::hardware_concurrency()));
-  std::atomic<size_t> next{0};
-  auto work = [&] {
-    for (size_t k = next++; k < n; k = next++) fn(k);
-  };
-  std::vector<std::thread> pool;
-  for (size_t t = 1; t < threads; ++t) pool.emplace_back(work);
-  work();
-  for (std::thread& t : pool) t.join();
+  ThreadPool pool;
+  pool.ParallelFor(static_cast<int64_t>(n), 1, [&](int64_t begin, int64_t end, int) {
+    for (int64_t k = begin; k < end; ++k) fn(static_cast<size_t>(k));
+  });
 }
 
 // One point per voxel, the mean of what fell into it: the same corner seen in many pairs becomes
