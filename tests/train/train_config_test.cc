@@ -101,15 +101,16 @@ TEST(TrainSettings, RelationsBetweenGivenSettingsAreChecked) {
 }
 
 // The quality preset is the former scripts/kitti-recipe's run (docs/benchmarks.md, 27.05 dB): the
-// same segment ends (where that script's runs wrote their outputs) and the same flags in each.
-TEST(Presets, QualityIsTheRecipesSegments) {
+// same segment ends (where that script's runs wrote their outputs) and the same flags in each,
+// then its last stage's settings for 1500 iterations more (docs/benchmarks.md "`quality`").
+TEST(Presets, QualityIsTheRecipesSegmentsRunLonger) {
   absl::StatusOr<RunConfig> q = PresetConfig("quality");
   ASSERT_TRUE(q.ok()) << q.status();
   const std::vector<Segment> segments = Segments(*q);
   std::vector<int64_t> ends;
   for (const Segment& s : segments) ends.push_back(s.end);
   EXPECT_EQ(ends, (std::vector<int64_t>{5000, 6010, 7510, 8010, 8510, 9010, 9510, 10010, 10510, 11010, 11510, 12010,
-                                        12510}));
+                                        12510, 13010, 13510, 14010}));
   for (const Segment& s : segments) {
     absl::StatusOr<TrainRunOptions> o = ResolveTrainOptions(s.settings, s.end);
     ASSERT_TRUE(o.ok()) << s.end << ": " << o.status();
@@ -131,6 +132,7 @@ TEST(Presets, QualityIsTheRecipesSegments) {
     EXPECT_DOUBLE_EQ(t.field.hyper.lr_scale, 10);
     EXPECT_EQ(t.field.hyper.lr_decay_steps, s.end <= 7510 ? 30000 : 4500) << s.end;
     EXPECT_EQ(t.hyper.densify_until, s.end <= 10010 ? 25000 : 5000) << s.end;
+    EXPECT_EQ(t.hyper.lr_decay_steps, 30000) << s.end;
   }
   absl::StatusOr<RunConfig> p = PresetConfig("preview");
   ASSERT_TRUE(p.ok());
@@ -302,7 +304,7 @@ TEST(RunResolution, AResumeChangesOnlyWhatItGivesFromItsIteration) {
     EXPECT_EQ(s.settings.GetInt("densify-until"), s.end <= 7000 ? 25000 : 6000) << s.end;
   }
   EXPECT_EQ(ends[2], 7000) << "the resume's iteration ends a segment";
-  EXPECT_EQ(ends.back(), 12510);
+  EXPECT_EQ(ends.back(), 14010);
   // A preset other than the run's is refused; the same one is not a change.
   const std::string dir = testing::ScratchDir("streetsim_train_config", "resume");
   ASSERT_TRUE(WriteRunConfig(dir, *q).ok());
