@@ -53,29 +53,31 @@ absl::StatusOr<std::unique_ptr<field::ServedScene>> ExactServedScene(const fs::p
                                                                      const fs::path* ext_path, GaussianStore canonical,
                                                                      const SceneLoadOptions& load) {
   const fs::path& named = ext_path ? *ext_path : field_path;
+  // Before the field is read: a scene that cannot have one is refused without loading it.
   if (canonical.sh_degree != 3) {
     return InFieldFile(named, absl::FailedPreconditionError(absl::StrCat(
                                   "a field needs SH degree 3 Gaussians, scene.ply has degree ", canonical.sh_degree)));
   }
   absl::StatusOr<field::DeformationField> f = field::LoadField(field_path.string());
   if (!f.ok()) return f.status();  // DATA_LOSS naming the file
-  const bool on_vulkan = load.field_device == train::FieldDevice::kVulkan;
-  ThreadPool pool(0);
+  std::optional<train::ExactField> exact;
   if (ext_path) {
     absl::StatusOr<field::ExtendedField> ext = field::LoadExtendedField(ext_path->string(), std::move(*f));
     if (!ext.ok()) return ext.status();  // names field_ext.bin
-    const field::ExtServingField::Device vk =
-        on_vulkan ? field::VulkanExtFieldForward() : field::ExtServingField::Device{};
-    absl::StatusOr<std::unique_ptr<field::ExtServingField>> s = field::ExtServingField::Create(
-        std::move(*ext), std::move(canonical), load.static_skip, pool, on_vulkan ? &vk : nullptr);
-    if (!s.ok()) return InFieldFile(named, s.status());
-    return std::unique_ptr<field::ServedScene>(std::move(*s));
+    exact.emplace(std::move(*ext));
+  } else {
+    exact.emplace(std::move(*f));
   }
+  const bool on_vulkan = load.field_device == train::FieldDevice::kVulkan;
   const field::ServingField::Device vk = on_vulkan ? field::VulkanFieldForward() : field::ServingField::Device{};
-  absl::StatusOr<field::ServingField> s =
-      field::ServingField::Create(std::move(*f), std::move(canonical), load.static_skip, pool, on_vulkan ? &vk : nullptr);
+  const field::ExtServingField::Device vk_ext =
+      on_vulkan ? field::VulkanExtFieldForward() : field::ExtServingField::Device{};
+  ThreadPool pool(0);
+  absl::StatusOr<std::unique_ptr<field::ServedScene>> s =
+      train::MakeExactServedScene(std::move(*exact), std::move(canonical), load.static_skip, pool,
+                                  on_vulkan ? train::ServedFieldDevice{&vk, &vk_ext} : train::ServedFieldDevice{});
   if (!s.ok()) return InFieldFile(named, s.status());
-  return std::unique_ptr<field::ServedScene>(std::make_unique<field::ServingField>(std::move(*s)));
+  return s;
 }
 
 // The serving form of the scene's field from DIR/field.serving, or built from the exact field

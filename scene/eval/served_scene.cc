@@ -24,26 +24,35 @@ absl::StatusOr<std::shared_ptr<field::ServedScene>> MakeServedScene(
   return std::shared_ptr<field::ServedScene>(std::move(*s));
 }
 
-absl::StatusOr<std::unique_ptr<field::ServedScene>> MakeExactServedScene(
-    std::shared_ptr<const field::DeformationField> f, const GaussianStore& canonical,
-    const field::StaticSkipOptions& options, ThreadPool* analysis_pool) {
-  if (!f) return absl::InvalidArgumentError("a served scene needs a field (the scene has no field.bin)");
+absl::StatusOr<std::unique_ptr<field::ServedScene>> MakeExactServedScene(ExactField f, GaussianStore canonical,
+                                                                         const field::StaticSkipOptions& options,
+                                                                         ThreadPool& pool,
+                                                                         const ServedFieldDevice& device) {
   if (canonical.sh_degree != 3) {
     return absl::InvalidArgumentError(
         absl::StrCat("a scene with a field needs SH degree 3 Gaussians, this one has degree ", canonical.sh_degree));
   }
-  std::unique_ptr<ThreadPool> own;
-  if (!analysis_pool) own = std::make_unique<ThreadPool>(0);
-  ThreadPool& pool = analysis_pool ? *analysis_pool : *own;
-  if (std::shared_ptr<const field::ExtendedField> ext = field::ExtensionOf(*f)) {
+  if (auto* ext = std::get_if<field::ExtendedField>(&f)) {
     absl::StatusOr<std::unique_ptr<field::ExtServingField>> s =
-        field::ExtServingField::Create(*ext, canonical, options, pool);
+        field::ExtServingField::Create(std::move(*ext), std::move(canonical), options, pool, device.extended);
     if (!s.ok()) return s.status();
     return std::unique_ptr<field::ServedScene>(std::move(*s));
   }
-  absl::StatusOr<field::ServingField> s = field::ServingField::Create(*f, canonical, options, pool);
+  absl::StatusOr<field::ServingField> s = field::ServingField::Create(
+      std::get<field::DeformationField>(std::move(f)), std::move(canonical), options, pool, device.field);
   if (!s.ok()) return s.status();
   return std::unique_ptr<field::ServedScene>(std::make_unique<field::ServingField>(std::move(*s)));
+}
+
+absl::StatusOr<std::unique_ptr<field::ServedScene>> MakeExactServedScene(
+    std::shared_ptr<const field::DeformationField> f, const GaussianStore& canonical,
+    const field::StaticSkipOptions& options, ThreadPool* analysis_pool) {
+  if (!f) return absl::InvalidArgumentError("a served scene needs a field (the scene has no field.bin)");
+  std::unique_ptr<ThreadPool> own;
+  if (!analysis_pool) own = std::make_unique<ThreadPool>(0);
+  std::shared_ptr<const field::ExtendedField> ext = field::ExtensionOf(*f);
+  return MakeExactServedScene(ext ? ExactField(*ext) : ExactField(*f), canonical, options,
+                              analysis_pool ? *analysis_pool : *own);
 }
 
 absl::StatusOr<std::unique_ptr<field::ServedScene>> LoadServedScene(

@@ -9,11 +9,14 @@
 #include <functional>
 #include <memory>
 #include <string>
+#include <variant>
 
 #include "absl/status/statusor.h"
 #include "render/common/thread_pool.h"
 #include "render/engine.h"
 #include "scene/field/deformation_field.h"
+#include "scene/field/extended/extended_field.h"
+#include "scene/field/extended/extended_serving.h"
 #include "scene/field/serving_form.h"
 #include "scene/field/static_skip.h"
 #include "scene/gaussians/gaussian_store.h"
@@ -22,9 +25,25 @@
 
 namespace streetsim::train {
 
-// The served scene of `canonical` under `field` (an extended field when LoadSceneField attached
-// one), after the static analysis with `options` (run on `pool`; null: every core). `field` must
-// not be null.
+// A trained field as served: the S3Gaussian field, or an extended one (which holds its base).
+using ExactField = std::variant<field::DeformationField, field::ExtendedField>;
+
+// Where a served field is evaluated (e.g. vulkan_serving.h's forwards); null: the cpu.
+struct ServedFieldDevice {
+  const field::ServingField::Device* field = nullptr;
+  const field::ExtServingField::Device* extended = nullptr;
+};
+
+// The served scene of `canonical` under `field`, after the static analysis with `options` (run on
+// `pool`), evaluated on `device`. By value, so that a caller that loaded the field for this (the
+// server) moves it in rather than holding a second copy of a field of hundreds of MB.
+absl::StatusOr<std::unique_ptr<field::ServedScene>> MakeExactServedScene(ExactField field, GaussianStore canonical,
+                                                                         const field::StaticSkipOptions& options,
+                                                                         ThreadPool& pool,
+                                                                         const ServedFieldDevice& device = {});
+
+// The same for a shared field (an extended field when LoadSceneField attached one), copied; on the
+// cpu, the analysis on `pool` (null: every core). `field` must not be null.
 absl::StatusOr<std::unique_ptr<field::ServedScene>> MakeExactServedScene(
     std::shared_ptr<const field::DeformationField> field, const GaussianStore& canonical,
     const field::StaticSkipOptions& options, ThreadPool* pool = nullptr);
