@@ -3,6 +3,7 @@
 #include <cmath>
 #include <filesystem>
 #include <map>
+#include <optional>
 #include <set>
 
 #include <opencv2/imgcodecs.hpp>
@@ -117,15 +118,17 @@ absl::StatusOr<KittiRawCalibration> ReadKittiRawCalibration(const std::string& c
   return out;
 }
 
-absl::StatusOr<DriveLog> ReadKittiRaw(const std::string& drive_dir, const KittiRawOptions& options) {
-  const fs::path drive(drive_dir);
-  if (!fs::is_directory(drive)) return absl::NotFoundError(absl::StrCat(drive_dir, ": no such directory"));
-  DriveLog log;
-  log.format = "kitti_raw";
-  log.root = drive_dir;
+namespace {
 
-  // Sensors present.
-  std::map<int, SensorFiles> cams;
+// What a drive directory holds: its cameras, LiDAR scans and OXTS track.
+struct DriveSensors {
+  std::map<int, SensorFiles> cams;  // by camera number
+  std::optional<SensorFiles> velo;
+  std::optional<OxtsTrack> oxts;
+};
+
+absl::StatusOr<DriveSensors> ListDriveSensors(const fs::path& drive, DriveLog& log) {
+  DriveSensors s;
   for (int cam = 0; cam < 4; ++cam) {
     if (!fs::is_directory(drive / CameraDirName(cam) / "data")) continue;
     absl::StatusOr<SensorFiles> files = ListSensor(drive / CameraDirName(cam), ".png");
@@ -134,35 +137,28 @@ absl::StatusOr<DriveLog> ReadKittiRaw(const std::string& drive_dir, const KittiR
       log.problems.push_back(absl::StrCat(CameraDirName(cam), "/data: no images; camera ignored"));
       continue;
     }
-    cams[cam] = *std::move(files);
+    s.cams[cam] = *std::move(files);
   }
-  std::optional<SensorFiles> velo;
   if (fs::is_directory(drive / "velodyne_points" / "data")) {
     absl::StatusOr<SensorFiles> files = ListSensor(drive / "velodyne_points", ".bin");
     if (!files.ok()) return files.status();
-    if (!files->by_index.empty()) velo = *std::move(files);
+    if (!files->by_index.empty()) s.velo = *std::move(files);
   }
-  std::optional<OxtsTrack> oxts;
   if (fs::is_directory(drive / "oxts")) {
     absl::StatusOr<OxtsTrack> track = ReadOxtsDirectory((drive / "oxts").string());
     if (!track.ok()) return track.status();
-    oxts = *std::move(track);
-    log.problems.insert(log.problems.end(), oxts->problems.begin(), oxts->problems.end());
+    s.oxts = *std::move(track);
+    log.problems.insert(log.problems.end(), s.oxts->problems.begin(), s.oxts->problems.end());
   }
-  if (cams.empty() && !velo && !oxts) {
-    return absl::NotFoundError(absl::StrCat(drive_dir, ": no image_0N, velodyne_points or oxts data"));
-  }
-  if (cams.empty() && !velo) log.format = "kitti_oxts";
+  return s;
+}
 
-  // Calibration (needed only when there are sensors to place).
-  KittiRawCalibration calib;
-  if (!cams.empty() || velo) {
-    absl::StatusOr<KittiRawCalibration> c = ReadKittiRawCalibration(FindCalibDir(drive));
-    if (!c.ok()) return c.status();
-    calib = *std::move(c);
-  }
-  std::map<int, int> cam_slot;  // camera number -> DriveLog::cameras index
-  for (auto& [cam, files] : cams) {
+// log.cameras and log.lidars placed on the ego by `calib`, each camera's calibration checked
+// against its first image. Returns camera number -> index in log.cameras.
+absl::StatusOr<std::map<int, int>> PlaceSensors(const fs::path& drive, const DriveSensors& s,
+                                                const KittiRawCalibration& calib, DriveLog& log) {
+  std::map<int, int> cam_slot;
+  for (const auto& [cam, files] : s.cams) {
     CameraSensor sensor;
     sensor.name = CameraDirName(cam);
     sensor.intrinsics = calib.intrinsics[cam];
@@ -185,96 +181,113 @@ absl::StatusOr<DriveLog> ReadKittiRaw(const std::string& drive_dir, const KittiR
     cam_slot[cam] = static_cast<int>(log.cameras.size());
     log.cameras.push_back(sensor);
   }
-  if (velo) log.lidars.push_back({"velodyne_points", calib.T_ego_from_velo});
+  if (s.velo) log.lidars.push_back({"velodyne_points", calib.T_ego_from_velo});
+  return cam_slot;
+}
 
-  // Frame indices: every index any sensor has.
+// Every frame index any sensor has; a sensor that misses some is noted in log.problems.
+std::set<int> FrameIndices(const DriveSensors& s, DriveLog& log) {
   std::set<int> indices;
-  for (auto& [cam, files] : cams) for (auto& [i, p] : files.by_index) indices.insert(i);
-  if (velo) for (auto& [i, p] : velo->by_index) indices.insert(i);
-  if (oxts) indices.insert(oxts->source_index.begin(), oxts->source_index.end());
-  for (auto& [cam, files] : cams) {
+  for (const auto& [cam, files] : s.cams) for (const auto& [i, p] : files.by_index) indices.insert(i);
+  if (s.velo) for (const auto& [i, p] : s.velo->by_index) indices.insert(i);
+  if (s.oxts) indices.insert(s.oxts->source_index.begin(), s.oxts->source_index.end());
+  for (const auto& [cam, files] : s.cams) {
     if (files.by_index.size() != indices.size()) {
       log.problems.push_back(absl::StrCat(CameraDirName(cam), ": ", files.by_index.size(),
                                           " images for ", indices.size(), " frames"));
     }
   }
-  if (velo && velo->by_index.size() != indices.size()) {
-    log.problems.push_back(absl::StrCat("velodyne_points: ", velo->by_index.size(), " scans for ",
+  if (s.velo && s.velo->by_index.size() != indices.size()) {
+    log.problems.push_back(absl::StrCat("velodyne_points: ", s.velo->by_index.size(), " scans for ",
                                         indices.size(), " frames"));
   }
+  return indices;
+}
 
-  // Times.
-  const auto sensor_time = [](const SensorFiles& f, int index) -> std::optional<int64_t> {
-    if (index < static_cast<int>(f.times.size())) return f.times[index];
-    return std::nullopt;
-  };
+std::optional<int64_t> SensorTime(const SensorFiles& f, int index) {
+  if (index < static_cast<int>(f.times.size())) return f.times[index];
+  return std::nullopt;
+}
+
+// log.frames, one per index, timed by OXTS, else the first sensor with timestamps.txt, else 10 Hz.
+void AddFrames(const std::string& drive_dir, const DriveSensors& s, const std::set<int>& indices,
+               const std::map<int, int>& cam_slot, DriveLog& log) {
   std::map<int, int64_t> oxts_time;
-  if (oxts && oxts->time_is_absolute) {
-    for (size_t i = 0; i < oxts->source_index.size(); ++i) oxts_time[oxts->source_index[i]] = oxts->time_us[i];
+  if (s.oxts && s.oxts->time_is_absolute) {
+    for (size_t i = 0; i < s.oxts->source_index.size(); ++i) oxts_time[s.oxts->source_index[i]] = s.oxts->time_us[i];
   }
-  bool any_absolute = !oxts_time.empty() || (velo && !velo->times.empty());
-  for (auto& [cam, files] : cams) any_absolute = any_absolute || !files.times.empty();
+  bool any_absolute = !oxts_time.empty() || (s.velo && !s.velo->times.empty());
+  for (const auto& [cam, files] : s.cams) any_absolute = any_absolute || !files.times.empty();
   log.time_is_absolute = any_absolute;
   if (!any_absolute) {
     log.problems.push_back(absl::StrCat(drive_dir, ": no timestamps.txt; 10 Hz assumed (time_us = frame * 100000)"));
   }
-
-  // Poses.
-  std::map<int, Eigen::Isometry3d> pose_by_index;
-  const fs::path poses_path = fs::exists(drive / "poses_velo_icp_estimated.txt")
-                                  ? drive / "poses_velo_icp_estimated.txt"
-                                  : drive / "poses.txt";
-  PoseSource source = options.pose_source;
-  if (source == PoseSource::kAuto) {
-    source = oxts ? PoseSource::kOxts
-                  : fs::exists(poses_path) ? PoseSource::kPosesFile : PoseSource::kLidarOdometry;
-  }
-  if (source == PoseSource::kOxts) {
-    if (!oxts) return absl::NotFoundError(absl::StrCat(drive_dir, ": no oxts directory"));
-    log.pose_source = "oxts";
-    log.has_gnss = true;
-    log.geo_origin = oxts->origin;
-    for (size_t i = 0; i < oxts->source_index.size(); ++i) {
-      pose_by_index[oxts->source_index[i]] = oxts->T_world_from_ego[i];
-    }
-  } else if (source == PoseSource::kPosesFile) {
-    absl::StatusOr<std::vector<Eigen::Isometry3d>> poses = ReadPosesFile(poses_path.string());
-    if (!poses.ok()) return poses.status();
-    if (!velo) return absl::FailedPreconditionError(absl::StrCat(poses_path.string(), ": T_world_from_velo needs the velodyne calibration"));
-    log.pose_source = poses_path.filename().string();
-    const Eigen::Isometry3d T_velo_from_ego = calib.T_ego_from_velo.inverse();
-    for (size_t i = 0; i < poses->size(); ++i) {
-      pose_by_index[static_cast<int>(i)] = calib.T_ego_from_velo * (*poses)[i] * T_velo_from_ego;
-    }
-    if (poses->size() != indices.size()) {
-      log.problems.push_back(absl::StrCat(poses_path.string(), ": ", poses->size(), " poses for ",
-                                          indices.size(), " frames"));
-    }
-  }
-
   for (int index : indices) {
     Frame frame;
     frame.source_index = index;
     std::optional<int64_t> t;
     if (auto it = oxts_time.find(index); it != oxts_time.end()) t = it->second;
-    for (auto& [cam, files] : cams) if (!t) t = sensor_time(files, index);
-    if (!t && velo) t = sensor_time(*velo, index);
+    for (const auto& [cam, files] : s.cams) if (!t) t = SensorTime(files, index);
+    if (!t && s.velo) t = SensorTime(*s.velo, index);
     frame.time_us = t ? *t : index * kAssumedFrameUs;
-    for (auto& [cam, files] : cams) {
+    for (const auto& [cam, files] : s.cams) {
       auto it = files.by_index.find(index);
       if (it == files.by_index.end()) continue;
-      frame.cameras.push_back({cam_slot[cam], sensor_time(files, index).value_or(frame.time_us), it->second});
+      frame.cameras.push_back({cam_slot.at(cam), SensorTime(files, index).value_or(frame.time_us), it->second});
     }
-    if (velo) {
-      if (auto it = velo->by_index.find(index); it != velo->by_index.end()) {
-        frame.lidars.push_back({0, sensor_time(*velo, index).value_or(frame.time_us), it->second});
+    if (s.velo) {
+      if (auto it = s.velo->by_index.find(index); it != s.velo->by_index.end()) {
+        frame.lidars.push_back({0, SensorTime(*s.velo, index).value_or(frame.time_us), it->second});
       }
     }
     log.frames.push_back(std::move(frame));
   }
+}
 
-  if (source == PoseSource::kLidarOdometry) {
-    if (!velo) return absl::NotFoundError(absl::StrCat(drive_dir, ": no oxts, no poses file and no LiDAR: cannot pose the frames"));
+fs::path PosesFilePath(const fs::path& drive) {
+  return fs::exists(drive / "poses_velo_icp_estimated.txt") ? drive / "poses_velo_icp_estimated.txt"
+                                                            : drive / "poses.txt";
+}
+
+// kAuto: OXTS, else a poses file, else LiDAR odometry.
+PoseSource ResolvePoseSource(PoseSource requested, const fs::path& drive, const DriveSensors& s) {
+  if (requested != PoseSource::kAuto) return requested;
+  if (s.oxts) return PoseSource::kOxts;
+  return fs::exists(PosesFilePath(drive)) ? PoseSource::kPosesFile : PoseSource::kLidarOdometry;
+}
+
+// T_world_from_ego by frame index from `source` (resolved: OXTS, a poses file, or LiDAR odometry
+// over log.frames); sets log.pose_source and the geo origin.
+absl::StatusOr<std::map<int, Eigen::Isometry3d>> PosesByIndex(PoseSource source, const fs::path& drive,
+                                                              const DriveSensors& s,
+                                                              const KittiRawCalibration& calib,
+                                                              size_t num_indices, DriveLog& log) {
+  const std::string drive_dir = drive.string();
+  std::map<int, Eigen::Isometry3d> pose_by_index;
+  const fs::path poses_path = PosesFilePath(drive);
+  if (source == PoseSource::kOxts) {
+    if (!s.oxts) return absl::NotFoundError(absl::StrCat(drive_dir, ": no oxts directory"));
+    log.pose_source = "oxts";
+    log.has_gnss = true;
+    log.geo_origin = s.oxts->origin;
+    for (size_t i = 0; i < s.oxts->source_index.size(); ++i) {
+      pose_by_index[s.oxts->source_index[i]] = s.oxts->T_world_from_ego[i];
+    }
+  } else if (source == PoseSource::kPosesFile) {
+    absl::StatusOr<std::vector<Eigen::Isometry3d>> poses = ReadPosesFile(poses_path.string());
+    if (!poses.ok()) return poses.status();
+    if (!s.velo) return absl::FailedPreconditionError(absl::StrCat(poses_path.string(), ": T_world_from_velo needs the velodyne calibration"));
+    log.pose_source = poses_path.filename().string();
+    const Eigen::Isometry3d T_velo_from_ego = calib.T_ego_from_velo.inverse();
+    for (size_t i = 0; i < poses->size(); ++i) {
+      pose_by_index[static_cast<int>(i)] = calib.T_ego_from_velo * (*poses)[i] * T_velo_from_ego;
+    }
+    if (poses->size() != num_indices) {
+      log.problems.push_back(absl::StrCat(poses_path.string(), ": ", poses->size(), " poses for ",
+                                          num_indices, " frames"));
+    }
+  } else {
+    if (!s.velo) return absl::NotFoundError(absl::StrCat(drive_dir, ": no oxts, no poses file and no LiDAR: cannot pose the frames"));
     log.problems.push_back(absl::StrCat(drive_dir, ": no oxts and no poses file; poses from LiDAR odometry"));
     absl::StatusOr<LidarOdometryResult> odo = RunLidarOdometry(log);
     if (!odo.ok()) return odo.status();
@@ -282,8 +295,11 @@ absl::StatusOr<DriveLog> ReadKittiRaw(const std::string& drive_dir, const KittiR
     for (size_t i = 0; i < odo->frames.size(); ++i) pose_by_index[log.frames[odo->frames[i]].source_index] = odo->T_world_from_ego[i];
     log.problems.insert(log.problems.end(), odo->problems.begin(), odo->problems.end());
   }
+  return pose_by_index;
+}
 
-  // Frames without a pose are dropped, never given a made-up one.
+// Frames without a pose are dropped, never given a made-up one.
+void KeepPosedFrames(const std::map<int, Eigen::Isometry3d>& pose_by_index, DriveLog& log) {
   std::vector<Frame> posed;
   std::vector<int> skipped;
   for (Frame& f : log.frames) {
@@ -300,6 +316,48 @@ absl::StatusOr<DriveLog> ReadKittiRaw(const std::string& drive_dir, const KittiR
                                         skipped.front(), ")"));
   }
   log.frames = std::move(posed);
+}
+
+}  // namespace
+
+absl::StatusOr<DriveLog> ReadKittiRaw(const std::string& drive_dir, const KittiRawOptions& options) {
+  const fs::path drive(drive_dir);
+  if (!fs::is_directory(drive)) return absl::NotFoundError(absl::StrCat(drive_dir, ": no such directory"));
+  DriveLog log;
+  log.format = "kitti_raw";
+  log.root = drive_dir;
+  absl::StatusOr<DriveSensors> sensors = ListDriveSensors(drive, log);
+  if (!sensors.ok()) return sensors.status();
+  if (sensors->cams.empty() && !sensors->velo && !sensors->oxts) {
+    return absl::NotFoundError(absl::StrCat(drive_dir, ": no image_0N, velodyne_points or oxts data"));
+  }
+  if (sensors->cams.empty() && !sensors->velo) log.format = "kitti_oxts";
+
+  // Calibration (needed only when there are sensors to place).
+  KittiRawCalibration calib;
+  if (!sensors->cams.empty() || sensors->velo) {
+    absl::StatusOr<KittiRawCalibration> c = ReadKittiRawCalibration(FindCalibDir(drive));
+    if (!c.ok()) return c.status();
+    calib = *std::move(c);
+  }
+  absl::StatusOr<std::map<int, int>> cam_slot = PlaceSensors(drive, *sensors, calib, log);
+  if (!cam_slot.ok()) return cam_slot.status();
+  const std::set<int> indices = FrameIndices(*sensors, log);
+  // OXTS and a poses file are read before the frames are built (a bad file fails early);
+  // LiDAR odometry runs over the built frames.
+  const PoseSource source = ResolvePoseSource(options.pose_source, drive, *sensors);
+  const bool odometry = source == PoseSource::kLidarOdometry;
+  absl::StatusOr<std::map<int, Eigen::Isometry3d>> poses;
+  if (!odometry) {
+    poses = PosesByIndex(source, drive, *sensors, calib, indices.size(), log);
+    if (!poses.ok()) return poses.status();
+  }
+  AddFrames(drive_dir, *sensors, indices, *cam_slot, log);
+  if (odometry) {
+    poses = PosesByIndex(source, drive, *sensors, calib, indices.size(), log);
+    if (!poses.ok()) return poses.status();
+  }
+  KeepPosedFrames(*poses, log);
   if (log.frames.empty()) return absl::InvalidArgumentError(absl::StrCat(drive_dir, ": no frame has a pose"));
   return log;
 }
