@@ -343,20 +343,10 @@ absl::StatusOr<DriveLog> ReadKittiRaw(const std::string& drive_dir, const KittiR
   absl::StatusOr<std::map<int, int>> cam_slot = PlaceSensors(drive, *sensors, calib, log);
   if (!cam_slot.ok()) return cam_slot.status();
   const std::set<int> indices = FrameIndices(*sensors, log);
-  // OXTS and a poses file are read before the frames are built (a bad file fails early);
-  // LiDAR odometry runs over the built frames.
-  const PoseSource source = ResolvePoseSource(options.pose_source, drive, *sensors);
-  const bool odometry = source == PoseSource::kLidarOdometry;
-  absl::StatusOr<std::map<int, Eigen::Isometry3d>> poses;
-  if (!odometry) {
-    poses = PosesByIndex(source, drive, *sensors, calib, indices.size(), log);
-    if (!poses.ok()) return poses.status();
-  }
   AddFrames(drive_dir, *sensors, indices, *cam_slot, log);
-  if (odometry) {
-    poses = PosesByIndex(source, drive, *sensors, calib, indices.size(), log);
-    if (!poses.ok()) return poses.status();
-  }
+  absl::StatusOr<std::map<int, Eigen::Isometry3d>> poses =
+      PosesByIndex(ResolvePoseSource(options.pose_source, drive, *sensors), drive, *sensors, calib, indices.size(), log);
+  if (!poses.ok()) return poses.status();
   KeepPosedFrames(*poses, log);
   if (log.frames.empty()) return absl::InvalidArgumentError(absl::StrCat(drive_dir, ": no frame has a pose"));
   return log;
