@@ -1,17 +1,17 @@
 // Runs training jobs: a pipeline of stages with progress, cancel, persistence and resume.
 //
 // The pipeline (docs/server.md, "Training jobs"):
-//   1. "init": `<init_command> LOG_ABS_PATH --out WORK/scene.ply` as a child process (default
-//      init_command: the `streetsim init` subcommand next to this binary), its output in
-//      <job dir>/init.log, its exit code checked (init also writes WORK/scene.json);
-//   2. "train", only when config.max_iterations > 0 and a trainer exists:
-//      `<train_command> --log LOG_ABS_PATH --out WORK --iterations N [--seed S] [--resume]` (default
-//      train_command: `streetsim train` next to this binary, used when `streetsim --help` lists
-//      it), output in <job dir>/train.log, progress parsed from its stderr lines
+//   1. "init": `<init_command> LOG_ABS_PATH --out WORK/scene.ply` as a child process, its output
+//      in <job dir>/init.log, its exit code checked (init also writes WORK/scene.json);
+//   2. "train", when the config asks for training (a preset, settings or max_iterations) and a
+//      trainer exists: `<train_command> --log LOG_ABS_PATH --out WORK --preset P --set NAME=VALUE
+//      ... [--resume]`, output in <job dir>/train.log, progress parsed from its stderr lines
 //      ("I/N  loss L  psnr P dB  G Gaussians  R it/s  ETA H:MM:SS"); `--resume` is added when
-//      WORK/checkpoint.bin exists (a re-run after a restart);
+//      WORK holds a trainer checkpoint (a re-run after a restart);
 //   3. "publish": WORK/scene.json written if no stage wrote one, WORK renamed to
 //      <state_dir>/scenes/<scene_name> (then loadable by name).
+// The commands: `streetsim serve` passes its own binary's `init` / `train`; otherwise (tests
+// linking the server) the `streetsim` next to this binary, train only if its help lists it.
 // Unfinished jobs (QUEUED or RUNNING in their record) are re-queued at start; a stage that had
 // finished is not run again.
 #pragma once

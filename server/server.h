@@ -42,9 +42,10 @@ struct ServerOptions {
   ServerLimits limits;
   // This server's name among replicas sharing state_dir (server/replica.h); "" when alone.
   std::string replica;
-  std::vector<std::string> init_command;   // training init stage argv prefix (tests override)
-  std::vector<std::string> train_command;  // training train stage argv prefix (tests override;
-                                           // empty: `streetsim train` next to this binary if any)
+  // Training stages' argv prefixes: `streetsim serve` passes its own binary; tests override; empty:
+  // the `streetsim init` / `streetsim train` next to this binary (train: if its help lists it).
+  std::vector<std::string> init_command;
+  std::vector<std::string> train_command;
   int debug_render_delay_ms = 0;          // tests only: a slow renderer
 };
 

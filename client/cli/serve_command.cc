@@ -2,6 +2,7 @@
 #include <algorithm>
 #include <cstdio>
 #include <cstdlib>
+#include <filesystem>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
@@ -16,6 +17,17 @@ namespace streetsim {
 namespace {
 
 int Fail(int code, const absl::Status& status) { return ReportFailure("serve", code, status); }
+
+// `streetsim serve` is streetsim, so a job's init and train stages run this very program, whatever
+// its file is called (an install may version it; a `streetsim` beside it may be another build).
+// "" when the file is gone (replaced since the start reads "... (deleted)"): the job runner then
+// falls back to the `streetsim` next to it.
+std::string ThisProgram() {
+  std::error_code ec;
+  const std::filesystem::path exe = std::filesystem::read_symlink("/proc/self/exe", ec);
+  if (ec || !std::filesystem::is_regular_file(exe, ec)) return "";
+  return exe.string();
+}
 
 template <typename T>
 absl::Status ParseInt(const ParsedArgs& args, const std::string& flag, T min, T* out) {
@@ -82,6 +94,10 @@ int RunServeCommand(const std::vector<std::string>& argv) {
   if (side > 0) o.limits.max_image_width = o.limits.max_image_height = std::min(side, kMaxImageSide);
   if (lease_s > 0) o.limits.session_lease_ms = lease_s * 1000;
   if (message_mb > 0) o.limits.max_message_bytes = std::min<int64_t>(message_mb, 2000) << 20;
+  if (const std::string self = ThisProgram(); !self.empty()) {
+    o.init_command = {self, "init"};
+    o.train_command = {self, "train"};
+  }
   if (auto cmd = args->Get("init-command")) o.init_command = absl::StrSplit(*cmd, ' ', absl::SkipEmpty());
   return server::RunServerUntilSignal(o);
 }

@@ -52,7 +52,8 @@ class ServeProcess {
     if (out_fd_ >= 0) close(out_fd_);
   }
   // Starts it and waits for "streetsim serve: listening on HOST:PORT"; false if it did not come.
-  bool Start(const std::vector<std::string>& flags, const std::string& stderr_path) {
+  bool Start(const std::vector<std::string>& flags, const std::string& stderr_path,
+             const std::string& binary = kBinary) {
     stderr_path_ = stderr_path;
     int fds[2];
     if (pipe2(fds, O_CLOEXEC) != 0) return false;
@@ -61,12 +62,12 @@ class ServeProcess {
     posix_spawn_file_actions_addopen(&actions, 0, "/dev/null", O_RDONLY, 0);
     posix_spawn_file_actions_adddup2(&actions, fds[1], 1);
     posix_spawn_file_actions_addopen(&actions, 2, stderr_path.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-    std::vector<std::string> argv = {kBinary, "serve"};
+    std::vector<std::string> argv = {binary, "serve"};
     argv.insert(argv.end(), flags.begin(), flags.end());
     std::vector<char*> args;
     for (std::string& a : argv) args.push_back(a.data());
     args.push_back(nullptr);
-    const int rc = posix_spawn(&pid_, kBinary.c_str(), &actions, nullptr, args.data(), environ);
+    const int rc = posix_spawn(&pid_, binary.c_str(), &actions, nullptr, args.data(), environ);
     posix_spawn_file_actions_destroy(&actions);
     close(fds[1]);
     out_fd_ = fds[0];
@@ -130,11 +131,11 @@ class CliServerTest : public ::testing::Test {
     return {"--listen", "127.0.0.1:0", "--data-root", data_root_, "--state-dir", state_dir_, "--backend", "cpu",
             "--init-command", "/bin/sh " + kFakeInit};
   }
-  void StartServe(std::vector<std::string> extra = {}) {
+  void StartServe(std::vector<std::string> extra = {}, const std::string& binary = kBinary) {
     std::vector<std::string> flags = ServeFlags();
     flags.insert(flags.end(), extra.begin(), extra.end());
     serve_ = std::make_unique<ServeProcess>();
-    ASSERT_TRUE(serve_->Start(flags, dir_ + "/serve.stderr")) << serve_->stderr_text();
+    ASSERT_TRUE(serve_->Start(flags, dir_ + "/serve.stderr", binary)) << serve_->stderr_text();
   }
   Result Exec(const std::string& args) {
     const std::string out = dir_ + "/cmd.stdout", err = dir_ + "/cmd.stderr";
@@ -325,6 +326,22 @@ TEST_F(CliServerTest, JobsTrainWatchListGet) {
   } else {
     EXPECT_EQ(r.exit_code, 0) << r.out << r.err;
   }
+  EXPECT_EQ(serve_->Terminate(), 0) << serve_->stderr_text();
+}
+
+// An installed streetsim may carry another name (streetsim-1.4, a distribution's wrapper): its jobs
+// run its own trainer, not a `streetsim` that is not beside it (the job failed "cannot start").
+TEST_F(CliServerTest, JobsRunTheServingBinaryWhateverItsFileIsCalled) {
+  const std::string renamed = dir_ + "/streetsim-renamed";
+  std::error_code ec;
+  ASSERT_TRUE(fs::copy_file(kBinary, renamed, ec)) << ec.message();
+  StartServe({}, renamed);
+  const Result r = Exec("jobs train logs/fake --scene-name renamed_job --max-iterations 5 --watch" + Server());
+  EXPECT_EQ(r.exit_code, 1) << r.out << r.err;
+  EXPECT_FALSE(Contains(r.out, "cannot start")) << r.out;
+  // The trainer ran and refused the fake log.
+  EXPECT_TRUE(Contains(r.out, "train stage exited with code 2")) << r.out;
+  EXPECT_TRUE(Contains(r.out, "not a recognised log")) << r.out;
   EXPECT_EQ(serve_->Terminate(), 0) << serve_->stderr_text();
 }
 
