@@ -1,11 +1,6 @@
 #include "server/job_runner.h"
 
-#include <fcntl.h>
-#include <poll.h>
-#include <signal.h>
-#include <spawn.h>
 #include <sys/wait.h>
-#include <unistd.h>
 
 #include <algorithm>
 #include <chrono>
@@ -18,6 +13,7 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "render/common/log.h"
+#include "server/child_process.h"
 #include "server/echo.h"
 #include "server/path_confinement.h"
 #include "server/replica.h"
@@ -25,8 +21,6 @@
 #include "server/scene_manifest.h"
 #include "server/trained_outputs.h"
 #include "server/training_config.h"
-
-extern char** environ;
 
 namespace streetsim::server {
 namespace fs = std::filesystem;
@@ -47,55 +41,6 @@ std::string StreetsimNextToThisBinary() {
 
 // How often one attempt of a job restarts a trainer that something outside the server killed.
 constexpr int kMaxTrainerRestarts = 3;
-
-// Runs `program --help` (10 s at most) and looks for a "  train" command line in its usage.
-bool HelpListsTrain(const std::string& program) {
-  std::error_code ec;
-  if (!fs::exists(program, ec)) return false;
-  int fds[2];
-  if (pipe2(fds, O_CLOEXEC) != 0) return false;
-  posix_spawn_file_actions_t actions;
-  posix_spawn_file_actions_init(&actions);
-  posix_spawn_file_actions_addopen(&actions, 0, "/dev/null", O_RDONLY, 0);
-  posix_spawn_file_actions_adddup2(&actions, fds[1], 1);
-  posix_spawn_file_actions_addopen(&actions, 2, "/dev/null", O_WRONLY, 0);
-  posix_spawnattr_t attr;
-  posix_spawnattr_init(&attr);
-  sigset_t none;
-  sigemptyset(&none);
-  posix_spawnattr_setsigmask(&attr, &none);
-  posix_spawnattr_setflags(&attr, POSIX_SPAWN_SETSIGMASK);
-  std::string arg0 = program, arg1 = "--help";
-  char* args[] = {arg0.data(), arg1.data(), nullptr};
-  pid_t pid = 0;
-  const int rc = posix_spawn(&pid, args[0], &actions, &attr, args, environ);
-  posix_spawn_file_actions_destroy(&actions);
-  posix_spawnattr_destroy(&attr);
-  close(fds[1]);
-  if (rc != 0) {
-    close(fds[0]);
-    return false;
-  }
-  std::string out;
-  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(10);
-  while (out.size() < (1 << 20)) {
-    const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(deadline - std::chrono::steady_clock::now());
-    if (left.count() <= 0) break;
-    pollfd pfd{fds[0], POLLIN, 0};
-    if (poll(&pfd, 1, static_cast<int>(left.count())) <= 0) break;
-    char buf[4096];
-    const ssize_t n = read(fds[0], buf, sizeof(buf));
-    if (n <= 0) break;
-    out.append(buf, n);
-  }
-  close(fds[0]);
-  int wstatus = 0;
-  if (waitpid(pid, &wstatus, WNOHANG) == 0) {
-    kill(pid, SIGKILL);
-    waitpid(pid, &wstatus, 0);
-  }
-  return out.find("\n  train ") != std::string::npos || out.rfind("  train ", 0) == 0;
-}
 
 }  // namespace
 
@@ -134,7 +79,7 @@ bool JobRunner::TrainAvailable() {
   std::lock_guard<std::mutex> lock(probe_mu_);
   if (train_available_ < 0) {
     const std::string program = StreetsimNextToThisBinary();
-    train_available_ = HelpListsTrain(program) ? 1 : 0;
+    train_available_ = HelpListsCommand(program, "train") ? 1 : 0;
     if (train_available_) options_.train_command = {program, "train"};
     LOG(INFO) << "training jobs: " << (train_available_ ? "" : "no ") << "train stage (" << program << " --help)";
   }
@@ -341,59 +286,11 @@ void JobRunner::WorkerLoop() {
 absl::StatusOr<int> JobRunner::RunChild(const std::string& id, const std::vector<std::string>& argv,
                                         const std::string& log_path, v1::Job* job,
                                         const std::function<bool(const std::string&)>& on_line) {
-  std::error_code size_ec;
-  const auto size_before = fs::file_size(log_path, size_ec);
-  std::streamoff log_offset = size_ec ? 0 : static_cast<std::streamoff>(size_before);
-  std::string partial;
+  LogTail tail(log_path, on_line);
+  absl::StatusOr<pid_t> spawned = SpawnLoggedChild(argv, log_path);
+  if (!spawned.ok()) return spawned.status();
+  const pid_t pid = *spawned;
   bool dirty = false;
-  // Feeds the lines the child appended to its log since the last call to on_line.
-  auto read_lines = [&] {
-    if (!on_line) return;
-    std::ifstream in(log_path, std::ios::binary);
-    if (!in) return;
-    in.seekg(log_offset);
-    char buf[65536];
-    while (in.read(buf, sizeof(buf)) || in.gcount() > 0) {
-      const std::streamsize n = in.gcount();
-      log_offset += n;
-      for (std::streamsize i = 0; i < n; ++i) {
-        if (buf[i] == '\n' || buf[i] == '\r') {
-          if (!partial.empty() && on_line(partial)) dirty = true;
-          partial.clear();
-        } else if (partial.size() < 4096) {
-          partial.push_back(buf[i]);
-        }
-      }
-    }
-  };
-  posix_spawn_file_actions_t actions;
-  posix_spawn_file_actions_init(&actions);
-  posix_spawn_file_actions_addopen(&actions, 0, "/dev/null", O_RDONLY, 0);
-  posix_spawn_file_actions_addopen(&actions, 1, log_path.c_str(), O_WRONLY | O_CREAT | O_APPEND, 0644);
-  posix_spawn_file_actions_adddup2(&actions, 1, 2);
-  posix_spawnattr_t attr;
-  posix_spawnattr_init(&attr);
-  sigset_t none;
-  sigemptyset(&none);
-  posix_spawnattr_setsigmask(&attr, &none);  // the server blocks SIGTERM in its threads
-  posix_spawnattr_setflags(&attr, POSIX_SPAWN_SETSIGMASK | POSIX_SPAWN_SETPGROUP);
-  posix_spawnattr_setpgroup(&attr, 0);
-  std::vector<char*> args;
-  for (const std::string& a : argv) args.push_back(const_cast<char*>(a.c_str()));
-  args.push_back(nullptr);
-  // The child ends with this server, even with a `kill -9` of it (client/cli/parent_server.h).
-  std::vector<std::string> env_strings = {absl::StrCat("STREETSIM_PARENT_PID=", getpid())};
-  for (char** e = environ; *e != nullptr; ++e) {
-    if (std::strncmp(*e, "STREETSIM_PARENT_PID=", 21) != 0) env_strings.emplace_back(*e);
-  }
-  std::vector<char*> env;
-  for (std::string& e : env_strings) env.push_back(e.data());
-  env.push_back(nullptr);
-  pid_t pid = 0;
-  const int rc = posix_spawn(&pid, args[0], &actions, &attr, args.data(), env.data());
-  posix_spawn_file_actions_destroy(&actions);
-  posix_spawnattr_destroy(&attr);
-  if (rc != 0) return absl::FailedPreconditionError(absl::StrCat("cannot start ", argv[0], ": ", strerror(rc)));
 
   const auto t0 = std::chrono::steady_clock::now();
   auto last_update = t0, last_read = t0;
@@ -402,8 +299,7 @@ absl::StatusOr<int> JobRunner::RunChild(const std::string& id, const std::vector
     int wstatus = 0;
     const pid_t r = waitpid(pid, &wstatus, WNOHANG);
     if (r == pid) {
-      read_lines();
-      if (!partial.empty() && on_line && on_line(partial)) dirty = true;
+      tail.Flush();
       if (WIFEXITED(wstatus)) return WEXITSTATUS(wstatus);
       return 128 + (WIFSIGNALED(wstatus) ? WTERMSIG(wstatus) : 0);
     }
@@ -418,21 +314,13 @@ absl::StatusOr<int> JobRunner::RunChild(const std::string& id, const std::vector
       // "CLI"). A server stop leaves the job to resume at the next start, so it gets the time for
       // that (a KITTI fine iteration plus ~1 GB of checkpoint); a cancelled job is not resumed and
       // gets 2 s.
-      const int grace_polls = cancel ? 100 : 1500;  // x 20 ms
-      kill(-pid, SIGTERM);
-      for (int i = 0; i < grace_polls && waitpid(pid, &wstatus, WNOHANG) == 0; ++i) {
-        std::this_thread::sleep_for(std::chrono::milliseconds(20));
-      }
-      if (waitpid(pid, &wstatus, WNOHANG) == 0) {
-        kill(-pid, SIGKILL);
-        waitpid(pid, &wstatus, 0);
-      }
+      EndChildGroup(pid, cancel ? 2000 : 30000);
       return cancel ? absl::CancelledError("cancelled") : absl::UnavailableError("server stopping");
     }
     const auto now = std::chrono::steady_clock::now();
     if (now - last_read > std::chrono::milliseconds(100)) {
       last_read = now;
-      read_lines();
+      if (tail.Read()) dirty = true;
     }
     if (now - last_update > std::chrono::seconds(1) || (dirty && now - last_update > std::chrono::milliseconds(250))) {
       last_update = now;
