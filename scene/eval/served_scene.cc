@@ -14,6 +14,16 @@
 #include "scene/field/serving_form_io.h"
 
 namespace streetsim::train {
+namespace {
+
+// Checked before a field is copied or analysed: a served field deforms SH degree 3 Gaussians.
+absl::Status CheckCanonical(const GaussianStore& canonical) {
+  if (canonical.sh_degree == 3) return absl::OkStatus();
+  return absl::InvalidArgumentError(
+      absl::StrCat("a scene with a field needs SH degree 3 Gaussians, this one has degree ", canonical.sh_degree));
+}
+
+}  // namespace
 
 absl::StatusOr<std::shared_ptr<field::ServedScene>> MakeServedScene(
     std::shared_ptr<const field::DeformationField> f, const GaussianStore& canonical,
@@ -28,10 +38,7 @@ absl::StatusOr<std::unique_ptr<field::ServedScene>> MakeExactServedScene(ExactFi
                                                                          const field::StaticSkipOptions& options,
                                                                          ThreadPool& pool,
                                                                          const ServedFieldDevice& device) {
-  if (canonical.sh_degree != 3) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("a scene with a field needs SH degree 3 Gaussians, this one has degree ", canonical.sh_degree));
-  }
+  if (absl::Status s = CheckCanonical(canonical); !s.ok()) return s;
   if (auto* ext = std::get_if<field::ExtendedField>(&f)) {
     absl::StatusOr<std::unique_ptr<field::ExtServingField>> s =
         field::ExtServingField::Create(std::move(*ext), std::move(canonical), options, pool, device.extended);
@@ -48,6 +55,7 @@ absl::StatusOr<std::unique_ptr<field::ServedScene>> MakeExactServedScene(
     std::shared_ptr<const field::DeformationField> f, const GaussianStore& canonical,
     const field::StaticSkipOptions& options, ThreadPool* analysis_pool) {
   if (!f) return absl::InvalidArgumentError("a served scene needs a field (the scene has no field.bin)");
+  if (absl::Status s = CheckCanonical(canonical); !s.ok()) return s;
   std::unique_ptr<ThreadPool> own;
   if (!analysis_pool) own = std::make_unique<ThreadPool>(0);
   std::shared_ptr<const field::ExtendedField> ext = field::ExtensionOf(*f);
