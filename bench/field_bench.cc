@@ -173,7 +173,7 @@ void TimeFormOnCpuEngine(size_t n, ServingForm& form, int repeats, ThreadPool& p
   absl::StatusOr<const GaussianStore*> first = engine.ok() ? form.At(0, pool) : engine.status();
   if (!first.ok()) std::exit(1);
   absl::StatusOr<std::unique_ptr<DeviceScene>> scene = (*engine)->Upload(**first);
-  absl::StatusOr<std::unique_ptr<DeviceSceneWriter>> writer = HostPlanesWriterFor(**engine, form);
+  absl::StatusOr<std::unique_ptr<DeviceSceneWriter>> writer = HostPlanesWriterFor(**engine, form, pool);
   if (!scene.ok() || !writer.ok() || !*writer) std::exit(1);
   double planes_ms = 0, host_ms = 0, geometry_ms = 0;
   for (int r = 0; r <= repeats; ++r) {

@@ -62,7 +62,7 @@ absl::StatusOr<const GaussianStore*> DynamicSceneField::EvaluateLocked(int64_t t
 
 bool DynamicSceneField::WriteOnDeviceLocked(int64_t time_us, Engine& engine) const {
   if (make_writer_) {
-    absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>> w = make_writer_(engine, *serving_);
+    absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>> w = make_writer_(engine, *serving_, *pool_);
     make_writer_ = nullptr;
     if (w.ok()) {
       writer_ = std::move(*w);  // null: nothing for this engine, the host path

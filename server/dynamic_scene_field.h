@@ -24,9 +24,10 @@ namespace streetsim::server {
 
 // Makes what writes a serving form straight into an engine's copy of the scene
 // (field::DeviceWriterFor for a Vulkan engine, field::HostPlanesWriterFor for the cpu engine). An
-// error or a null writer keeps the form on the host (evaluate, then update the engine's rows).
+// error or a null writer keeps the form on the host (evaluate, then update the engine's rows). The
+// pool is the scene's own (a writer on the host uses it under the scene's lock).
 using DeviceWriterMaker = std::function<absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>>(
-    Engine&, field::ServedScene&)>;
+    Engine&, field::ServedScene&, ThreadPool&)>;
 
 class DynamicSceneField : public SceneField {
  public:

@@ -136,11 +136,11 @@ absl::StatusOr<std::shared_ptr<LoadedScene>> LoadSceneFile(const std::string& pa
     // The form's writer for the engine it renders on: the Vulkan kernel when the field's device
     // is Vulkan too, else the cpu engine's planes (null for any other pair: the host path).
     const bool vulkan_field = load.field_device == train::FieldDevice::kVulkan;
-    DeviceWriterMaker writer = [vulkan_field](Engine& engine, field::ServedScene& served) {
+    DeviceWriterMaker writer = [vulkan_field](Engine& engine, field::ServedScene& served, ThreadPool& pool) {
       absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>> w =
           vulkan_field ? field::DeviceWriterFor(engine, served) : std::unique_ptr<field::DeviceSceneWriter>();
       if (!w.ok() || *w) return w;
-      return field::HostPlanesWriterFor(engine, served);
+      return field::HostPlanesWriterFor(engine, served, pool);
     };
     absl::StatusOr<std::unique_ptr<DynamicSceneField>> dynamic =
         DynamicSceneField::Create(std::move(*served), std::move(*reflectance), upload, std::move(writer));

@@ -14,12 +14,13 @@ absl::Status HostPlanesWriter::WriteAt(int64_t time_us, DeviceScene* scene) {
   return form_.WritePlanesAt(time_us, *planes, pool_);
 }
 
-absl::StatusOr<std::unique_ptr<DeviceSceneWriter>> HostPlanesWriterFor(Engine& engine, ServedScene& served) {
+absl::StatusOr<std::unique_ptr<DeviceSceneWriter>> HostPlanesWriterFor(Engine& engine, ServedScene& served,
+                                                                        ThreadPool& pool) {
   auto* form = dynamic_cast<ServingForm*>(&served);
   if (form == nullptr || engine.backend() != Backend::kCpu || form->num_dynamic() == 0) {
     return std::unique_ptr<DeviceSceneWriter>();
   }
-  return std::unique_ptr<DeviceSceneWriter>(std::make_unique<HostPlanesWriter>(engine, *form));
+  return std::unique_ptr<DeviceSceneWriter>(std::make_unique<HostPlanesWriter>(engine, *form, pool));
 }
 
 }  // namespace streetsim::field

@@ -4,7 +4,8 @@
 // then copies its changed rows into the planes (Engine::UpdateSceneRows), twice the memory
 // traffic. The same pass writes the host store's geometry, which the LiDAR renders
 // (ServingForm::GeometryAt of the same time is then free).
-// Not thread-safe: one caller at a time (the server calls it under its engine lock).
+// Not thread-safe: one caller at a time (the server calls it under its scene's lock, on the scene's
+// own pool, which the host path uses too: one pool per served scene, not two).
 #pragma once
 
 #include <cstdint>
@@ -24,8 +25,8 @@ inline constexpr char kHostPlanesDevice[] = "cpu";
 
 class HostPlanesWriter : public DeviceSceneWriter {
  public:
-  // `engine` and `form` must outlive the writer.
-  HostPlanesWriter(Engine& engine, ServingForm& form) : engine_(engine), form_(form) {}
+  // `engine`, `form` and `pool` must outlive the writer.
+  HostPlanesWriter(Engine& engine, ServingForm& form, ThreadPool& pool) : engine_(engine), form_(form), pool_(pool) {}
 
   // FailedPrecondition when the engine keeps no writable planes of `scene` (a Vulkan engine, the
   // cpu engine in double precision); the form's own errors otherwise.
@@ -35,11 +36,13 @@ class HostPlanesWriter : public DeviceSceneWriter {
  private:
   Engine& engine_;
   ServingForm& form_;  // writes its store's geometry too (WritePlanesAt)
-  ThreadPool pool_;
+  ThreadPool& pool_;
 };
 
 // For server::DynamicSceneField on a cpu engine: a HostPlanesWriter when `served` is a serving form
-// with moving Gaussians and `engine` is a cpu engine; null otherwise (the host path).
-absl::StatusOr<std::unique_ptr<DeviceSceneWriter>> HostPlanesWriterFor(Engine& engine, ServedScene& served);
+// with moving Gaussians and `engine` is a cpu engine, writing on `pool`; null otherwise (the host
+// path).
+absl::StatusOr<std::unique_ptr<DeviceSceneWriter>> HostPlanesWriterFor(Engine& engine, ServedScene& served,
+                                                                        ThreadPool& pool);
 
 }  // namespace streetsim::field

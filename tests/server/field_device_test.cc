@@ -324,7 +324,7 @@ TEST(DynamicSceneFieldWriter, AWriterThatFailsFallsBackToTheHostWithAWholeUpload
   auto render = [&](const DeviceScene& scene) { return FrontRgb(**engine, scene); };
   std::unique_ptr<server::DynamicSceneField> host = make({});
   auto calls = std::make_shared<int>(0);
-  std::unique_ptr<server::DynamicSceneField> kernel = make([&](Engine& e, const field::ServedScene&) {
+  std::unique_ptr<server::DynamicSceneField> kernel = make([&](Engine& e, const field::ServedScene&, ThreadPool&) {
     return absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>>(
         std::make_unique<ShiftingWriter>(e, g, /*fail_at=*/1, calls));
   });
@@ -347,7 +347,7 @@ TEST(DynamicSceneFieldWriter, AWriterThatFailsFallsBackToTheHostWithAWholeUpload
 
   // No writer: an error, or none for this engine (DeviceWriterFor on a cpu engine).
   for (bool fails : {true, false}) {
-    std::unique_ptr<server::DynamicSceneField> unmade = make([fails](Engine&, const field::ServedScene&) {
+    std::unique_ptr<server::DynamicSceneField> unmade = make([fails](Engine&, const field::ServedScene&, ThreadPool&) {
       return fails ? absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>>(absl::UnimplementedError("no kernel"))
                    : absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>>(nullptr);
     });
@@ -379,7 +379,7 @@ TEST(HostPlanesWriter, TheFormWrittenIntoTheCpuEnginesPlanesRendersAsTheHostForm
   std::unique_ptr<field::ServingForm> form = form_of();
   ASSERT_GT(form->num_dynamic(), 0u);
   ASSERT_LT(form->num_dynamic(), g.size());
-  absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>> writer = field::HostPlanesWriterFor(**engine, *form);
+  absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>> writer = field::HostPlanesWriterFor(**engine, *form, pool);
   ASSERT_TRUE(writer.ok() && *writer) << writer.status();
   EXPECT_EQ((*writer)->device(), "cpu");
   absl::StatusOr<std::unique_ptr<DeviceScene>> written = (*engine)->Upload(**form->At(kTimesUs[0], pool));
@@ -421,12 +421,12 @@ TEST(HostPlanesWriter, TheFormWrittenIntoTheCpuEnginesPlanesRendersAsTheHostForm
   EXPECT_EQ((*planes)->stats().device, "cpu");
 
   std::unique_ptr<field::ServingField> not_a_form = ExactServed(f, g, pool);
-  absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>> none = field::HostPlanesWriterFor(**engine, *not_a_form);
+  absl::StatusOr<std::unique_ptr<field::DeviceSceneWriter>> none = field::HostPlanesWriterFor(**engine, *not_a_form, pool);
   EXPECT_TRUE(none.ok() && !*none);
   if (HaveVulkan()) {
     absl::StatusOr<std::unique_ptr<Engine>> vk = CreateEngine(Backend::kVulkan);
     ASSERT_TRUE(vk.ok());
-    none = field::HostPlanesWriterFor(**vk, *form);
+    none = field::HostPlanesWriterFor(**vk, *form, pool);
     EXPECT_TRUE(none.ok() && !*none);
   }
 }
