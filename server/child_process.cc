@@ -7,6 +7,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <cerrno>
 #include <chrono>
 #include <cstring>
 #include <filesystem>
@@ -65,46 +66,57 @@ void EndChildGroup(pid_t pid, int grace_ms) {
   }
 }
 
-bool HelpListsCommand(const std::string& program, const std::string& command) {
-  std::error_code ec;
-  if (!fs::exists(program, ec)) return false;
+absl::StatusOr<PipedChild> SpawnWithPipedStdout(const std::vector<std::string>& argv, const std::string& stderr_path) {
+  if (argv.empty()) return absl::InvalidArgumentError("no program to start");
   int fds[2];
-  if (pipe2(fds, O_CLOEXEC) != 0) return false;
+  if (pipe2(fds, O_CLOEXEC) != 0) return absl::InternalError(absl::StrCat("pipe: ", strerror(errno)));
   posix_spawn_file_actions_t actions;
   posix_spawn_file_actions_init(&actions);
   posix_spawn_file_actions_addopen(&actions, 0, "/dev/null", O_RDONLY, 0);
   posix_spawn_file_actions_adddup2(&actions, fds[1], 1);
-  posix_spawn_file_actions_addopen(&actions, 2, "/dev/null", O_WRONLY, 0);
+  posix_spawn_file_actions_addopen(&actions, 2, stderr_path.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
   posix_spawnattr_t attr;
   posix_spawnattr_init(&attr);
   sigset_t none;
   sigemptyset(&none);
   posix_spawnattr_setsigmask(&attr, &none);
   posix_spawnattr_setflags(&attr, POSIX_SPAWN_SETSIGMASK);
-  std::string arg0 = program, arg1 = "--help";
-  char* args[] = {arg0.data(), arg1.data(), nullptr};
-  pid_t pid = 0;
-  const int rc = posix_spawn(&pid, args[0], &actions, &attr, args, environ);
+  std::vector<char*> args;
+  for (const std::string& a : argv) args.push_back(const_cast<char*>(a.c_str()));
+  args.push_back(nullptr);
+  PipedChild child;
+  const int rc = posix_spawn(&child.pid, args[0], &actions, &attr, args.data(), environ);
   posix_spawn_file_actions_destroy(&actions);
   posix_spawnattr_destroy(&attr);
   close(fds[1]);
   if (rc != 0) {
     close(fds[0]);
-    return false;
+    return absl::FailedPreconditionError(absl::StrCat("cannot start ", argv[0], ": ", strerror(rc)));
   }
+  child.stdout_fd = fds[0];
+  return child;
+}
+
+bool HelpListsCommand(const std::string& program, const std::string& command) {
+  std::error_code ec;
+  if (!fs::exists(program, ec)) return false;
+  absl::StatusOr<PipedChild> child = SpawnWithPipedStdout({program, "--help"}, "/dev/null");
+  if (!child.ok()) return false;
+  const int fd = child->stdout_fd;
+  const pid_t pid = child->pid;
   std::string out;
   const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(10);
   while (out.size() < (1 << 20)) {
     const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(deadline - std::chrono::steady_clock::now());
     if (left.count() <= 0) break;
-    pollfd pfd{fds[0], POLLIN, 0};
+    pollfd pfd{fd, POLLIN, 0};
     if (poll(&pfd, 1, static_cast<int>(left.count())) <= 0) break;
     char buf[4096];
-    const ssize_t n = read(fds[0], buf, sizeof(buf));
+    const ssize_t n = read(fd, buf, sizeof(buf));
     if (n <= 0) break;
     out.append(buf, n);
   }
-  close(fds[0]);
+  close(fd);
   int wstatus = 0;
   if (waitpid(pid, &wstatus, WNOHANG) == 0) {
     kill(pid, SIGKILL);

@@ -20,6 +20,17 @@ namespace streetsim::server {
 // when it cannot be started.
 absl::StatusOr<pid_t> SpawnLoggedChild(const std::vector<std::string>& argv, const std::string& log_path);
 
+// A child whose stdout the caller reads.
+struct PipedChild {
+  pid_t pid = -1;
+  int stdout_fd = -1;  // the pipe's read end (close-on-exec); the caller closes it
+};
+
+// Starts argv (argv[0]: a path) with stdin from /dev/null, stdout into a pipe, stderr truncated
+// into stderr_path ("/dev/null": dropped) and no blocked signals, in this process's group.
+// FAILED_PRECONDITION "cannot start ..." when it cannot be started.
+absl::StatusOr<PipedChild> SpawnWithPipedStdout(const std::vector<std::string>& argv, const std::string& stderr_path);
+
 // SIGTERM to the child's group; SIGKILL when it has not exited after grace_ms. Reaps it.
 void EndChildGroup(pid_t pid, int grace_ms);
 

@@ -2,10 +2,8 @@
 // as a child process (ephemeral port read from its "listening on" line, SIGTERM -> exit 0),
 // `scenes`, `render --server` (pixel-equal to a local `render --ply`), `replay`, `jobs` with the
 // fake init stage, TLS and token flags, and bad flags (exit 2, one line on stderr).
-#include <fcntl.h>
 #include <poll.h>
 #include <signal.h>
-#include <spawn.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -13,10 +11,9 @@
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 
+#include "server/child_process.h"
 #include "tests/common/cli_runner.h"
 #include "tests/server/server_fixture.h"
-
-extern char** environ;
 
 namespace streetsim::testing {
 namespace {
@@ -55,26 +52,12 @@ class ServeProcess {
   bool Start(const std::vector<std::string>& flags, const std::string& stderr_path,
              const std::string& binary = kBinary) {
     stderr_path_ = stderr_path;
-    int fds[2];
-    if (pipe2(fds, O_CLOEXEC) != 0) return false;
-    posix_spawn_file_actions_t actions;
-    posix_spawn_file_actions_init(&actions);
-    posix_spawn_file_actions_addopen(&actions, 0, "/dev/null", O_RDONLY, 0);
-    posix_spawn_file_actions_adddup2(&actions, fds[1], 1);
-    posix_spawn_file_actions_addopen(&actions, 2, stderr_path.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
     std::vector<std::string> argv = {binary, "serve"};
     argv.insert(argv.end(), flags.begin(), flags.end());
-    std::vector<char*> args;
-    for (std::string& a : argv) args.push_back(a.data());
-    args.push_back(nullptr);
-    const int rc = posix_spawn(&pid_, binary.c_str(), &actions, nullptr, args.data(), environ);
-    posix_spawn_file_actions_destroy(&actions);
-    close(fds[1]);
-    out_fd_ = fds[0];
-    if (rc != 0) {
-      pid_ = -1;
-      return false;
-    }
+    absl::StatusOr<server::PipedChild> child = server::SpawnWithPipedStdout(argv, stderr_path);
+    if (!child.ok()) return false;
+    pid_ = child->pid;
+    out_fd_ = child->stdout_fd;
     std::string out;
     const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(30);
     while (!Contains(out, "\n")) {
