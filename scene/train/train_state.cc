@@ -280,7 +280,12 @@ void DensifyAndPrune(TrainState* s, const Hyper& h, int64_t iteration, size_t* a
     s->denom.assign(n1, 0.0f);
     s->max_radii.assign(n1, 0.0f);
   }
-  // Prune: split parents, near-transparent Gaussians, and (after the first opacity reset) huge ones.
+  // Prune: split parents, near-transparent Gaussians, and (after the first opacity reset) ones
+  // wider than a tenth of the scene. Not 3DGS's screen-size rule (max_radii2D > 20 px): its
+  // reference zeroes max_radii2D when it densifies, before it prunes, so the rule never fires
+  // there, nor did it here, except when the Gaussian cap skipped densification: then it pruned 783k
+  // of 2.0M Gaussians at once (the odometry excerpt at full resolution, iteration 9700), and the
+  // divergence guard stopped the run.
   const size_t n1 = s->size();
   std::vector<uint8_t> keep(n1, 1);
   const bool big = iteration > h.opacity_reset_interval;
@@ -289,7 +294,7 @@ void DensifyAndPrune(TrainState* s, const Hyper& h, int64_t iteration, size_t* a
     if (Sigmoid(s->params.opacity_logits[i]) < h.min_opacity) keep[i] = 0;
     if (big) {
       const float* l = &s->params.log_scales[i * 3];
-      if (s->max_radii[i] > 20 || std::exp(std::max(l[0], std::max(l[1], l[2]))) > 0.1 * s->extent) keep[i] = 0;
+      if (std::exp(std::max(l[0], std::max(l[1], l[2]))) > 0.1 * s->extent) keep[i] = 0;
     }
   }
   for (uint8_t k : keep) *removed += !k;

@@ -56,6 +56,8 @@ struct TrainState {
   GaussianStore params;   // sh_degree 3
   GaussianStore adam_m, adam_v;
   int64_t adam_step = 0;
+  // max_radii: the largest screen radius since the last densification step; kept in checkpoints,
+  // not a prune criterion (DensifyAndPrune says why).
   std::vector<float> grad_accum, denom, max_radii;
   float sky[3] = {0, 0, 0}, sky_m[3] = {0, 0, 0}, sky_v[3] = {0, 0, 0};
   int64_t aux_step = 0;  // Adam step of sky / exposure

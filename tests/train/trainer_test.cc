@@ -15,6 +15,7 @@
 #include "scene/common/checked_file.h"
 #include "scene/log/open_log.h"
 #include "scene/field/field_io.h"
+#include "scene/train/train_state.h"
 #include "scene/train/trainer.h"
 #include "render/vulkan/vulkan_engine.h"
 
@@ -55,6 +56,45 @@ std::string TempDir(const std::string& name) {
   const std::string p = testing::ScratchDir("streetsim_trainer_test", name);
   std::filesystem::remove_all(p);
   return p;
+}
+
+// A Gaussian large on screen (100 px) but small in the world is kept at the Gaussian cap as below
+// it: 3DGS's screen-size prune never fires in its reference (it zeroes the radii when it
+// densifies, before it prunes), and here it once fired only at the cap, where it pruned 783k of a
+// 2.0M-Gaussian scene at once and the divergence guard stopped the run. The world-size rule stays.
+TEST(Densification, TheGaussianCapTurnsOnNoScreenSizePrune) {
+  GaussianStore init;
+  init.sh_degree = 3;
+  init.Resize(8);
+  for (size_t i = 0; i < init.size(); ++i) {
+    const float mean[3] = {static_cast<float>(i), 0.0f, 5.0f};
+    for (int k = 0; k < 3; ++k) {
+      init.means[i * 3 + k] = mean[k];
+      init.log_scales[i * 3 + k] = std::log(0.05f);
+    }
+    init.rotations[i * 4] = 1.0f;
+    init.opacity_logits[i] = 2.0f;
+  }
+  const Hyper h;
+  const int64_t after_first_reset = h.opacity_reset_interval + 100;
+  for (size_t cap : {init.size(), size_t{1000}}) {
+    TrainState st = TrainState::Init(init, /*extent=*/10.0, 1, 1);
+    std::fill(st.max_radii.begin(), st.max_radii.end(), 100.0f);
+    Hyper capped = h;
+    capped.max_gaussians = cap;
+    size_t added = 0, removed = 0;
+    DensifyAndPrune(&st, capped, after_first_reset, &added, &removed);
+    EXPECT_EQ(added, 0u) << "cap " << cap;
+    EXPECT_EQ(removed, 0u) << "cap " << cap;
+    EXPECT_EQ(st.size(), init.size()) << "cap " << cap;
+  }
+  // Wider than a tenth of the extent (1 m): pruned.
+  for (int k = 0; k < 3; ++k) init.log_scales[3 + k] = std::log(2.0f);
+  TrainState st = TrainState::Init(init, /*extent=*/10.0, 1, 1);
+  size_t added = 0, removed = 0;
+  DensifyAndPrune(&st, h, after_first_reset, &added, &removed);
+  EXPECT_EQ(removed, 1u);
+  EXPECT_EQ(st.size(), init.size() - 1);
 }
 
 TEST(Trainer, ResumeAfterKillReachesTheSameBits) {
