@@ -174,11 +174,14 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   if (!log.ok()) return Fail(absl::IsInternal(log.status()) ? 1 : 2, log.status());
   absl::StatusOr<bool> static_for_log = train::config::FitFieldToLog(*log, &*run);
   if (!static_for_log.ok()) return Fail(2, static_for_log.status());
+  absl::StatusOr<bool> log_poses = train::config::FitPosesToLog(*log, &*run);
+  if (!log_poses.ok()) return Fail(2, log_poses.status());
   segments = train::config::Segments(run->config);
   std::fprintf(stderr, "streetsim train: %s%s -> %s/config.json\n", run->resumes ? "resuming " : "",
                Describe(*run, segments).c_str(), out->c_str());
   std::fprintf(stderr, "streetsim train: cameras: %s\n", CamerasSummary(*log, segments.back().settings).c_str());
   if (*static_for_log) std::fprintf(stderr, "streetsim train: %s\n", train::config::kCameraOnlyStaticNote);
+  if (*log_poses) std::fprintf(stderr, "streetsim train: %s\n", train::config::kImagePosesNote);
   if (run->migrated) {
     std::fprintf(stderr, "streetsim train: %s predates config.json: its settings were read from checkpoint.json\n",
                  out->c_str());

@@ -1,12 +1,14 @@
 // The training settings (scene/train/config/): the one table, values from text, JSON and config
 // files, presets and their schedules, a run's config.json and what a resume changes, and the
 // migration of directories from before config.json. The CLI's exit codes: cli_train_test.cc.
+#include <algorithm>
 #include <filesystem>
 #include <fstream>
 #include <set>
 
 #include <nlohmann/json.hpp>
 
+#include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "scene/train/config/run_config.h"
 #include "scene/train/config/run_resolution.h"
@@ -251,6 +253,88 @@ TEST(RunResolution, FieldAutoOnACameraOnlyLogIsTheStaticModel) {
   ASSERT_TRUE(run.ok()) << run.status();
   ASSERT_TRUE(FitFieldToLog(camera_only, &*run).ok());
   EXPECT_EQ(run->config.settings.GetText("field"), "s3gaussian");
+}
+
+// The preset's pose refinement is left out on a log whose poses came from its own images (COLMAP:
+// refined, colmap_plush's held-out views lost 1.2-1.9 dB); recorded poses (GNSS/INS, the odometry
+// excerpt's) are refined, LiDAR or not; a pose setting the user gave and a resume keep theirs.
+TEST(RunResolution, ThePresetsPoseRefinementIsOffForPosesFromTheImages) {
+  const std::string dir = testing::ScratchDir("streetsim_train_config", "image_poses");
+  DriveLog colmap, odometry, with_lidar;
+  colmap.pose_source = "colmap";
+  odometry.pose_source = "poses.txt";
+  with_lidar.pose_source = "oxts";
+  with_lidar.lidars.emplace_back();
+  auto refines = [](const ResolvedRun& run) {
+    std::vector<bool> r;
+    for (const Segment& s : Segments(run.config)) {
+      absl::StatusOr<TrainRunOptions> o = ResolveTrainOptions(s.settings, s.end);
+      EXPECT_TRUE(o.ok()) << o.status();
+      r.push_back(o.ok() && o->train.pose_refinement);
+    }
+    return r;
+  };
+  auto has_note = [](const ResolvedRun& run) {
+    return std::count(run.config.notes.begin(), run.config.notes.end(), std::string(kImagePosesNote));
+  };
+  absl::StatusOr<ResolvedRun> run = ResolveRun(dir, false, CommandLineConfig{});
+  ASSERT_TRUE(run.ok()) << run.status();
+  for (const DriveLog* recorded : {&with_lidar, &odometry}) {
+    ASSERT_TRUE(FitFieldToLog(*recorded, &*run).ok());
+    absl::StatusOr<bool> off = FitPosesToLog(*recorded, &*run);
+    ASSERT_TRUE(off.ok()) << off.status();
+    EXPECT_FALSE(*off) << recorded->pose_source;
+    EXPECT_THAT(refines(*run), ::testing::Each(true)) << recorded->pose_source;
+    EXPECT_EQ(has_note(*run), 0);
+  }
+
+  run = ResolveRun(dir, false, CommandLineConfig{});
+  ASSERT_TRUE(run.ok()) << run.status();
+  ASSERT_TRUE(FitFieldToLog(colmap, &*run).ok());
+  absl::StatusOr<bool> off = FitPosesToLog(colmap, &*run);
+  ASSERT_TRUE(off.ok()) << off.status();
+  EXPECT_TRUE(*off);
+  EXPECT_THAT(refines(*run), ::testing::Each(false));
+  EXPECT_EQ(has_note(*run), 1);
+  // Recorded: config.json says so, and its resume trains without it too.
+  ASSERT_TRUE(WriteRunConfig(dir, run->config).ok());
+  EXPECT_THAT(nlohmann::json::parse(RunConfigJson(run->config))["notes"], ::testing::Contains(kImagePosesNote));
+  off = FitPosesToLog(colmap, &*run);  // a retried job: nothing more
+  ASSERT_TRUE(off.ok());
+  EXPECT_FALSE(*off);
+  EXPECT_EQ(has_note(*run), 1);
+  absl::StatusOr<ResolvedRun> resumed = ResolveRun(dir, true, CommandLineConfig{});
+  ASSERT_TRUE(resumed.ok()) << resumed.status();
+  EXPECT_THAT(refines(*resumed), ::testing::Each(false));
+
+  // Asked for by the user: kept on any log.
+  for (const auto& g : {Given({{"pose-refinement", "true"}}), Given({{"pose-lr-scale", "2"}}),
+                        Given({{"pose-refine-from", "100"}})}) {
+    run = ResolveRun(dir + "/given", false, g);
+    ASSERT_TRUE(run.ok()) << run.status();
+    off = FitPosesToLog(colmap, &*run);
+    ASSERT_TRUE(off.ok()) << off.status();
+    EXPECT_FALSE(*off) << g.values[0].name;
+    EXPECT_THAT(refines(*run), ::testing::Each(true)) << g.values[0].name;
+  }
+  // A resume of a run that refined keeps refining on any log.
+  std::filesystem::create_directories(dir + "/kept");
+  run = ResolveRun(dir + "/kept", false, CommandLineConfig{});
+  ASSERT_TRUE(run.ok());
+  ASSERT_TRUE(WriteRunConfig(dir + "/kept", run->config).ok());
+  run = ResolveRun(dir + "/kept", true, CommandLineConfig{});
+  ASSERT_TRUE(run.ok()) << run.status();
+  ASSERT_TRUE(FitPosesToLog(colmap, &*run).ok());
+  EXPECT_THAT(refines(*run), ::testing::Each(true));
+  // A preset without pose refinement: nothing to do.
+  CommandLineConfig preview;
+  preview.preset = "preview";
+  run = ResolveRun(dir + "/preview", false, preview);
+  ASSERT_TRUE(run.ok());
+  off = FitPosesToLog(colmap, &*run);
+  ASSERT_TRUE(off.ok());
+  EXPECT_FALSE(*off);
+  EXPECT_EQ(has_note(*run), 0);
 }
 
 // A new run: the preset, then the settings given, which hold through the preset's schedule.

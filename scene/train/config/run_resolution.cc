@@ -79,6 +79,22 @@ bool PinField(RunConfig* config) {
   return true;
 }
 
+// The poses were estimated from the log's own images (a COLMAP model, bundle-adjusted against
+// them), not recorded by a navigation system or LiDAR odometry.
+bool PosesFromImages(const DriveLog& log) { return log.pose_source == "colmap"; }
+
+// Pose refinement is on, and no setting of it was given, for the run or in a stage of its schedule.
+bool PosesByPreset(const RunConfig& config) {
+  const std::vector<Segment> segments = Segments(config);
+  if (!segments.back().settings.GetBool("pose-refinement")) return false;
+  for (const Segment& segment : segments) {
+    for (const std::string& name : PoseSettings()) {
+      if (segment.settings.given(name)) return false;
+    }
+  }
+  return true;
+}
+
 // Every segment resolves: the relations between settings hold over the whole run.
 absl::Status CheckSegments(const RunConfig& config) {
   const std::vector<Segment> segments = Segments(config);
@@ -200,6 +216,7 @@ absl::StatusOr<ResolvedRun> ResolveRun(const std::string& out_dir, bool resume, 
     HoldThroughSchedule(hold, &run.config);
   }
   run.field_by_length = PinField(&run.config);
+  run.poses_by_preset = !run.resumes && PosesByPreset(run.config);
   if (absl::Status s = CheckSegments(run.config); !s.ok()) return s;
   return run;
 }
@@ -210,6 +227,19 @@ absl::StatusOr<bool> FitFieldToLog(const DriveLog& log, ResolvedRun* run) {
   const Origin o = run->config.settings.origin("field");
   (void)run->config.settings.Set("field", std::string("static"), o, "field auto");
   run->config.notes.push_back(kCameraOnlyStaticNote);
+  if (absl::Status s = CheckSegments(run->config); !s.ok()) return s;
+  return true;
+}
+
+absl::StatusOr<bool> FitPosesToLog(const DriveLog& log, ResolvedRun* run) {
+  if (!run->poses_by_preset || !PosesFromImages(log)) return false;
+  run->poses_by_preset = false;
+  const Origin o = run->config.settings.origin("pose-refinement");
+  (void)run->config.settings.Set("pose-refinement", false, o, "poses from the log's images");
+  for (ScheduleStage& stage : run->config.schedule) {
+    for (const std::string& name : PoseSettings()) stage.set.erase(name);
+  }
+  run->config.notes.push_back(kImagePosesNote);
   if (absl::Status s = CheckSegments(run->config); !s.ok()) return s;
   return true;
 }

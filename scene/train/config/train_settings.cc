@@ -187,7 +187,6 @@ std::vector<SettingDef> MakeDefs() {
 
 constexpr const char* kExtendedOnly[] = {"field-modules", "field-decoder-max-dlog-scale", "field-ext-lr-scale",
                                          "field-ext-lr-decay-iterations"};
-constexpr const char* kPoseOnly[] = {"pose-lr-scale", "pose-refine-from", "pose-refine-until"};
 
 absl::Status ResolveField(const Settings& s, TrainRunOptions* o) {
   const std::string& field = s.GetText("field");
@@ -242,8 +241,8 @@ absl::Status ResolveField(const Settings& s, TrainRunOptions* o) {
 
 absl::Status ResolvePoseSchedule(const Settings& s, TrainRunOptions* o) {
   TrainOptions& t = o->train;
-  for (const char* name : kPoseOnly) {
-    if (s.given(name) && !t.pose_refinement) {
+  for (const std::string& name : PoseSettings()) {
+    if (name != "pose-refinement" && s.given(name) && !t.pose_refinement) {
       return absl::InvalidArgumentError(absl::StrCat(name, " needs pose-refinement"));
     }
   }
@@ -306,6 +305,12 @@ const std::vector<std::string>& FieldOnlySettings() {
       "static-iterations",    "field-lr-scale",     "field-lr-decay-iterations", "field-time-resolution",
       "field-lambda-dx",      "field-lambda-dsh",   "field-l1-time-planes",      "field-motion-prior",
       "field-motion-prior-scans", "field-init"};
+  return names;
+}
+
+const std::vector<std::string>& PoseSettings() {
+  static const std::vector<std::string> names = {"pose-refinement", "pose-lr-scale", "pose-refine-from",
+                                                 "pose-refine-until"};
   return names;
 }
 

@@ -28,6 +28,9 @@ const std::vector<SettingDef>& TrainSettingDefs();
 // The settings only a field run uses (given in a static run: InvalidArgument).
 const std::vector<std::string>& FieldOnlySettings();
 
+// Pose refinement's switch and the settings that tune it.
+const std::vector<std::string>& PoseSettings();
+
 // Every setting at its declared default.
 Settings DefaultTrainSettings();
 
