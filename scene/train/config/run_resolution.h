@@ -63,7 +63,7 @@ inline constexpr char kCameraOnlyStaticNote[] =
 // poses were estimated from its own images (a COLMAP model, bundle-adjusted against them) trains at
 // those poses. Refining them moved the training views off poses that were already consistent with
 // the images, and the held-out views, which take their neighbours' corrections, lost 1.2-1.9 dB on
-// colmap_plush; on the odometry excerpt's recorded poses refinement gained 1.0 dB, on the KITTI
+// colmap_plush; on the odometry excerpt's recorded poses refinement gained 1.0-1.4 dB, on the KITTI
 // clip's GNSS/INS poses 1.2 dB (docs/training.md "Presets"). A user's pose setting (or a resume's
 // record) stays. Says so in the config's notes (kImagePosesNote); true when it turned it off.
 absl::StatusOr<bool> FitPosesToLog(const DriveLog& log, ResolvedRun* run);
