@@ -476,7 +476,7 @@ absl::StatusOr<DriveLog> ReadColmapLog(const std::string& model_dir, const std::
   DriveLog log;
   log.format = "colmap";
   log.root = model_dir;
-  log.pose_source = "colmap";
+  log.pose_source = kColmapPoseSource;
   std::map<uint32_t, int> slot;
   for (const auto& [id, cam] : model->cameras) {
     absl::StatusOr<CameraIntrinsics> k = ColmapIntrinsics(cam);

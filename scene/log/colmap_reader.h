@@ -19,6 +19,10 @@
 
 namespace streetsim {
 
+// DriveLog::pose_source of a log read from a COLMAP model: poses estimated from its own images
+// (training leaves them unrefined: scene/train/config/run_resolution.h FitPosesToLog).
+inline constexpr char kColmapPoseSource[] = "colmap";
+
 struct ColmapCamera {
   uint32_t id = 0;
   std::string model;  // "PINHOLE", ...

@@ -10,6 +10,7 @@
 
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "scene/log/colmap_reader.h"
 #include "scene/train/config/run_config.h"
 #include "scene/train/config/run_resolution.h"
 #include "scene/train/config/train_settings.h"
@@ -261,7 +262,7 @@ TEST(RunResolution, FieldAutoOnACameraOnlyLogIsTheStaticModel) {
 TEST(RunResolution, ThePresetsPoseRefinementIsOffForPosesFromTheImages) {
   const std::string dir = testing::ScratchDir("streetsim_train_config", "image_poses");
   DriveLog colmap, odometry, with_lidar;
-  colmap.pose_source = "colmap";
+  colmap.pose_source = kColmapPoseSource;
   odometry.pose_source = "poses.txt";
   with_lidar.pose_source = "oxts";
   with_lidar.lidars.emplace_back();

@@ -8,6 +8,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_replace.h"
 #include "scene/common/checked_file.h"
+#include "scene/log/colmap_reader.h"
 #include "scene/train/checkpoint_run.h"
 #include "scene/train/config/train_settings.h"
 #include "scene/train/dynamic_stage.h"
@@ -81,7 +82,7 @@ bool PinField(RunConfig* config) {
 
 // The poses were estimated from the log's own images (a COLMAP model, bundle-adjusted against
 // them), not recorded by a navigation system or LiDAR odometry.
-bool PosesFromImages(const DriveLog& log) { return log.pose_source == "colmap"; }
+bool PosesFromImages(const DriveLog& log) { return log.pose_source == kColmapPoseSource; }
 
 // Pose refinement is on, and no setting of it was given, for the run or in a stage of its schedule.
 bool PosesByPreset(const RunConfig& config) {
