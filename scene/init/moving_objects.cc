@@ -34,13 +34,29 @@ namespace {
 constexpr double kIcpVoxelM = 0.15;  // thinning of a registration's source: same surfaces, fewer points
 constexpr int kIcpIterations = 30;
 
-struct Object {
+// A connected group of one scan's points. Most of a scan's groups (walls, parked cars, poles)
+// never meet a track, so what only tracking needs (the thinned view, the tree, the normals) is
+// built on first use: the same values as built up front, for a fraction of the scans' cost.
+class Object {
+ public:
   std::vector<Eigen::Vector3f> points;  // level frame
   int num_dynamic = 0;
   Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
-  std::vector<Eigen::Vector3f> thinned;  // registration source when it is a track's last view
-  KdTree3 tree;                          // over `points`: the registration target
-  std::vector<Eigen::Vector3f> normals;  // of `points`; zero where no plane fits
+
+  // The registration source when this is a track's last view.
+  const std::vector<Eigen::Vector3f>& Thinned();
+  // Over `points`: the registration target. `points` must not change once it is built.
+  const KdTree3& Tree();
+  // Of points[i]; zero where no plane fits. A registration meets only the points nearest its
+  // source, so each is fitted when first asked for.
+  const Eigen::Vector3f& Normal(int i);
+
+ private:
+  bool has_thinned_ = false, has_tree_ = false;
+  std::vector<Eigen::Vector3f> thinned_;
+  KdTree3 tree_;
+  std::vector<Eigen::Vector3f> normals_;
+  std::vector<uint8_t> has_normal_;
 };
 
 struct CellKey {
@@ -53,8 +69,6 @@ struct CellKeyHash {
            static_cast<size_t>(static_cast<uint32_t>(k.y)) * 19349669u;
   }
 };
-
-void ComputeNormals(Object* o);
 
 // One measured point per voxel (not the centroid: a centroid across an edge lies inside the
 // object, and registering it would pull the motion).
@@ -74,23 +88,39 @@ std::vector<std::unique_ptr<Object>> GroupObjects(const LevelScan& scan, const M
   const auto key_of = [&](const Eigen::Vector3f& p) {
     return CellKey{static_cast<int32_t>(std::floor(p.x() * inv)), static_cast<int32_t>(std::floor(p.y() * inv))};
   };
-  std::unordered_map<CellKey, std::vector<int>, CellKeyHash> cells;
-  for (size_t i = 0; i < scan.points.size(); ++i) cells[key_of(scan.points[i])].push_back(static_cast<int>(i));
-  std::unordered_map<CellKey, int, CellKeyHash> group_of;
-  std::vector<std::unique_ptr<Object>> objects;
-  std::vector<CellKey> stack;
+  // Dense cell ids, and each cell's points in scan order (one flat array, not a vector per cell).
+  std::unordered_map<CellKey, int, CellKeyHash> cell_id;
+  cell_id.reserve(scan.points.size() / 4 + 1);
+  std::vector<CellKey> cell_key;
+  std::vector<int> cell_of(scan.points.size());
   for (size_t i = 0; i < scan.points.size(); ++i) {
-    const CellKey seed = key_of(scan.points[i]);
-    if (group_of.count(seed)) continue;
+    const CellKey k = key_of(scan.points[i]);
+    auto [it, inserted] = cell_id.try_emplace(k, static_cast<int>(cell_key.size()));
+    if (inserted) cell_key.push_back(k);
+    cell_of[i] = it->second;
+  }
+  std::vector<int> first(cell_key.size() + 1, 0);
+  for (int c : cell_of) ++first[c + 1];
+  for (size_t c = 0; c < cell_key.size(); ++c) first[c + 1] += first[c];
+  std::vector<int> members(scan.points.size());
+  std::vector<int> fill(first.begin(), first.end() - 1);
+  for (size_t i = 0; i < scan.points.size(); ++i) members[fill[cell_of[i]]++] = static_cast<int>(i);
+
+  std::vector<uint8_t> grouped(cell_key.size(), 0);
+  std::vector<std::unique_ptr<Object>> objects;
+  std::vector<int> stack;
+  for (size_t i = 0; i < scan.points.size(); ++i) {
+    const int seed = cell_of[i];
+    if (grouped[seed]) continue;
     auto object = std::make_unique<Object>();
-    const int id = static_cast<int>(objects.size());
-    group_of[seed] = id;
+    grouped[seed] = 1;
     stack.assign(1, seed);
     Eigen::Vector2f lo(1e30f, 1e30f), hi(-1e30f, -1e30f);
     while (!stack.empty()) {
-      const CellKey c = stack.back();
+      const int c = stack.back();
       stack.pop_back();
-      for (int p : cells[c]) {
+      for (int m = first[c]; m < first[c + 1]; ++m) {
+        const int p = members[m];
         object->points.push_back(scan.points[p]);
         object->num_dynamic += scan.dynamic[p] ? 1 : 0;
         lo = lo.cwiseMin(scan.points[p].head<2>());
@@ -98,10 +128,10 @@ std::vector<std::unique_ptr<Object>> GroupObjects(const LevelScan& scan, const M
       }
       for (int dx = -1; dx <= 1; ++dx) {
         for (int dy = -1; dy <= 1; ++dy) {
-          const CellKey n{c.x + dx, c.y + dy};
-          if (!cells.count(n) || group_of.count(n)) continue;
-          group_of[n] = id;
-          stack.push_back(n);
+          const auto n = cell_id.find(CellKey{cell_key[c].x + dx, cell_key[c].y + dy});
+          if (n == cell_id.end() || grouped[n->second]) continue;
+          grouped[n->second] = 1;
+          stack.push_back(n->second);
         }
       }
     }
@@ -112,12 +142,8 @@ std::vector<std::unique_ptr<Object>> GroupObjects(const LevelScan& scan, const M
     objects.push_back(std::move(object));
   }
   for (auto& object : objects) {
-    if (object->points.empty()) continue;
     for (const Eigen::Vector3f& p : object->points) object->centroid += p.cast<double>();
-    object->centroid /= static_cast<double>(object->points.size());
-    object->thinned = FirstPointPerVoxel(object->points, kIcpVoxelM);
-    object->tree.Build(&object->points);
-    ComputeNormals(object.get());
+    if (!object->points.empty()) object->centroid /= static_cast<double>(object->points.size());
   }
   return objects;
 }
@@ -128,29 +154,42 @@ Eigen::Vector3d Centroid(const std::vector<Eigen::Vector3f>& points) {
   return points.empty() ? c : Eigen::Vector3d(c / static_cast<double>(points.size()));
 }
 
-// Surface normals of an object's points (smallest principal axis of 8 neighbours).
-void ComputeNormals(Object* o) {
+const std::vector<Eigen::Vector3f>& Object::Thinned() {
+  if (!has_thinned_) thinned_ = FirstPointPerVoxel(points, kIcpVoxelM);
+  has_thinned_ = true;
+  return thinned_;
+}
+
+const KdTree3& Object::Tree() {
+  if (!has_tree_) tree_.Build(&points);
+  has_tree_ = true;
+  return tree_;
+}
+
+// The smallest principal axis of the point's 8 nearest neighbours.
+const Eigen::Vector3f& Object::Normal(int i) {
+  if (has_normal_.empty()) {
+    normals_.assign(points.size(), Eigen::Vector3f::Zero());
+    has_normal_.assign(points.size(), 0);
+  }
+  if (has_normal_[i]) return normals_[i];
+  has_normal_[i] = 1;
   constexpr int kNeighbours = 8;
-  o->normals.resize(o->points.size());
   int idx[kNeighbours];
   float d2[kNeighbours];
-  for (size_t i = 0; i < o->points.size(); ++i) {
-    const int n = o->tree.KNearest(o->points[i], kNeighbours, 1.0f, idx, d2);
-    if (n < 3) {
-      o->normals[i] = Eigen::Vector3f::Zero();  // isolated: no plane, no constraint
-      continue;
-    }
-    Eigen::Vector3d mean = Eigen::Vector3d::Zero();
-    for (int k = 0; k < n; ++k) mean += o->points[idx[k]].cast<double>();
-    mean /= n;
-    Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
-    for (int k = 0; k < n; ++k) {
-      const Eigen::Vector3d d = o->points[idx[k]].cast<double>() - mean;
-      cov += d * d.transpose();
-    }
-    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(cov);
-    o->normals[i] = eig.eigenvectors().col(0).cast<float>();
+  const int n = Tree().KNearest(points[i], kNeighbours, 1.0f, idx, d2);
+  if (n < 3) return normals_[i];  // isolated: no plane, no constraint
+  Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+  for (int k = 0; k < n; ++k) mean += points[idx[k]].cast<double>();
+  mean /= n;
+  Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
+  for (int k = 0; k < n; ++k) {
+    const Eigen::Vector3d d = points[idx[k]].cast<double>() - mean;
+    cov += d * d.transpose();
   }
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(cov);
+  normals_[i] = eig.eigenvectors().col(0).cast<float>();
+  return normals_[i];
 }
 
 // Rotation about z plus translation taking `source` onto `target`, point-to-plane: LiDAR samples
@@ -159,8 +198,9 @@ void ComputeNormals(Object* o) {
 // point-to-plane leaves the slide to the ends and edges. A small damping keeps a direction no
 // surface constrains at the prediction. Returns the motion and the final RMS point-to-plane
 // distance of the matched pairs.
-Eigen::Isometry3d RegisterYawTranslation(const std::vector<Eigen::Vector3f>& source, const Object& target,
+Eigen::Isometry3d RegisterYawTranslation(const std::vector<Eigen::Vector3f>& source, Object& target,
                                          double first_radius_m, double last_radius_m, double* rms_m) {
+  const KdTree3& tree = target.Tree();
   Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
   *rms_m = 0;
   for (int it = 0; it < kIcpIterations; ++it) {
@@ -172,9 +212,11 @@ Eigen::Isometry3d RegisterYawTranslation(const std::vector<Eigen::Vector3f>& sou
     int pairs = 0;
     for (const Eigen::Vector3f& s : source) {
       const Eigen::Vector3d p = T * s.cast<double>();
-      const int j = target.tree.Nearest(p.cast<float>(), static_cast<float>(radius * radius));
-      if (j < 0 || target.normals[j].isZero()) continue;
-      const Eigen::Vector3d n = target.normals[j].cast<double>();
+      const int j = tree.Nearest(p.cast<float>(), static_cast<float>(radius * radius));
+      if (j < 0) continue;
+      const Eigen::Vector3f& normal = target.Normal(j);
+      if (normal.isZero()) continue;
+      const Eigen::Vector3d n = normal.cast<double>();
       const double r = n.dot(p - target.points[j].cast<double>());
       Eigen::Vector4d J;
       J << n, n.x() * -p.y() + n.y() * p.x();
@@ -238,7 +280,7 @@ std::vector<MovingObjectTrack> TrackObjectsInLevelScans(const std::vector<LevelS
           if (objects[k]->points.empty()) continue;
           if ((objects[k]->centroid - q.cast<double>()).head<2>().norm() > radius + o.max_length_m) continue;
           float d2;
-          if (objects[k]->tree.Nearest(q, best_d2, &d2) >= 0 && d2 < best_d2) {
+          if (objects[k]->Tree().Nearest(q, best_d2, &d2) >= 0 && d2 < best_d2) {
             best_d2 = d2;
             best = static_cast<int>(k);
           }
@@ -259,7 +301,7 @@ std::vector<MovingObjectTrack> TrackObjectsInLevelScans(const std::vector<LevelS
       if (object_taken[c.object] || track_matched[c.track]) continue;
       object_taken[c.object] = track_matched[c.track] = 1;
       Track& tr = tracks[c.track];
-      const Object& obj = *objects[c.object];
+      Object& obj = *objects[c.object];
       const double dt_s = (scan.time_us - tr.last_time_us) * 1e-6;
       std::vector<Eigen::Vector3f> source;
       source.reserve(tr.last_points.size());
@@ -275,7 +317,7 @@ std::vector<MovingObjectTrack> TrackObjectsInLevelScans(const std::vector<LevelS
         tr.has_velocity = true;
       }
       tr.motion = step * tr.motion;
-      tr.last_points = obj.thinned;
+      tr.last_points = obj.Thinned();
       tr.last_time_us = scan.time_us;
       tr.missed = 0;
       ObjectObservation ob;
@@ -286,7 +328,7 @@ std::vector<MovingObjectTrack> TrackObjectsInLevelScans(const std::vector<LevelS
       ob.num_points = static_cast<int>(obj.points.size());
       ob.num_dynamic = obj.num_dynamic;
       ob.icp_rms_m = rms;
-      if (o.keep_points) ob.points_world = obj.thinned;
+      if (o.keep_points) ob.points_world = obj.Thinned();
       tr.out.observations.push_back(ob);
     }
     std::vector<size_t> still_active;
@@ -295,7 +337,7 @@ std::vector<MovingObjectTrack> TrackObjectsInLevelScans(const std::vector<LevelS
       still_active.push_back(t);
     }
     for (size_t k = 0; k < objects.size(); ++k) {
-      const Object& obj = *objects[k];
+      Object& obj = *objects[k];
       if (object_taken[k] || obj.points.empty()) continue;
       if (obj.num_dynamic < o.min_dynamic_points ||
           obj.num_dynamic < o.min_dynamic_fraction * static_cast<double>(obj.points.size())) {
@@ -303,7 +345,7 @@ std::vector<MovingObjectTrack> TrackObjectsInLevelScans(const std::vector<LevelS
       }
       Track tr;
       tr.out.id = static_cast<int>(tracks.size());
-      tr.last_points = obj.thinned;
+      tr.last_points = obj.Thinned();
       tr.last_time_us = scan.time_us;
       ObjectObservation ob;
       ob.frame = scan.frame;
@@ -311,7 +353,7 @@ std::vector<MovingObjectTrack> TrackObjectsInLevelScans(const std::vector<LevelS
       ob.centroid_world = obj.centroid;
       ob.num_points = static_cast<int>(obj.points.size());
       ob.num_dynamic = obj.num_dynamic;
-      if (o.keep_points) ob.points_world = obj.thinned;
+      if (o.keep_points) ob.points_world = obj.Thinned();
       tr.out.observations.push_back(ob);
       still_active.push_back(tracks.size());
       tracks.push_back(std::move(tr));

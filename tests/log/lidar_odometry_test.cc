@@ -4,7 +4,9 @@
 #include <cstdio>
 #include <algorithm>
 #include <cmath>
+#include <map>
 #include <random>
+#include <tuple>
 
 #include "gtest/gtest.h"
 #include "scene/log/kdtree.h"
@@ -16,6 +18,43 @@ namespace streetsim {
 namespace {
 
 const std::string kRaw = std::string(STREETSIM_DATA_DIR) + "/kitti_raw/2011_09_26/2011_09_26_drive_sfnd_sync";
+
+// The filter's flat table against the plain definition (a map from voxel to its first place,
+// sums in point order): the same centroids in the same order, bit for bit, across repeated
+// calls of different sizes on one thread (the thread keeps its table) and above the size it
+// keeps (2^21 points).
+TEST(VoxelDownsample, EqualsTheMapDefinition) {
+  const auto reference = [](const std::vector<Eigen::Vector3f>& points, double voxel_m) {
+    std::map<std::tuple<int32_t, int32_t, int32_t>, size_t> slot;
+    std::vector<Eigen::Vector3d> sum;
+    std::vector<int> count;
+    for (const Eigen::Vector3f& p : points) {
+      const VoxelKey k = VoxelOf(p.cast<double>(), 1.0 / voxel_m);
+      auto [it, inserted] = slot.try_emplace({k.x, k.y, k.z}, sum.size());
+      if (inserted) {
+        sum.push_back(p.cast<double>());
+        count.push_back(1);
+      } else {
+        sum[it->second] += p.cast<double>();
+        ++count[it->second];
+      }
+    }
+    std::vector<Eigen::Vector3f> out;
+    for (size_t i = 0; i < sum.size(); ++i) out.push_back((sum[i] / count[i]).cast<float>());
+    return out;
+  };
+  std::mt19937 rng(11);
+  for (size_t n : {size_t{100000}, size_t{3}, size_t{0}, size_t{20000}, (size_t{1} << 21) + 5}) {
+    std::uniform_real_distribution<float> u(-20, 20);
+    std::vector<Eigen::Vector3f> points(n);
+    for (auto& p : points) p = {u(rng), u(rng), u(rng) * 0.05f};  // a thin slab: many shared voxels
+    const double voxel_m = n > 100000 ? 0.5 : 0.05;
+    const std::vector<Eigen::Vector3f> got = VoxelDownsample(points, voxel_m);
+    const std::vector<Eigen::Vector3f> want = reference(points, voxel_m);
+    ASSERT_EQ(got.size(), want.size()) << n;
+    for (size_t i = 0; i < got.size(); ++i) ASSERT_EQ(got[i], want[i]) << n << " points, voxel " << i;
+  }
+}
 
 TEST(KdTree, AgreesWithBruteForce) {
   std::mt19937 rng(7);

@@ -639,6 +639,10 @@ def check_replicas(report, tmp, args):
         time.sleep(1.0)
         stop.set()
         t.join()
+        # The old channel to the owner backs off after the failed reconnects while it was down (a
+        # call in backoff fails at once with "connection refused"); as a user would, wait until it
+        # reaches the restarted server. On a loaded machine the backoff outlasted the second above.
+        rc.client_for(owner).wait_for_ready(30)
         done = list(rc.watch_job(job.job_id, timeout_s=900))[-1]
         if done.state != training_pb2.JOB_STATE_SUCCEEDED or done.attempts != 2:
             failures.append(f"job {training_pb2.JobState.Name(done.state)} after {done.attempts} attempts: {done.error}")
