@@ -73,11 +73,13 @@ struct CellKeyHash {
 // One measured point per voxel (not the centroid: a centroid across an edge lies inside the
 // object, and registering it would pull the motion).
 std::vector<Eigen::Vector3f> FirstPointPerVoxel(const std::vector<Eigen::Vector3f>& points, double voxel_m) {
-  std::unordered_map<VoxelKey, int, VoxelKeyHash> seen;
+  VoxelIndex seen;
   std::vector<Eigen::Vector3f> out;
   const double inv = 1.0 / voxel_m;
   for (const Eigen::Vector3f& p : points) {
-    if (seen.emplace(VoxelOf(p.cast<double>(), inv), 1).second) out.push_back(p);
+    bool inserted = false;
+    seen.FindOrInsert(VoxelOf(p.cast<double>(), inv), &inserted);
+    if (inserted) out.push_back(p);
   }
   return out;
 }

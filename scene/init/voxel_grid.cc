@@ -3,15 +3,16 @@
 namespace streetsim {
 
 void VoxelGrid::Add(const Eigen::Vector3d& p, float reflectance) {
-  auto [it, inserted] = slot_.try_emplace(VoxelOf(p, inv_voxel_), static_cast<int>(sum_.size()));
+  bool inserted = false;
+  const int32_t i = slot_.FindOrInsert(VoxelOf(p, inv_voxel_), &inserted);
   if (inserted) {
     sum_.push_back(p);
     reflectance_sum_.push_back(reflectance);
     count_.push_back(1);
   } else {
-    sum_[it->second] += p;
-    reflectance_sum_[it->second] += reflectance;
-    ++count_[it->second];
+    sum_[i] += p;
+    reflectance_sum_[i] += reflectance;
+    ++count_[i];
   }
 }
 

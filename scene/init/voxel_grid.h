@@ -2,7 +2,6 @@
 // position and reflectance of what fell into it, so memory grows with the scene, not the log.
 #pragma once
 
-#include <unordered_map>
 #include <vector>
 
 #include <Eigen/Core>
@@ -23,7 +22,7 @@ class VoxelGrid {
 
  private:
   double inv_voxel_, voxel_m_;
-  std::unordered_map<VoxelKey, int, VoxelKeyHash> slot_;
+  VoxelIndex slot_;
   std::vector<Eigen::Vector3d> sum_;
   std::vector<float> reflectance_sum_;
   std::vector<int> count_;

@@ -30,6 +30,45 @@ inline VoxelKey VoxelOf(const Eigen::Vector3d& p, double inv_voxel) {
           static_cast<int32_t>(std::floor(p.z() * inv_voxel))};
 }
 
+// Voxel -> dense index, in the order voxels were first seen: open addressing in one flat table
+// kept at most half full (std::unordered_map's node per voxel was most of the time of the voxel
+// filters over 100k-point scans). Clear() keeps the memory for the next use.
+class VoxelIndex {
+ public:
+  VoxelIndex() { Clear(0); }
+  // k's index; a new voxel gets size() and *inserted is set.
+  int32_t FindOrInsert(const VoxelKey& k, bool* inserted) {
+    size_t h = Slot(k);
+    while (table_[h] >= 0) {
+      if (keys_[table_[h]] == k) {
+        *inserted = false;
+        return table_[h];
+      }
+      h = (h + 1) & (table_.size() - 1);
+    }
+    *inserted = true;
+    const int32_t index = static_cast<int32_t>(keys_.size());
+    table_[h] = index;
+    keys_.push_back(k);
+    if (2 * keys_.size() > table_.size()) Grow();
+    return index;
+  }
+  size_t size() const { return keys_.size(); }
+  // Empties it, sized for about `expected` voxels without growing.
+  void Clear(size_t expected);
+
+ private:
+  size_t Slot(const VoxelKey& k) const {
+    // Fibonacci hashing: the top bits of the product depend on all of the key's bits.
+    return static_cast<size_t>((static_cast<uint64_t>(VoxelKeyHash{}(k)) * 0x9E3779B97F4A7C15ull) >> shift_);
+  }
+  void Grow();
+
+  std::vector<int32_t> table_;  // -1: empty
+  std::vector<VoxelKey> keys_;
+  int shift_ = 60;
+};
+
 // One centroid per occupied voxel (insertion order of the first point of each voxel, so the
 // result is deterministic).
 std::vector<Eigen::Vector3f> VoxelDownsample(const std::vector<Eigen::Vector3f>& points, double voxel_m);
