@@ -56,6 +56,29 @@ TEST(VoxelDownsample, EqualsTheMapDefinition) {
   }
 }
 
+// The index grows from its smallest table: every key keeps the index it was first given, and
+// Clear() starts over.
+TEST(VoxelIndex, KeepsFirstSeenIndicesAcrossGrowth) {
+  VoxelIndex index;
+  std::map<std::tuple<int32_t, int32_t, int32_t>, int32_t> want;
+  std::mt19937 rng(5);
+  std::uniform_int_distribution<int32_t> u(-300, 300);
+  for (int round = 0; round < 2; ++round) {
+    for (int i = 0; i < 200000; ++i) {
+      const VoxelKey k{u(rng), u(rng), u(rng) / 100};
+      bool inserted = false;
+      const int32_t got = index.FindOrInsert(k, &inserted);
+      auto [it, is_new] = want.try_emplace({k.x, k.y, k.z}, static_cast<int32_t>(want.size()));
+      ASSERT_EQ(inserted, is_new) << i;
+      ASSERT_EQ(got, it->second) << i;
+    }
+    ASSERT_EQ(index.size(), want.size());
+    index.Clear(10);
+    want.clear();
+    EXPECT_EQ(index.size(), 0u);
+  }
+}
+
 TEST(KdTree, AgreesWithBruteForce) {
   std::mt19937 rng(7);
   std::uniform_real_distribution<float> u(-10, 10);
