@@ -15,7 +15,7 @@
 namespace streetsim {
 namespace {
 
-int Fail(int code, const absl::Status& status) { return ReportFailure("actors", code, status); }
+int FailActors(int code, const absl::Status& status) { return ReportFailure("actors", code, status); }
 
 void PrintTable(const actors::ActorSet& set) {
   std::fprintf(stderr, "%5s %10s %10s %18s %9s %7s %8s\n", "actor", "from_s", "to_s", "box_m (l x w x h)", "Gaussians",
@@ -53,28 +53,28 @@ std::string SetJson(const actors::ActorSet& set) {
 
 int RunActorsCommand(const std::vector<std::string>& argv) {
   if (argv.empty() || (argv[0] != "extract" && argv[0] != "list")) {
-    return Fail(2, absl::InvalidArgumentError("usage: streetsim actors extract --scene DIR --log PATH | "
+    return FailActors(2, absl::InvalidArgumentError("usage: streetsim actors extract --scene DIR --log PATH | "
                                               "actors list --scene DIR [--json]"));
   }
   const std::string sub = argv[0];
   const std::vector<std::string> rest(argv.begin() + 1, argv.end());
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(rest, {{"scene"}, {"log"}, {"json", false}});
-  if (!args.ok()) return Fail(2, args.status());
+  if (!args.ok()) return FailActors(2, args.status());
   absl::StatusOr<std::string> scene = args->Required("scene");
-  if (!scene.ok()) return Fail(2, scene.status());
+  if (!scene.ok()) return FailActors(2, scene.status());
   if (sub == "list") {
     absl::StatusOr<actors::ActorSet> set = actors::ReadActorSet(*scene);
-    if (!set.ok()) return Fail(2, set.status());
+    if (!set.ok()) return FailActors(2, set.status());
     PrintTable(*set);
     if (args->Has("json")) std::fputs(SetJson(*set).c_str(), stdout);
     return 0;
   }
   absl::StatusOr<std::string> log_path = args->Required("log");
-  if (!log_path.ok()) return Fail(2, log_path.status());
+  if (!log_path.ok()) return FailActors(2, log_path.status());
   absl::StatusOr<DriveLog> log = OpenLog(*log_path);
-  if (!log.ok()) return Fail(absl::IsInternal(log.status()) ? 1 : 2, log.status());
+  if (!log.ok()) return FailActors(absl::IsInternal(log.status()) ? 1 : 2, log.status());
   absl::StatusOr<actors::ActorSet> set = actors::ExtractSceneActors(*log, *scene);
-  if (!set.ok()) return Fail(absl::IsInternal(set.status()) ? 1 : 2, set.status());
+  if (!set.ok()) return FailActors(absl::IsInternal(set.status()) ? 1 : 2, set.status());
   PrintTable(*set);
   std::fprintf(stderr, "streetsim actors: %zu actors -> %s/%s\n", set->actors.size(), scene->c_str(),
                actors::kActorsJson);

@@ -34,7 +34,7 @@
 namespace streetsim {
 namespace {
 
-int Fail(int code, const absl::Status& status) { return ReportFailure("eval", code, status); }
+int FailEval(int code, const absl::Status& status) { return ReportFailure("eval", code, status); }
 
 // --decomposition DIR / --video PATH [--video-fps F] (scene/eval/eval_outputs.h); the options stay
 // empty when neither is given.
@@ -108,78 +108,78 @@ int ParseEvalRequest(const std::vector<std::string>& argv, EvalRequest* req) {
                                  {"log-poses", false}};
   flags.insert(flags.end(), StaticSkipFlags().begin(), StaticSkipFlags().end());
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(argv, flags);
-  if (!args.ok()) return Fail(2, args.status());
+  if (!args.ok()) return FailEval(2, args.status());
   // --served: render a field scene as `streetsim serve` does (the static skip's Gaussians baked),
   // with the server's thresholds or --static-motion-m / --static-sh.
   req->served = args->Has("served");
   if (!req->served && (args->Has("static-motion-m") || args->Has("static-sh") || args->Has("field-serving"))) {
-    return Fail(2, absl::InvalidArgumentError("--static-motion-m / --static-sh / --field-serving need --served"));
+    return FailEval(2, absl::InvalidArgumentError("--static-motion-m / --static-sh / --field-serving need --served"));
   }
   if (req->served && (args->Has("decomposition") || args->Has("video"))) {
     // Their static/dynamic split is the server's default analysis, not the thresholds served here.
-    return Fail(2, absl::InvalidArgumentError("--served does not combine with --decomposition or --video"));
+    return FailEval(2, absl::InvalidArgumentError("--served does not combine with --decomposition or --video"));
   }
   absl::StatusOr<field::StaticSkipOptions> skip = StaticSkipFromFlags(*args);
-  if (!skip.ok()) return Fail(2, skip.status());
+  if (!skip.ok()) return FailEval(2, skip.status());
   req->skip = *skip;
   absl::StatusOr<bool> exact_field = ExactFieldFromFlags(*args);
-  if (!exact_field.ok()) return Fail(2, exact_field.status());
+  if (!exact_field.ok()) return FailEval(2, exact_field.status());
   req->exact_field = *exact_field;
   if (!args->positional().empty()) {
-    return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
+    return FailEval(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
   }
   absl::StatusOr<std::string> scene_dir = args->Required("scene");
-  if (!scene_dir.ok()) return Fail(2, scene_dir.status());
+  if (!scene_dir.ok()) return FailEval(2, scene_dir.status());
   absl::StatusOr<std::string> log_path = args->Required("log");
-  if (!log_path.ok()) return Fail(2, log_path.status());
+  if (!log_path.ok()) return FailEval(2, log_path.status());
   req->log_path = *log_path;
   req->split = args->Get("split").value_or("test");
   if (req->split != "test" && req->split != "train") {
-    return Fail(2, absl::InvalidArgumentError("--split must be test or train"));
+    return FailEval(2, absl::InvalidArgumentError("--split must be test or train"));
   }
   absl::StatusOr<std::optional<train::ClipSet>> clip_set = train::ReadClipSet(*scene_dir);
-  if (!clip_set.ok()) return Fail(2, clip_set.status());
+  if (!clip_set.ok()) return FailEval(2, clip_set.status());
   req->clip_set = std::move(*clip_set);
   req->scene_dirs = {*scene_dir};
   if (req->clip_set) {
     req->scene_dirs.clear();
     for (const train::ClipEntry& c : req->clip_set->clips) {
       absl::StatusOr<std::string> d = train::ClipPath(*scene_dir, c);
-      if (!d.ok()) return Fail(2, d.status());
+      if (!d.ok()) return FailEval(2, d.status());
       req->scene_dirs.push_back(*d);
     }
   }
   absl::StatusOr<train::SceneMeta> meta = train::ReadSceneMeta(req->scene_dirs[0]);
-  if (!meta.ok()) return Fail(2, meta.status());
+  if (!meta.ok()) return FailEval(2, meta.status());
   train::DatasetOptions& dopt = req->dopt;
   dopt.holdout_every = meta->holdout_every;
   dopt.resolution_scale = meta->resolution_scale;
   if (auto v = args->Get("holdout-every"); v && (!absl::SimpleAtoi(*v, &dopt.holdout_every) || dopt.holdout_every < 0 ||
                                                  dopt.holdout_every == 1)) {
-    return Fail(2, absl::InvalidArgumentError("--holdout-every must be 0 (none) or >= 2"));
+    return FailEval(2, absl::InvalidArgumentError("--holdout-every must be 0 (none) or >= 2"));
   }
   if (auto v = args->Get("resolution-scale"); v && (!absl::SimpleAtod(*v, &dopt.resolution_scale) ||
                                                     !(dopt.resolution_scale > 0 && dopt.resolution_scale <= 1))) {
-    return Fail(2, absl::InvalidArgumentError("--resolution-scale must be in (0, 1]"));
+    return FailEval(2, absl::InvalidArgumentError("--resolution-scale must be in (0, 1]"));
   }
   if (auto v = args->Get("backend")) {
     absl::StatusOr<Backend> b = ParseBackend(*v);
-    if (!b.ok()) return Fail(2, b.status());
+    if (!b.ok()) return FailEval(2, b.status());
     req->backend = *b;
   }
   req->lidar = !args->Has("no-lidar");
   req->log_poses = args->Has("log-poses");
   if (auto v = args->Get("lidar-columns");
       v && (!absl::SimpleAtoi(*v, &req->lopt.columns) || req->lopt.columns < 16 || req->lopt.columns > 65536)) {
-    return Fail(2, absl::InvalidArgumentError("--lidar-columns must be in 16..65536"));
+    return FailEval(2, absl::InvalidArgumentError("--lidar-columns must be in 16..65536"));
   }
   req->lopt.rolling_sweep = !args->Has("lidar-static-sweep");
   dopt.split = req->split == "test" ? train::Split::kTest : train::Split::kTrain;
   if (req->split == "test" && dopt.holdout_every == 0) {
-    return Fail(2, absl::InvalidArgumentError("--split test needs --holdout-every > 0"));
+    return FailEval(2, absl::InvalidArgumentError("--split test needs --holdout-every > 0"));
   }
   absl::StatusOr<train::EvalOutputOptions> output_options = ParseOutputOptions(*args);
-  if (!output_options.ok()) return Fail(2, output_options.status());
+  if (!output_options.ok()) return FailEval(2, output_options.status());
   req->outputs = *output_options;
   return 0;
 }
@@ -210,7 +210,7 @@ int ServedSceneOf(const EvalRequest& req, const std::string& dir,
       req.exact_field ? train::MakeServedScene(f, store, req.skip)
                       : absl::StatusOr<std::shared_ptr<field::ServedScene>>(
                             train::LoadServedScene(dir, make_exact, field::ServingFormOptions{}, req.skip));
-  if (!ss.ok()) return Fail(1, ss.status());
+  if (!ss.ok()) return FailEval(1, ss.status());
   if (const auto* form = dynamic_cast<const field::ServingForm*>(ss->get())) {
     totals->served_form_position_max_m = std::max(totals->served_form_position_max_m, form->error().max[0]);
     ++totals->served_by_form;
@@ -228,10 +228,10 @@ int EvaluateScene(const EvalRequest& req, const DriveLog& log, Engine& engine, s
                   train::EvalOutputs* outputs, train::ClipSeamMeter* seam_meter, EvalTotals* totals) {
   const std::string& dir = req.scene_dirs[k];
   absl::StatusOr<train::SceneMeta> scene_meta = train::ReadSceneMeta(dir);  // its own learned sky
-  if (!scene_meta.ok()) return Fail(2, scene_meta.status());
+  if (!scene_meta.ok()) return FailEval(2, scene_meta.status());
   const std::string ply = (std::filesystem::path(dir) / "scene.ply").string();
   absl::StatusOr<GaussianStore> store = ReadGaussianPly(ply);
-  if (!store.ok()) return Fail(2, store.status());
+  if (!store.ok()) return FailEval(2, store.status());
   // A run that refined its poses is measured at them (held-out views: interpolated).
   if (!req.log_poses) {
     absl::StatusOr<std::vector<train::PoseCorrection>> corrections = train::ReadPoseCorrections(dir);
@@ -239,14 +239,14 @@ int EvaluateScene(const EvalRequest& req, const DriveLog& log, Engine& engine, s
       train::ApplyPoseCorrections(*corrections, &views);
       ++totals->scenes_with_pose_corrections;
     } else if (!absl::IsNotFound(corrections.status())) {
-      return Fail(2, corrections.status());
+      return FailEval(2, corrections.status());
     }
   }
   // A field scene (DIR/field.bin) is deformed at each view's time.
   absl::StatusOr<std::shared_ptr<const field::DeformationField>> f = train::LoadSceneField(dir);
-  if (!f.ok()) return Fail(2, f.status());
+  if (!f.ok()) return FailEval(2, f.status());
   if (outputs) {
-    if (absl::Status s = outputs->UseScene(*store, *f, scene_meta->background); !s.ok()) return Fail(1, s);
+    if (absl::Status s = outputs->UseScene(*store, *f, scene_meta->background); !s.ok()) return FailEval(1, s);
   }
   std::shared_ptr<field::ServedScene> served_scene;
   if (req.served) {
@@ -254,23 +254,23 @@ int EvaluateScene(const EvalRequest& req, const DriveLog& log, Engine& engine, s
   }
   absl::StatusOr<train::SceneForView> sv = served_scene ? train::MakeServedSceneForView(engine, served_scene)
                                                         : train::MakeSceneForView(engine, *store, *f);
-  if (!sv.ok()) return Fail(1, sv.status());
+  if (!sv.ok()) return FailEval(1, sv.status());
   if (seam_meter) {
     if (absl::Status s = seam_meter->AddClip(engine, static_cast<int>(k), *sv, scene_meta->background); !s.ok()) {
-      return Fail(1, s);
+      return FailEval(1, s);
     }
   }
   if (views.empty()) return 0;  // a clip with no views of this split still renders its seams
   absl::StatusOr<train::EvalResult> r =
       train::EvaluateViews(engine, *sv, views, scene_meta->background,
                            outputs && !served_scene ? outputs->sink() : train::EvalFrameSink());
-  if (!r.ok()) return Fail(1, r.status());
+  if (!r.ok()) return FailEval(1, r.status());
   totals->parts.push_back(std::move(*r));
   ++totals->scenes_evaluated;
   if (!req.lidar) return 0;
   // LiDAR: every evaluated frame with a scan, once per frame (a frame may have several views).
   absl::StatusOr<std::optional<std::vector<float>>> refl = train::ReadPlyReflectance(ply, store->size());
-  if (!refl.ok()) return Fail(2, refl.status());
+  if (!refl.ok()) return FailEval(2, refl.status());
   totals->scenes_with_reflectance += refl->has_value();
   std::set<int> frames;
   for (const train::View& v : views) frames.insert(v.frame);
@@ -278,7 +278,7 @@ int EvaluateScene(const EvalRequest& req, const DriveLog& log, Engine& engine, s
   absl::StatusOr<train::LidarEvalResult> lr = train::EvaluateLidar(
       log, std::vector<int>(frames.begin(), frames.end()), *store, refl->has_value() ? &**refl : nullptr, req.lopt,
       served_scene ? train::MakeServedStoreAtTime(served_scene) : train::MakeStoreAtTime(*f, *store));
-  if (!lr.ok()) return Fail(1, lr.status());
+  if (!lr.ok()) return FailEval(1, lr.status());
   totals->lidar_parts.push_back(std::move(*lr));
   return 0;
 }
@@ -380,20 +380,20 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
   EvalRequest req;
   if (int rc = ParseEvalRequest(argv, &req)) return rc;
   absl::StatusOr<DriveLog> log = OpenLog(req.log_path);
-  if (!log.ok()) return Fail(absl::IsInternal(log.status()) ? 1 : 2, log.status());
+  if (!log.ok()) return FailEval(absl::IsInternal(log.status()) ? 1 : 2, log.status());
   absl::StatusOr<std::vector<train::View>> all_views = train::LoadViews(*log, req.dopt);
-  if (!all_views.ok()) return Fail(2, all_views.status());
+  if (!all_views.ok()) return FailEval(2, all_views.status());
   if (all_views->empty()) {
-    return Fail(2, absl::InvalidArgumentError(absl::StrCat("the log has no ", req.split, " views")));
+    return FailEval(2, absl::InvalidArgumentError(absl::StrCat("the log has no ", req.split, " views")));
   }
   absl::StatusOr<std::unique_ptr<Engine>> engine = CreateEngine(req.backend);
-  if (!engine.ok()) return Fail(1, engine.status());
-  if (absl::Status s = train::AttachDynamicPixels(*log, &*all_views); !s.ok()) return Fail(1, s);
+  if (!engine.ok()) return FailEval(1, engine.status());
+  if (absl::Status s = train::AttachDynamicPixels(*log, &*all_views); !s.ok()) return FailEval(1, s);
   // Decomposition images / video: fed by the evaluation's renders (UseScene once per scene).
   std::unique_ptr<train::EvalOutputs> outputs;
   if (!req.outputs.decomposition_dir.empty() || !req.outputs.video_path.empty()) {
     absl::StatusOr<std::unique_ptr<train::EvalOutputs>> o = train::EvalOutputs::Create(**engine, req.outputs);
-    if (!o.ok()) return Fail(2, o.status());
+    if (!o.ok()) return FailEval(2, o.status());
     outputs = std::move(*o);
   }
   // The views of each scene directory: all of them, or for a clip set those of each clip's times.
@@ -409,7 +409,7 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
   if (req.clip_set) {
     absl::StatusOr<train::ClipSeamMeter> m =
         train::ClipSeamMeter::Create(*req.clip_set, *log, req.dopt.resolution_scale);
-    if (!m.ok()) return Fail(1, m.status());
+    if (!m.ok()) return FailEval(1, m.status());
     seam_meter = std::move(*m);
   }
   EvalTotals totals;
@@ -426,14 +426,14 @@ int RunEvalCommand(const std::vector<std::string>& argv) {
   report.images = totals.parts.size() == 1 ? std::move(totals.parts[0]) : train::MergeEvalResults(totals.parts);
   if (outputs) {
     absl::StatusOr<train::EvalOutputSummary> os = outputs->Finish();
-    if (!os.ok()) return Fail(1, os.status());
+    if (!os.ok()) return FailEval(1, os.status());
     report.outputs = std::move(*os);
   }
   report.lidar = totals.lidar_parts.size() == 1 ? std::move(totals.lidar_parts[0])
                                                 : train::MergeLidarEvalResults(totals.lidar_parts);
   if (seam_meter) {
     absl::StatusOr<std::vector<train::ClipSeam>> s = seam_meter->Finish();
-    if (!s.ok()) return Fail(1, s.status());
+    if (!s.ok()) return FailEval(1, s.status());
     report.seams = std::move(*s);
   }
   PrintReport(req, *log, totals, report);

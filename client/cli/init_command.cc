@@ -14,7 +14,7 @@
 namespace streetsim {
 namespace {
 
-int Fail(int code, const absl::Status& status) { return ReportFailure("init", code, status); }
+int FailInit(int code, const absl::Status& status) { return ReportFailure("init", code, status); }
 
 absl::Status PositiveDouble(const ParsedArgs& args, const std::string& flag, double* value) {
   if (auto v = args.Get(flag); v && (!absl::SimpleAtod(*v, value) || !(*value > 0) || !(*value < 1e6))) {
@@ -29,39 +29,39 @@ int RunInitCommand(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(
       argv, {{"out"}, {"frames"}, {"voxel"}, {"max-range"}, {"sky", false}, {"drop-dynamic", false},
              {"random-points"}});
-  if (!args.ok()) return Fail(2, args.status());
-  if (args->positional().size() != 1) return Fail(2, absl::InvalidArgumentError("expects exactly one log PATH"));
+  if (!args.ok()) return FailInit(2, args.status());
+  if (args->positional().size() != 1) return FailInit(2, absl::InvalidArgumentError("expects exactly one log PATH"));
   absl::StatusOr<std::string> out = args->Required("out");
-  if (!out.ok()) return Fail(2, out.status());
+  if (!out.ok()) return FailInit(2, out.status());
   if (std::filesystem::path(*out).extension() != ".ply") {
-    return Fail(2, absl::InvalidArgumentError(absl::StrCat("--out ", *out, ": must be a .ply")));
+    return FailInit(2, absl::InvalidArgumentError(absl::StrCat("--out ", *out, ": must be a .ply")));
   }
   InitOptions options;
   if (auto f = args->Get("frames")) {
     absl::StatusOr<FrameRange> r = ParseFrameRange(*f);
-    if (!r.ok()) return Fail(2, r.status());
+    if (!r.ok()) return FailInit(2, r.status());
     options.frames = *r;
   }
-  if (absl::Status s = PositiveDouble(*args, "voxel", &options.voxel_m); !s.ok()) return Fail(2, s);
-  if (absl::Status s = PositiveDouble(*args, "max-range", &options.max_range_m); !s.ok()) return Fail(2, s);
+  if (absl::Status s = PositiveDouble(*args, "voxel", &options.voxel_m); !s.ok()) return FailInit(2, s);
+  if (absl::Status s = PositiveDouble(*args, "max-range", &options.max_range_m); !s.ok()) return FailInit(2, s);
   if (auto n = args->Get("random-points"); n && (!absl::SimpleAtoi(*n, &options.random_points) ||
                                                  options.random_points < 1 || options.random_points > 50'000'000)) {
-    return Fail(2, absl::InvalidArgumentError("--random-points must be in 1..50000000"));
+    return FailInit(2, absl::InvalidArgumentError("--random-points must be in 1..50000000"));
   }
   options.sky = args->Has("sky");
   options.drop_dynamic = args->Has("drop-dynamic");
 
   absl::StatusOr<DriveLog> log = OpenLog(args->positional()[0]);
-  if (!log.ok()) return Fail(absl::IsInternal(log.status()) ? 1 : 2, log.status());
+  if (!log.ok()) return FailInit(absl::IsInternal(log.status()) ? 1 : 2, log.status());
   InitStats stats;
   absl::StatusOr<GaussianStore> store = BuildInitialScene(*log, options, &stats);
   if (!store.ok()) {
-    return Fail(absl::IsInvalidArgument(store.status()) || absl::IsFailedPrecondition(store.status()) ||
+    return FailInit(absl::IsInvalidArgument(store.status()) || absl::IsFailedPrecondition(store.status()) ||
                         absl::IsNotFound(store.status()) || absl::IsDataLoss(store.status())
                     ? 2 : 1,
                 store.status());
   }
-  if (absl::Status s = WriteGaussianPly(*store, *out); !s.ok()) return Fail(1, s);
+  if (absl::Status s = WriteGaussianPly(*store, *out); !s.ok()) return FailInit(1, s);
   // A scene directory (DIR/scene.ply) also gets DIR/scene.json with the log's camera rig, time
   // range and ego trajectory, which `streetsim serve` reads (docs/server.md).
   const std::filesystem::path out_path(*out);
@@ -70,7 +70,7 @@ int RunInitCommand(const std::vector<std::string>& argv) {
     const std::string manifest = (dir / "scene.json").string();
     if (absl::Status s = WriteSceneManifest(*log, std::filesystem::absolute(dir).filename().string(), manifest);
         !s.ok()) {
-      return Fail(1, s);
+      return FailInit(1, s);
     }
   }
   std::fprintf(stderr,

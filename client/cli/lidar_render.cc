@@ -32,7 +32,7 @@
 namespace streetsim {
 namespace {
 
-int Fail(int code, const absl::Status& status) { return ReportFailure("render --lidar", code, status); }
+int FailLidarRender(int code, const absl::Status& status) { return ReportFailure("render --lidar", code, status); }
 
 struct LidarPose {
   Eigen::Isometry3d T_world_from_lidar = Eigen::Isometry3d::Identity();
@@ -152,32 +152,32 @@ int RunLidarRenderCommand(const std::vector<std::string>& argv) {
       argv, {{"lidar", false}, {"ply"}, {"pose"}, {"columns"}, {"out-range"}, {"out-lidar-png"},
              {"out-points"}, {"points-frame"}, {"alpha-threshold"}, {"drop-seed"}, {"min-range"},
              {"max-range"}, {"backend"}});
-  if (!args.ok()) return Fail(2, args.status());
+  if (!args.ok()) return FailLidarRender(2, args.status());
   if (!args->positional().empty()) {
-    return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
+    return FailLidarRender(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
   }
   absl::StatusOr<std::string> ply = args->Required("ply");
-  if (!ply.ok()) return Fail(2, ply.status());
+  if (!ply.ok()) return FailLidarRender(2, ply.status());
   absl::StatusOr<std::string> pose_path = args->Required("pose");
-  if (!pose_path.ok()) return Fail(2, pose_path.status());
+  if (!pose_path.ok()) return FailLidarRender(2, pose_path.status());
   const std::string out_range = args->Get("out-range").value_or("");
   const std::string out_png = args->Get("out-lidar-png").value_or("");
   const std::string out_points = args->Get("out-points").value_or("");
   if (out_range.empty() && out_png.empty() && out_points.empty()) {
-    return Fail(2, absl::InvalidArgumentError("give at least one of --out-range, --out-lidar-png, --out-points"));
+    return FailLidarRender(2, absl::InvalidArgumentError("give at least one of --out-range, --out-lidar-png, --out-points"));
   }
   if (!out_range.empty()) {
-    if (absl::Status s = CheckExtension(out_range, {".tif", ".tiff"}, "--out-range"); !s.ok()) return Fail(2, s);
+    if (absl::Status s = CheckExtension(out_range, {".tif", ".tiff"}, "--out-range"); !s.ok()) return FailLidarRender(2, s);
   }
   if (!out_png.empty()) {
-    if (absl::Status s = CheckExtension(out_png, {".png"}, "--out-lidar-png"); !s.ok()) return Fail(2, s);
+    if (absl::Status s = CheckExtension(out_png, {".png"}, "--out-lidar-png"); !s.ok()) return FailLidarRender(2, s);
   }
   if (!out_points.empty()) {
-    if (absl::Status s = CheckExtension(out_points, {".ply"}, "--out-points"); !s.ok()) return Fail(2, s);
+    if (absl::Status s = CheckExtension(out_points, {".ply"}, "--out-points"); !s.ok()) return FailLidarRender(2, s);
   }
   const std::string backend = args->Get("backend").value_or("cpu");
   if (backend != "cpu" && backend != "auto" && backend != "vulkan") {
-    return Fail(2, absl::InvalidArgumentError(absl::StrCat("unknown backend '", backend, "'")));
+    return FailLidarRender(2, absl::InvalidArgumentError(absl::StrCat("unknown backend '", backend, "'")));
   }
   // As the camera's --backend: auto takes vulkan only on a real GPU (lavapipe is slower than the
   // cpu renderer on the same cores); vulkan is lavapipe unless STREETSIM_VK_DEVICE names another.
@@ -186,65 +186,65 @@ int RunLidarRenderCommand(const std::vector<std::string>& argv) {
   if (auto c = args->Get("columns")) {
     int v;
     if (!absl::SimpleAtoi(*c, &v) || v < 1 || v > 65536) {
-      return Fail(2, absl::InvalidArgumentError(absl::StrCat("--columns '", *c, "' is not in 1..65536")));
+      return FailLidarRender(2, absl::InvalidArgumentError(absl::StrCat("--columns '", *c, "' is not in 1..65536")));
     }
     model.columns = v;
   }
   for (const char* flag : {"min-range", "max-range"}) {
     if (auto t = args->Get(flag)) {
       absl::StatusOr<double> v = PositiveNumber(*t, flag);
-      if (!v.ok()) return Fail(2, v.status());
+      if (!v.ok()) return FailLidarRender(2, v.status());
       (std::strcmp(flag, "min-range") == 0 ? model.min_range_m : model.max_range_m) = *v;
     }
   }
   LidarRenderOptions options;
   if (auto t = args->Get("alpha-threshold")) {
     absl::StatusOr<double> v = PositiveNumber(*t, "--alpha-threshold");
-    if (!v.ok() || *v > 1) return Fail(2, absl::InvalidArgumentError("--alpha-threshold must be in [0, 1]"));
+    if (!v.ok() || *v > 1) return FailLidarRender(2, absl::InvalidArgumentError("--alpha-threshold must be in [0, 1]"));
     options.return_alpha_threshold = static_cast<float>(*v);
   }
   if (auto t = args->Get("drop-seed")) {
     if (args->Has("alpha-threshold")) {
-      return Fail(2, absl::InvalidArgumentError("--drop-seed (sampled drop) and --alpha-threshold exclude each other"));
+      return FailLidarRender(2, absl::InvalidArgumentError("--drop-seed (sampled drop) and --alpha-threshold exclude each other"));
     }
     uint64_t seed;
-    if (!absl::SimpleAtoi(*t, &seed)) return Fail(2, absl::InvalidArgumentError("--drop-seed must be an integer"));
+    if (!absl::SimpleAtoi(*t, &seed)) return FailLidarRender(2, absl::InvalidArgumentError("--drop-seed must be an integer"));
     options.sample_drop = true;
     options.seed = seed;
   }
   const std::string frame = args->Get("points-frame").value_or("sensor");
   if (frame != "sensor" && frame != "ego") {
-    return Fail(2, absl::InvalidArgumentError("--points-frame is sensor or ego"));
+    return FailLidarRender(2, absl::InvalidArgumentError("--points-frame is sensor or ego"));
   }
   options.point_frame = frame == "ego" ? LidarRenderOptions::PointFrame::kEgo : LidarRenderOptions::PointFrame::kSensor;
   options.want_points = !out_points.empty();
 
   absl::StatusOr<LidarPose> pose = ReadPoseJson(*pose_path);
-  if (!pose.ok()) return Fail(2, pose.status());
+  if (!pose.ok()) return FailLidarRender(2, pose.status());
   model.T_ego_from_lidar = pose->T_ego_from_lidar;
   options.sweep_start_us = pose->time_us;
-  if (absl::Status s = model.Validate(); !s.ok()) return Fail(2, s);
+  if (absl::Status s = model.Validate(); !s.ok()) return FailLidarRender(2, s);
   absl::StatusOr<GaussianStore> store = ReadGaussianPly(*ply);
-  if (!store.ok()) return Fail(2, store.status());
+  if (!store.ok()) return FailLidarRender(2, store.status());
 
   LidarRenderOutput out;
   std::string device = "cpu";
   if (use_vulkan) {
     absl::StatusOr<std::unique_ptr<VulkanLidarRenderer>> vk = VulkanLidarRenderer::Create(
         backend == "vulkan" ? VulkanDevicePreference::kLavapipe : VulkanDevicePreference::kGpu);
-    if (!vk.ok()) return Fail(1, vk.status());
+    if (!vk.ok()) return FailLidarRender(1, vk.status());
     device = (*vk)->device_name();
     if (absl::Status s = (*vk)->Render(*store, model, pose->T_world_from_lidar, options, &out); !s.ok()) {
-      return Fail(1, s);
+      return FailLidarRender(1, s);
     }
   } else {
     LidarRenderer renderer;
     if (absl::Status s = renderer.Render(*store, model, pose->T_world_from_lidar, options, &out); !s.ok()) {
-      return Fail(1, s);
+      return FailLidarRender(1, s);
     }
   }
   if (!out_range.empty()) {
-    if (absl::Status s = WriteFloatTiff(out_range, out.columns, out.beams, out.range); !s.ok()) return Fail(1, s);
+    if (absl::Status s = WriteFloatTiff(out_range, out.columns, out.beams, out.range); !s.ok()) return FailLidarRender(1, s);
   }
   if (!out_png.empty()) {
     // Turbo over [0, min(max range, 80 m)] (blue near, red far); black where no return.
@@ -255,10 +255,10 @@ int RunLidarRenderCommand(const std::vector<std::string>& argv) {
       const Eigen::Vector3f c = Turbo(out.range[p] / scale);
       for (int k = 0; k < 3; ++k) rgb[p * 3 + k] = c[k];
     }
-    if (absl::Status s = WriteRgb8(out_png, out.columns, out.beams, rgb); !s.ok()) return Fail(1, s);
+    if (absl::Status s = WriteRgb8(out_png, out.columns, out.beams, rgb); !s.ok()) return FailLidarRender(1, s);
   }
   if (!out_points.empty()) {
-    if (absl::Status s = WritePointsPly(out_points, out.points, frame.c_str()); !s.ok()) return Fail(1, s);
+    if (absl::Status s = WritePointsPly(out_points, out.points, frame.c_str()); !s.ok()) return FailLidarRender(1, s);
   }
   size_t returns = 0;
   for (float r : out.range) returns += r > 0;

@@ -16,7 +16,7 @@
 namespace streetsim {
 namespace {
 
-int Fail(int code, const absl::Status& status) { return ReportFailure("serve", code, status); }
+int FailServe(int code, const absl::Status& status) { return ReportFailure("serve", code, status); }
 
 // `streetsim serve` is streetsim, so a job's init and train stages run this very program, whatever
 // its file is called (an install may version it; a `streetsim` beside it may be another build).
@@ -51,27 +51,27 @@ int RunServeCommand(const std::vector<std::string>& argv) {
                                  {"max-request-pixels"}, {"max-queued-renders-per-client"}, {"replica"}};
   flags.insert(flags.end(), StaticSkipFlags().begin(), StaticSkipFlags().end());
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(argv, flags);
-  if (!args.ok()) return Fail(2, args.status());
+  if (!args.ok()) return FailServe(2, args.status());
   if (!args->positional().empty()) {
-    return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
+    return FailServe(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
   }
   server::ServerOptions o;
   o.listen = args->Get("listen").value_or(o.listen);
-  if (o.listen.rfind(':') == std::string::npos) return Fail(2, absl::InvalidArgumentError("--listen takes HOST:PORT"));
+  if (o.listen.rfind(':') == std::string::npos) return FailServe(2, absl::InvalidArgumentError("--listen takes HOST:PORT"));
   o.data_root = args->Get("data-root").value_or(o.data_root);
   o.state_dir = args->Get("state-dir").value_or(o.state_dir);
   absl::StatusOr<Backend> backend = ParseBackend(args->Get("backend").value_or("auto"));
-  if (!backend.ok()) return Fail(2, backend.status());
+  if (!backend.ok()) return FailServe(2, backend.status());
   o.backend = *backend;
   absl::StatusOr<train::FieldDevice> field_device =
       train::ParseFieldDevice(args->Get("field-device").value_or("auto"));
-  if (!field_device.ok()) return Fail(2, field_device.status());
+  if (!field_device.ok()) return FailServe(2, field_device.status());
   o.field_device = *field_device;
   absl::StatusOr<field::StaticSkipOptions> skip = StaticSkipFromFlags(*args);
-  if (!skip.ok()) return Fail(2, skip.status());
+  if (!skip.ok()) return FailServe(2, skip.status());
   o.static_skip = *skip;
   absl::StatusOr<bool> exact_field = ExactFieldFromFlags(*args);
-  if (!exact_field.ok()) return Fail(2, exact_field.status());
+  if (!exact_field.ok()) return FailServe(2, exact_field.status());
   o.exact_field = *exact_field;
   o.tls_cert_file = args->Get("tls-cert").value_or("");
   o.tls_key_file = args->Get("tls-key").value_or("");
@@ -89,7 +89,7 @@ int RunServeCommand(const std::vector<std::string>& argv) {
                                 ParseInt(*args, "max-image-side", 1, &side),
                                 ParseInt<int64_t>(*args, "session-lease-s", 1, &lease_s),
                                 ParseInt<int64_t>(*args, "max-message-mb", 1, &message_mb)}) {
-    if (!s.ok()) return Fail(2, s);
+    if (!s.ok()) return FailServe(2, s);
   }
   if (side > 0) o.limits.max_image_width = o.limits.max_image_height = std::min(side, kMaxImageSide);
   if (lease_s > 0) o.limits.session_lease_ms = lease_s * 1000;

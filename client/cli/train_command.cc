@@ -27,7 +27,7 @@
 namespace streetsim {
 namespace {
 
-int Fail(int code, const absl::Status& status) { return ReportFailure("train", code, status); }
+int FailTrain(int code, const absl::Status& status) { return ReportFailure("train", code, status); }
 
 std::string Duration(double s) {
   char buf[32];
@@ -147,35 +147,35 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
   std::vector<FlagSpec> specs = {{"log"}, {"out"}, {"resume", false}, {"help", false}, {"help-all", false}};
   for (const FlagSpec& f : TrainSettingFlagSpecs()) specs.push_back(f);
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(argv, specs);
-  if (!args.ok()) return Fail(2, args.status());
+  if (!args.ok()) return FailTrain(2, args.status());
   if (args->Has("help") || args->Has("help-all")) {
     std::fputs(TrainHelp(args->Has("help-all")).c_str(), stdout);
     return 0;
   }
   if (!args->positional().empty()) {
-    return Fail(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
+    return FailTrain(2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
   }
   absl::StatusOr<std::string> log_path = args->Required("log");
-  if (!log_path.ok()) return Fail(2, log_path.status());
+  if (!log_path.ok()) return FailTrain(2, log_path.status());
   absl::StatusOr<std::string> out = args->Required("out");
-  if (!out.ok()) return Fail(2, out.status());
+  if (!out.ok()) return FailTrain(2, out.status());
   absl::StatusOr<train::config::CommandLineConfig> given = TrainCommandLineConfig(*args);
-  if (!given.ok()) return Fail(2, given.status());
+  if (!given.ok()) return FailTrain(2, given.status());
   // Everything the command line says is checked before the directory is locked or the log read.
   absl::StatusOr<train::config::ResolvedRun> run = train::config::ResolveRun(*out, args->Has("resume"), *given);
-  if (!run.ok()) return Fail(2, run.status());
+  if (!run.ok()) return FailTrain(2, run.status());
   std::vector<train::config::Segment> segments = train::config::Segments(run->config);
 
   // One writer per directory, held to the end. A server's trainer waits for its predecessor: after
   // a server restart the previous trainer of the same job may still be writing its last checkpoint.
   absl::StatusOr<train::RunDirLock> lock = train::RunDirLock::Acquire(*out, StartedByServer() ? 180 : 0);
-  if (!lock.ok()) return Fail(2, lock.status());
+  if (!lock.ok()) return FailTrain(2, lock.status());
   absl::StatusOr<DriveLog> log = OpenLog(*log_path);
-  if (!log.ok()) return Fail(absl::IsInternal(log.status()) ? 1 : 2, log.status());
+  if (!log.ok()) return FailTrain(absl::IsInternal(log.status()) ? 1 : 2, log.status());
   absl::StatusOr<bool> static_for_log = train::config::FitFieldToLog(*log, &*run);
-  if (!static_for_log.ok()) return Fail(2, static_for_log.status());
+  if (!static_for_log.ok()) return FailTrain(2, static_for_log.status());
   absl::StatusOr<bool> log_poses = train::config::FitPosesToLog(*log, &*run);
-  if (!log_poses.ok()) return Fail(2, log_poses.status());
+  if (!log_poses.ok()) return FailTrain(2, log_poses.status());
   segments = train::config::Segments(run->config);
   std::fprintf(stderr, "streetsim train: %s%s -> %s/config.json\n", run->resumes ? "resuming " : "",
                Describe(*run, segments).c_str(), out->c_str());
@@ -222,15 +222,15 @@ int RunTrainCommand(const std::vector<std::string>& argv) {
       !clips.ok() ? absl::StatusOr<train::TrainResult>(clips.status())
                   : clips->runs.empty() ? train::TrainResult{} : clips->runs.back().result;
   if (!r.ok() && absl::IsCancelled(r.status()) && g_stop_signal != 0) {
-    return Fail(128 + g_stop_signal, r.status());  // 130 for SIGINT, 143 for SIGTERM, as a killed run
+    return FailTrain(128 + g_stop_signal, r.status());  // 130 for SIGINT, 143 for SIGTERM, as a killed run
   }
-  if (!r.ok()) return Fail(ExitCodeFor(r.status()), r.status());
+  if (!r.ok()) return FailTrain(ExitCodeFor(r.status()), r.status());
   // The log's rig, time range and trajectory beside the scene, for `streetsim serve`.
   const std::filesystem::path out_dir(*out);
   if (absl::Status s = WriteSceneManifest(*log, std::filesystem::absolute(out_dir).filename().string(),
                                           (out_dir / "scene.json").string());
       !s.ok()) {
-    return Fail(1, s);
+    return FailTrain(1, s);
   }
   if (clips->set) {
     for (const train::ClipRun& c : clips->runs) {

@@ -12,7 +12,7 @@ using BwdFn = void (*)(const BlendBackwardArgs<float>&, int64_t, int64_t, float*
 
 BwdFn ChooseBwd() { return PickSimd<BwdFn>(&bwd_avx2::BlendBackwardTiles, &bwd_avx512::BlendBackwardTiles); }
 
-constexpr int64_t kTileGrain = 4;
+constexpr int64_t kBackwardTileGrain = 4;
 
 // Sums the per-thread arrays into out (parallel over Gaussians; fixed thread order per element)
 // and zeros them on the way: the lines are in cache then, which costs less than a separate
@@ -64,7 +64,7 @@ void BlendBackwardSimd(ThreadPool& pool, const BlendBackwardArgs<float>& args, b
     pool.ParallelFor(static_cast<int64_t>(m), 1 << 16, [&](int64_t b, int64_t e, int) {
       std::memset(scratch->per_instance.data() + b, 0, sizeof(float) * (e - b));
     });
-    pool.ParallelFor(tiles, kTileGrain, [&](int64_t b, int64_t e, int) {
+    pool.ParallelFor(tiles, kBackwardTileGrain, [&](int64_t b, int64_t e, int) {
       fn(args, b, e, nullptr, scratch->per_instance.data());
     });
     std::fill(out->begin(), out->end(), 0.0f);
@@ -76,7 +76,7 @@ void BlendBackwardSimd(ThreadPool& pool, const BlendBackwardArgs<float>& args, b
     return;
   }
   PreparePerThread(pool, n, scratch);
-  pool.ParallelFor(tiles, kTileGrain, [&](int64_t b, int64_t e, int thread) {
+  pool.ParallelFor(tiles, kBackwardTileGrain, [&](int64_t b, int64_t e, int thread) {
     fn(args, b, e, scratch->per_thread[thread].data(), nullptr);
   });
   MergePerThread(pool, scratch, out);
@@ -91,7 +91,7 @@ void BlendBackwardScalar(ThreadPool& pool, const BlendBackwardArgs<Real>& args,
   PreparePerThread(pool, n, scratch);
   const int64_t tiles = static_cast<int64_t>(f.tiles_x) * f.tiles_y;
   const Real min_alpha = Real(1) / Real(255);
-  pool.ParallelFor(tiles, kTileGrain, [&](int64_t t0, int64_t t1, int thread) {
+  pool.ParallelFor(tiles, kBackwardTileGrain, [&](int64_t t0, int64_t t1, int thread) {
     Real* acc = scratch->per_thread[thread].data();
     for (int64_t tile = t0; tile < t1; ++tile) {
       const int tx = static_cast<int>(tile % f.tiles_x), ty = static_cast<int>(tile / f.tiles_x);

@@ -19,8 +19,8 @@ using checked_file::Checksum;
 using checked_file::Reader;
 using checked_file::Writer;
 
-constexpr char kMagic[8] = {'S', 'T', 'S', 'F', 'O', 'R', 'M', '\n'};
-constexpr uint32_t kVersion = 4;  // 4: compact tables (serving_form_tables.h)
+constexpr char kServingFormMagic[8] = {'S', 'T', 'S', 'F', 'O', 'R', 'M', '\n'};
+constexpr uint32_t kServingFormVersion = 4;  // 4: compact tables (serving_form_tables.h)
 constexpr uint64_t kPrime = 1099511628211ull;
 
 uint64_t Mix(uint64_t h, uint64_t v) { return (h ^ v) * kPrime; }
@@ -42,8 +42,8 @@ class ServingFormCodec {
 
 std::string ServingFormCodec::Encode(const ServingForm& f, uint64_t key) {
   Writer w;
-  w.Raw(kMagic, 8);
-  w.Pod(kVersion);
+  w.Raw(kServingFormMagic, 8);
+  w.Pod(kServingFormVersion);
   w.Pod(key);
   w.Pod(f.time_range_.start_us);
   w.Pod(f.time_range_.end_us);
@@ -82,7 +82,7 @@ std::string ServingFormCodec::Encode(const ServingForm& f, uint64_t key) {
 absl::StatusOr<std::unique_ptr<ServingForm>> ServingFormCodec::Decode(const std::string& bytes, uint64_t key,
                                                                       const std::string& path) {
   auto corrupt = [&](const std::string& why) { return absl::DataLossError(absl::StrCat(path, ": ", why)); };
-  if (bytes.size() < 8 + 4 + 8 + 8 || std::memcmp(bytes.data(), kMagic, 8) != 0) {
+  if (bytes.size() < 8 + 4 + 8 + 8 || std::memcmp(bytes.data(), kServingFormMagic, 8) != 0) {
     return corrupt("not a streetsim serving form");
   }
   const size_t body = bytes.size() - 8;
@@ -94,7 +94,7 @@ absl::StatusOr<std::unique_ptr<ServingForm>> ServingFormCodec::Decode(const std:
   uint64_t file_key = 0;
   r.Raw(magic, 8);
   if (!r.Pod(&version)) return corrupt("truncated header");
-  if (version != kVersion) return corrupt(absl::StrCat("serving form version ", version, ", this streetsim reads ", kVersion));
+  if (version != kServingFormVersion) return corrupt(absl::StrCat("serving form version ", version, ", this streetsim reads ", kServingFormVersion));
   if (stored != Checksum(bytes.data(), body)) return corrupt("checksum mismatch (truncated or damaged)");
   if (!r.Pod(&file_key)) return corrupt("truncated header");
   if (file_key != key) {
@@ -176,7 +176,7 @@ absl::StatusOr<std::unique_ptr<ServingForm>> DecodeServingForm(const std::string
 
 absl::StatusOr<uint64_t> ServingFormSourceKey(const std::vector<std::string>& files, const ServingFormOptions& form,
                                               const StaticSkipOptions& skip) {
-  uint64_t h = Mix(1469598103934665603ull, kVersion);
+  uint64_t h = Mix(1469598103934665603ull, kServingFormVersion);
   for (int v : {form.degree, form.segments_per_cell, form.max_segments_per_cell, form.samples_per_segment,
                 form.appearance_rank}) {
     h = Mix(h, static_cast<uint64_t>(v));

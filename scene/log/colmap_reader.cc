@@ -17,7 +17,6 @@ namespace streetsim {
 namespace {
 
 namespace fs = std::filesystem;
-constexpr int64_t kAssumedFrameUs = 100'000;
 
 struct ModelInfo {
   int id;

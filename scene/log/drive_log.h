@@ -26,6 +26,9 @@
 
 namespace streetsim {
 
+// The frame period a log without timestamps is given (10 Hz, KITTI's and most logs' rate).
+inline constexpr int64_t kAssumedFrameUs = 100'000;
+
 enum class DistortionModel {
   kNone,          // pinhole (rectified images)
   kSimpleRadial,  // COLMAP SIMPLE_RADIAL: k1

@@ -14,7 +14,6 @@ namespace streetsim {
 namespace {
 
 namespace fs = std::filesystem;
-constexpr int64_t kAssumedFrameUs = 100'000;
 
 struct Projection {
   std::vector<double> p;  // 12, row-major

@@ -18,7 +18,6 @@ namespace streetsim {
 namespace {
 
 namespace fs = std::filesystem;
-constexpr int64_t kAssumedFrameUs = 100'000;
 
 std::string CameraDirName(int cam) { return absl::StrCat("image_0", cam); }
 

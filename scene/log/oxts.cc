@@ -11,8 +11,6 @@
 namespace streetsim {
 namespace {
 
-constexpr int64_t kAssumedFrameUs = 100'000;
-
 Eigen::Matrix3d OxtsRotation(const OxtsRecord& r) {
   return (Eigen::AngleAxisd(r.yaw(), Eigen::Vector3d::UnitZ()) *
           Eigen::AngleAxisd(r.pitch(), Eigen::Vector3d::UnitY()) *

@@ -16,7 +16,7 @@ namespace vk = vulkan;
 
 namespace {
 
-constexpr uint32_t kWg = 256;  // serving_form.comp: local_size_x (FIELD_WG)
+constexpr uint32_t kServingFormWg = 256;  // serving_form.comp: local_size_x (FIELD_WG)
 
 struct FormPush {
   uint32_t rows, record_words, k, taps;
@@ -121,7 +121,7 @@ absl::Status VulkanServingForm::WriteAt(int64_t time_us, DeviceScene* scene) {
     for (size_t b = 0; b < m.tables.size(); ++b) {
       push.rows = m.table_rows[b];
       rec.Dispatch(*m.pipeline, {&m.tables[b], &m.desc, sb.gauss, sb.sh[0], sb.sh[1], sb.sh[2], sb.sh[3]}, push,
-                   vk::GridFor((push.rows + kWg - 1) / kWg));
+                   vk::GridFor((push.rows + kServingFormWg - 1) / kServingFormWg));
     }
   });
 }
