@@ -10,6 +10,7 @@
 #include "absl/strings/str_cat.h"
 #include "render/common/thread_pool.h"
 #include "scene/log/kdtree.h"
+#include "scene/log/point_scatter.h"
 #include "scene/log/voxel_hash.h"
 
 namespace streetsim {
@@ -181,15 +182,7 @@ const Eigen::Vector3f& Object::Normal(int i) {
   float d2[kNeighbours];
   const int n = Tree().KNearest(points[i], kNeighbours, 1.0f, idx, d2);
   if (n < 3) return normals_[i];  // isolated: no plane, no constraint
-  Eigen::Vector3d mean = Eigen::Vector3d::Zero();
-  for (int k = 0; k < n; ++k) mean += points[idx[k]].cast<double>();
-  mean /= n;
-  Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
-  for (int k = 0; k < n; ++k) {
-    const Eigen::Vector3d d = points[idx[k]].cast<double>() - mean;
-    cov += d * d.transpose();
-  }
-  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(cov);
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(NeighbourScatter(points, idx, n));
   normals_[i] = eig.eigenvectors().col(0).cast<float>();
   return normals_[i];
 }

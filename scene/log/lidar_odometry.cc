@@ -8,6 +8,7 @@
 #include <Eigen/LU>
 
 #include "absl/strings/str_cat.h"
+#include "scene/log/point_scatter.h"
 #include "scene/log/voxel_hash.h"
 
 namespace streetsim {
@@ -54,15 +55,7 @@ void BuildPlaneCloud(const std::vector<Eigen::Vector3f>& points, const LidarOdom
   for (size_t i = 0; i < sampled.size(); ++i) {
     const int found = tree.KNearest(sampled[i], k, radius_sq, idx, d2);
     if (found < 5) continue;
-    Eigen::Vector3d mean = Eigen::Vector3d::Zero();
-    for (int j = 0; j < found; ++j) mean += sampled[idx[j]].cast<double>();
-    mean /= found;
-    Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
-    for (int j = 0; j < found; ++j) {
-      const Eigen::Vector3d d = sampled[idx[j]].cast<double>() - mean;
-      cov += d * d.transpose();
-    }
-    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(cov);
+    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(NeighbourScatter(sampled, idx, found));
     const Eigen::Vector3d ev = eig.eigenvalues();  // ascending
     const double sum = ev.sum();
     if (sum <= 0 || ev[0] / sum > options.max_planarity) continue;
