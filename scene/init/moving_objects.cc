@@ -60,17 +60,6 @@ class Object {
   std::vector<uint8_t> has_normal_;
 };
 
-struct CellKey {
-  int32_t x, y;
-  bool operator==(const CellKey& o) const { return x == o.x && y == o.y; }
-};
-struct CellKeyHash {
-  size_t operator()(const CellKey& k) const {
-    return static_cast<size_t>(static_cast<uint32_t>(k.x)) * 73856093u ^
-           static_cast<size_t>(static_cast<uint32_t>(k.y)) * 19349669u;
-  }
-};
-
 // One measured point per voxel (not the centroid: a centroid across an edge lies inside the
 // object, and registering it would pull the motion).
 std::vector<Eigen::Vector3f> FirstPointPerVoxel(const std::vector<Eigen::Vector3f>& points, double voxel_m) {
@@ -89,18 +78,19 @@ std::vector<Eigen::Vector3f> FirstPointPerVoxel(const std::vector<Eigen::Vector3
 std::vector<std::unique_ptr<Object>> GroupObjects(const LevelScan& scan, const MovingObjectOptions& o) {
   const double inv = 1.0 / o.cell_m;
   const auto key_of = [&](const Eigen::Vector3f& p) {
-    return CellKey{static_cast<int32_t>(std::floor(p.x() * inv)), static_cast<int32_t>(std::floor(p.y() * inv))};
+    return VoxelKey{static_cast<int32_t>(std::floor(p.x() * inv)), static_cast<int32_t>(std::floor(p.y() * inv)), 0};
   };
-  // Dense cell ids, and each cell's points in scan order (one flat array, not a vector per cell).
-  std::unordered_map<CellKey, int, CellKeyHash> cell_id;
-  cell_id.reserve(scan.points.size() / 4 + 1);
-  std::vector<CellKey> cell_key;
+  // Dense cell ids (2-D cells: z = 0), and each cell's points in scan order (one flat array, not a
+  // vector per cell).
+  VoxelIndex cell_id;
+  cell_id.Clear(scan.points.size() / 4);
+  std::vector<VoxelKey> cell_key;
   std::vector<int> cell_of(scan.points.size());
   for (size_t i = 0; i < scan.points.size(); ++i) {
-    const CellKey k = key_of(scan.points[i]);
-    auto [it, inserted] = cell_id.try_emplace(k, static_cast<int>(cell_key.size()));
+    const VoxelKey k = key_of(scan.points[i]);
+    bool inserted = false;
+    cell_of[i] = cell_id.FindOrInsert(k, &inserted);
     if (inserted) cell_key.push_back(k);
-    cell_of[i] = it->second;
   }
   std::vector<int> first(cell_key.size() + 1, 0);
   for (int c : cell_of) ++first[c + 1];
@@ -131,10 +121,10 @@ std::vector<std::unique_ptr<Object>> GroupObjects(const LevelScan& scan, const M
       }
       for (int dx = -1; dx <= 1; ++dx) {
         for (int dy = -1; dy <= 1; ++dy) {
-          const auto n = cell_id.find(CellKey{cell_key[c].x + dx, cell_key[c].y + dy});
-          if (n == cell_id.end() || grouped[n->second]) continue;
-          grouped[n->second] = 1;
-          stack.push_back(n->second);
+          const int32_t n = cell_id.Find(VoxelKey{cell_key[c].x + dx, cell_key[c].y + dy, 0});
+          if (n < 0 || grouped[n]) continue;
+          grouped[n] = 1;
+          stack.push_back(n);
         }
       }
     }

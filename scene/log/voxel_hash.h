@@ -53,6 +53,13 @@ class VoxelIndex {
     if (2 * keys_.size() > table_.size()) Grow();
     return index;
   }
+  // k's index, or -1 when it has none.
+  int32_t Find(const VoxelKey& k) const {
+    for (size_t h = Slot(k); table_[h] >= 0; h = (h + 1) & (table_.size() - 1)) {
+      if (keys_[table_[h]] == k) return table_[h];
+    }
+    return -1;
+  }
   size_t size() const { return keys_.size(); }
   // Empties it, sized for about `expected` voxels without growing.
   void Clear(size_t expected);

@@ -56,8 +56,8 @@ TEST(VoxelDownsample, EqualsTheMapDefinition) {
   }
 }
 
-// The index grows from its smallest table: every key keeps the index it was first given, and
-// Clear() starts over.
+// The index grows from its smallest table: every key keeps the index it was first given (found
+// by FindOrInsert and Find; an absent key is not found), and Clear() starts over.
 TEST(VoxelIndex, KeepsFirstSeenIndicesAcrossGrowth) {
   VoxelIndex index;
   std::map<std::tuple<int32_t, int32_t, int32_t>, int32_t> want;
@@ -71,6 +71,8 @@ TEST(VoxelIndex, KeepsFirstSeenIndicesAcrossGrowth) {
       auto [it, is_new] = want.try_emplace({k.x, k.y, k.z}, static_cast<int32_t>(want.size()));
       ASSERT_EQ(inserted, is_new) << i;
       ASSERT_EQ(got, it->second) << i;
+      ASSERT_EQ(index.Find(k), it->second) << i;
+      ASSERT_EQ(index.Find(VoxelKey{k.x, k.y, 1000}), -1) << i;  // z in -3..3 only
     }
     ASSERT_EQ(index.size(), want.size());
     index.Clear(10);
