@@ -17,7 +17,7 @@
 namespace streetsim {
 namespace {
 
-int Fail(const char* command, int code, const absl::Status& status) {
+int FailInfo(const char* command, int code, const absl::Status& status) {
   return ReportFailure(command, code, status);
 }
 
@@ -67,23 +67,23 @@ PinholeCamera FramingCamera(const GaussianStore& store, int width, int height, c
 int RunPlyInfoCommand(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args =
       ParsedArgs::Parse(argv, {{"camera-out"}, {"width"}, {"height"}, {"view"}});
-  if (!args.ok()) return Fail("ply-info", 2, args.status());
+  if (!args.ok()) return FailInfo("ply-info", 2, args.status());
   if (args->positional().size() != 1) {
-    return Fail("ply-info", 2, absl::InvalidArgumentError("expects exactly one SCENE.ply"));
+    return FailInfo("ply-info", 2, absl::InvalidArgumentError("expects exactly one SCENE.ply"));
   }
   int width = 800, height = 600;
   if (auto w = args->Get("width"); w && (!absl::SimpleAtoi(*w, &width) || width < 1 || width > kMaxImageSide)) {
-    return Fail("ply-info", 2, absl::InvalidArgumentError("--width must be in 1..4096"));
+    return FailInfo("ply-info", 2, absl::InvalidArgumentError("--width must be in 1..4096"));
   }
   if (auto h = args->Get("height"); h && (!absl::SimpleAtoi(*h, &height) || height < 1 || height > kMaxImageSide)) {
-    return Fail("ply-info", 2, absl::InvalidArgumentError("--height must be in 1..4096"));
+    return FailInfo("ply-info", 2, absl::InvalidArgumentError("--height must be in 1..4096"));
   }
   const std::string view = args->Get("view").value_or("front");
   if (view != "front" && view != "back" && view != "left" && view != "right" && view != "top") {
-    return Fail("ply-info", 2, absl::InvalidArgumentError("--view must be front, back, left, right or top"));
+    return FailInfo("ply-info", 2, absl::InvalidArgumentError("--view must be front, back, left, right or top"));
   }
   absl::StatusOr<GaussianStore> store = ReadGaussianPly(args->positional()[0]);
-  if (!store.ok()) return Fail("ply-info", 2, store.status());
+  if (!store.ok()) return FailInfo("ply-info", 2, store.status());
   std::printf("%s: %zu Gaussians, SH degree %d, normals %s\n", args->positional()[0].c_str(),
               store->size(), store->sh_degree, store->normals.empty() ? "no" : "yes");
   if (store->size() == 0) return 0;
@@ -97,14 +97,14 @@ int RunPlyInfoCommand(const std::vector<std::string>& argv) {
   if (auto out = args->Get("camera-out")) {
     std::ofstream f(*out);
     f << CameraToJson(FramingCamera(*store, width, height, view));
-    if (!f.good()) return Fail("ply-info", 1, absl::PermissionDeniedError(absl::StrCat(*out, ": cannot write")));
+    if (!f.good()) return FailInfo("ply-info", 1, absl::PermissionDeniedError(absl::StrCat(*out, ": cannot write")));
     std::printf("  framing camera (%s view) written to %s\n", view.c_str(), out->c_str());
   }
   return 0;
 }
 
 int RunDevicesCommand(const std::vector<std::string>& argv) {
-  if (!argv.empty()) return Fail("devices", 2, absl::InvalidArgumentError("takes no arguments"));
+  if (!argv.empty()) return FailInfo("devices", 2, absl::InvalidArgumentError("takes no arguments"));
   std::printf("cpu: %s\n", CreateCpuEngine()->device_name().c_str());
   const std::vector<VulkanDeviceInfo> devices = ListVulkanDevices();
   if (devices.empty()) std::printf("vulkan: no device (no Vulkan driver installed?)\n");

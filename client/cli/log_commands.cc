@@ -27,7 +27,7 @@
 namespace streetsim {
 namespace {
 
-int Fail(const std::string& command, int code, const absl::Status& status) {
+int FailLog(const std::string& command, int code, const absl::Status& status) {
   return ReportFailure("log " + command, code, status);
 }
 
@@ -85,11 +85,11 @@ std::string Translation(const Eigen::Isometry3d& t) {
 
 int Info(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(argv, {});
-  if (!args.ok()) return Fail("info", 2, args.status());
+  if (!args.ok()) return FailLog("info", 2, args.status());
   absl::StatusOr<std::string> path = OnePath(*args);
-  if (!path.ok()) return Fail("info", 2, path.status());
+  if (!path.ok()) return FailLog("info", 2, path.status());
   absl::StatusOr<DriveLog> log = OpenLog(*path);
-  if (!log.ok()) return Fail("info", ExitCodeForLog(log.status()), log.status());
+  if (!log.ok()) return FailLog("info", ExitCodeForLog(log.status()), log.status());
   std::printf("log: %s\nformat: %s\nposes: %s\n", log->root.c_str(), log->format.c_str(), log->pose_source.c_str());
   std::printf("frames: %zu (source frames %d..%d)\n", log->frames.size(), log->frames.front().source_index,
               log->frames.back().source_index);
@@ -151,41 +151,41 @@ absl::Status WritePngAtomically(const std::string& path, const cv::Mat& bgr) {
 
 int Preview(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(argv, {{"frame"}, {"out"}, {"camera"}, {"max-depth"}});
-  if (!args.ok()) return Fail("preview", 2, args.status());
+  if (!args.ok()) return FailLog("preview", 2, args.status());
   absl::StatusOr<std::string> path = OnePath(*args);
-  if (!path.ok()) return Fail("preview", 2, path.status());
+  if (!path.ok()) return FailLog("preview", 2, path.status());
   absl::StatusOr<std::string> out = args->Required("out");
-  if (!out.ok()) return Fail("preview", 2, out.status());
+  if (!out.ok()) return FailLog("preview", 2, out.status());
   if (std::filesystem::path(*out).extension() != ".png") {
-    return Fail("preview", 2, absl::InvalidArgumentError(absl::StrCat("--out ", *out, ": must be a .png")));
+    return FailLog("preview", 2, absl::InvalidArgumentError(absl::StrCat("--out ", *out, ": must be a .png")));
   }
   double max_depth = 50;
   if (auto d = args->Get("max-depth"); d && (!absl::SimpleAtod(*d, &max_depth) || !(max_depth > 0))) {
-    return Fail("preview", 2, absl::InvalidArgumentError("--max-depth must be a positive number of metres"));
+    return FailLog("preview", 2, absl::InvalidArgumentError("--max-depth must be a positive number of metres"));
   }
   absl::StatusOr<DriveLog> log = OpenLog(*path);
-  if (!log.ok()) return Fail("preview", ExitCodeForLog(log.status()), log.status());
+  if (!log.ok()) return FailLog("preview", ExitCodeForLog(log.status()), log.status());
   absl::StatusOr<int> frame_index = FrameFlag(*args, *log);
-  if (!frame_index.ok()) return Fail("preview", 2, frame_index.status());
+  if (!frame_index.ok()) return FailLog("preview", 2, frame_index.status());
   const Frame& frame = log->frames[*frame_index];
   absl::StatusOr<const CameraObservation*> obs = CameraFlag(*args, *log, frame);
-  if (!obs.ok()) return Fail("preview", 2, obs.status());
+  if (!obs.ok()) return FailLog("preview", 2, obs.status());
   const CameraSensor& cam = log->cameras[(*obs)->camera];
   absl::StatusOr<cv::Mat> image = LoadImageRgb((*obs)->path);
-  if (!image.ok()) return Fail("preview", 2, image.status());
+  if (!image.ok()) return FailLog("preview", 2, image.status());
 
   // Points to draw, in the camera frame: the frame's LiDAR scan, else the log's sparse points.
   std::vector<Eigen::Vector3d> points_cam;
   if (!frame.lidars.empty()) {
     absl::StatusOr<LidarScan> scan = LoadLidarScan(frame.lidars[0].path);
-    if (!scan.ok()) return Fail("preview", 2, scan.status());
+    if (!scan.ok()) return FailLog("preview", 2, scan.status());
     const Eigen::Isometry3d T = cam.T_ego_from_cam.inverse() * log->lidars[frame.lidars[0].lidar].T_ego_from_lidar;
     for (const Eigen::Vector3f& p : scan->points) points_cam.push_back(T * p.cast<double>());
   } else if (!log->sparse_points.empty()) {
     const Eigen::Isometry3d T = WorldFromCamera(*log, frame, **obs).inverse();
     for (const Eigen::Vector3d& p : log->sparse_points) points_cam.push_back(T * p);
   } else {
-    return Fail("preview", 2, absl::FailedPreconditionError(absl::StrCat(*path, ": log has no LiDAR and no sparse points to project")));
+    return FailLog("preview", 2, absl::FailedPreconditionError(absl::StrCat(*path, ": log has no LiDAR and no sparse points to project")));
   }
   cv::Mat bgr;
   cv::cvtColor(*image, bgr, cv::COLOR_RGB2BGR);
@@ -205,7 +205,7 @@ int Preview(const std::vector<std::string>& argv) {
     cv::circle(bgr, cv::Point(static_cast<int>(uv.x()), static_cast<int>(uv.y())), 1, cv::Scalar(c[0], c[1], c[2]), -1);
     ++drawn;
   }
-  if (absl::Status s = WritePngAtomically(*out, bgr); !s.ok()) return Fail("preview", 1, s);
+  if (absl::Status s = WritePngAtomically(*out, bgr); !s.ok()) return FailLog("preview", 1, s);
   std::fprintf(stderr, "streetsim log preview: frame %d (%s), %zu points drawn, red = near, blue >= %.0f m\n",
                *frame_index, cam.name.c_str(), drawn, max_depth);
   return 0;
@@ -213,27 +213,27 @@ int Preview(const std::vector<std::string>& argv) {
 
 int Poses(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(argv, {{"from-lidar", false}, {"frames"}, {"out"}});
-  if (!args.ok()) return Fail("poses", 2, args.status());
+  if (!args.ok()) return FailLog("poses", 2, args.status());
   absl::StatusOr<std::string> path = OnePath(*args);
-  if (!path.ok()) return Fail("poses", 2, path.status());
+  if (!path.ok()) return FailLog("poses", 2, path.status());
   absl::StatusOr<FrameRange> frames_flag = FramesFlag(*args);
-  if (!frames_flag.ok()) return Fail("poses", 2, frames_flag.status());
+  if (!frames_flag.ok()) return FailLog("poses", 2, frames_flag.status());
   const FrameRange range = *frames_flag;
   absl::StatusOr<DriveLog> log = OpenLog(*path);
-  if (!log.ok()) return Fail("poses", ExitCodeForLog(log.status()), log.status());
+  if (!log.ok()) return FailLog("poses", ExitCodeForLog(log.status()), log.status());
   std::vector<int> frames = range.Select(*log);
-  if (frames.size() < 2) return Fail("poses", 2, absl::InvalidArgumentError("--frames selects fewer than 2 frames"));
+  if (frames.size() < 2) return FailLog("poses", 2, absl::InvalidArgumentError("--frames selects fewer than 2 frames"));
   std::vector<Eigen::Isometry3d> reference;
   for (int f : frames) reference.push_back(log->frames[f].T_world_from_ego);
   std::vector<Eigen::Isometry3d> poses = reference;
   std::string comment = absl::StrCat("T_world_from_ego per frame (", log->pose_source, ")");
   if (args->Has("from-lidar")) {
-    if (range.stride != 1) return Fail("poses", 2, absl::InvalidArgumentError("--from-lidar needs consecutive frames (stride 1)"));
+    if (range.stride != 1) return FailLog("poses", 2, absl::InvalidArgumentError("--from-lidar needs consecutive frames (stride 1)"));
     LidarOdometryOptions options;
     options.first_frame = frames.front();
     options.last_frame = frames.back() + 1;
     absl::StatusOr<LidarOdometryResult> odo = RunLidarOdometry(*log, options);
-    if (!odo.ok()) return Fail("poses", absl::IsFailedPrecondition(odo.status()) ? 2 : 1, odo.status());
+    if (!odo.ok()) return FailLog("poses", absl::IsFailedPrecondition(odo.status()) ? 2 : 1, odo.status());
     poses = odo->T_world_from_ego;
     comment = "T_world_from_ego per frame from LiDAR odometry (world = ego at the first frame)";
     const TrajectoryComparison c = CompareTrajectories(poses, reference);
@@ -249,25 +249,25 @@ int Poses(const std::vector<std::string>& argv) {
     std::printf("%zu poses from %s, %.2f m driven\n", poses.size(), log->pose_source.c_str(), log->distance_m());
   }
   if (auto out = args->Get("out")) {
-    if (absl::Status s = WritePosesFile(*out, poses, comment); !s.ok()) return Fail("poses", 1, s);
+    if (absl::Status s = WritePosesFile(*out, poses, comment); !s.ok()) return FailLog("poses", 1, s);
   }
   return 0;
 }
 
 int Camera(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(argv, {{"frame"}, {"out"}, {"camera"}});
-  if (!args.ok()) return Fail("camera", 2, args.status());
+  if (!args.ok()) return FailLog("camera", 2, args.status());
   absl::StatusOr<std::string> path = OnePath(*args);
-  if (!path.ok()) return Fail("camera", 2, path.status());
+  if (!path.ok()) return FailLog("camera", 2, path.status());
   absl::StatusOr<std::string> out = args->Required("out");
-  if (!out.ok()) return Fail("camera", 2, out.status());
+  if (!out.ok()) return FailLog("camera", 2, out.status());
   absl::StatusOr<DriveLog> log = OpenLog(*path);
-  if (!log.ok()) return Fail("camera", ExitCodeForLog(log.status()), log.status());
+  if (!log.ok()) return FailLog("camera", ExitCodeForLog(log.status()), log.status());
   absl::StatusOr<int> frame_index = FrameFlag(*args, *log);
-  if (!frame_index.ok()) return Fail("camera", 2, frame_index.status());
+  if (!frame_index.ok()) return FailLog("camera", 2, frame_index.status());
   const Frame& frame = log->frames[*frame_index];
   absl::StatusOr<const CameraObservation*> obs = CameraFlag(*args, *log, frame);
-  if (!obs.ok()) return Fail("camera", 2, obs.status());
+  if (!obs.ok()) return FailLog("camera", 2, obs.status());
   const CameraIntrinsics& k = log->cameras[(*obs)->camera].intrinsics;
   PinholeCamera camera;
   camera.width = k.width;
@@ -279,7 +279,7 @@ int Camera(const std::vector<std::string>& argv) {
   camera.T_world_from_cam = WorldFromCamera(*log, frame, **obs);
   std::ofstream f(*out);
   f << CameraToJson(camera);
-  if (!f.good()) return Fail("camera", 1, absl::PermissionDeniedError(absl::StrCat(*out, ": cannot write")));
+  if (!f.good()) return FailLog("camera", 1, absl::PermissionDeniedError(absl::StrCat(*out, ": cannot write")));
   return 0;
 }
 
@@ -287,29 +287,29 @@ int Camera(const std::vector<std::string>& argv) {
 int Tracks(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args =
       ParsedArgs::Parse(argv, {{"frames"}, {"min-scans"}, {"min-displacement-m"}, {"json"}});
-  if (!args.ok()) return Fail("tracks", 2, args.status());
+  if (!args.ok()) return FailLog("tracks", 2, args.status());
   absl::StatusOr<std::string> path = OnePath(*args);
-  if (!path.ok()) return Fail("tracks", 2, path.status());
+  if (!path.ok()) return FailLog("tracks", 2, path.status());
   MovingObjectOptions options;
   absl::StatusOr<FrameRange> frames_flag = FramesFlag(*args);
-  if (!frames_flag.ok()) return Fail("tracks", 2, frames_flag.status());
+  if (!frames_flag.ok()) return FailLog("tracks", 2, frames_flag.status());
   options.frames = *frames_flag;
   if (options.frames.stride != 1) {
-    return Fail("tracks", 2, absl::InvalidArgumentError("--frames: tracking needs consecutive frames (stride 1)"));
+    return FailLog("tracks", 2, absl::InvalidArgumentError("--frames: tracking needs consecutive frames (stride 1)"));
   }
   int min_scans = 5;
   double min_displacement_m = 1.0;
   if (auto v = args->Get("min-scans"); v && (!absl::SimpleAtoi(*v, &min_scans) || min_scans < 1)) {
-    return Fail("tracks", 2, absl::InvalidArgumentError("--min-scans: a whole number >= 1"));
+    return FailLog("tracks", 2, absl::InvalidArgumentError("--min-scans: a whole number >= 1"));
   }
   if (auto v = args->Get("min-displacement-m");
       v && (!absl::SimpleAtod(*v, &min_displacement_m) || !(min_displacement_m >= 0 && min_displacement_m < 1e4))) {
-    return Fail("tracks", 2, absl::InvalidArgumentError("--min-displacement-m: metres, 0 .. 10000"));
+    return FailLog("tracks", 2, absl::InvalidArgumentError("--min-displacement-m: metres, 0 .. 10000"));
   }
   absl::StatusOr<DriveLog> log = OpenLog(*path);
-  if (!log.ok()) return Fail("tracks", ExitCodeForLog(log.status()), log.status());
+  if (!log.ok()) return FailLog("tracks", ExitCodeForLog(log.status()), log.status());
   absl::StatusOr<MovingObjects> objects = TrackMovingObjects(*log, options);
-  if (!objects.ok()) return Fail("tracks", ExitCodeForLog(objects.status()), objects.status());
+  if (!objects.ok()) return FailLog("tracks", ExitCodeForLog(objects.status()), objects.status());
   std::vector<const MovingObjectTrack*> shown;
   for (const MovingObjectTrack& t : objects->tracks) {
     if (static_cast<int>(t.observations.size()) >= min_scans && t.NetDisplacementM() >= min_displacement_m) {
@@ -359,7 +359,7 @@ int Tracks(const std::vector<std::string>& argv) {
       }
       j["tracks"].push_back(std::move(jt));
     }
-    if (absl::Status s = checked_file::WriteAtomically(*out, j.dump(1) + "\n"); !s.ok()) return Fail("tracks", 1, s);
+    if (absl::Status s = checked_file::WriteAtomically(*out, j.dump(1) + "\n"); !s.ok()) return FailLog("tracks", 1, s);
   }
   return 0;
 }

@@ -35,7 +35,7 @@ namespace fs = std::filesystem;
 namespace v1 = ::streetsim::v1;
 using nlohmann::json;
 
-int Fail(const char* command, int code, const absl::Status& status) {
+int FailRemote(const char* command, int code, const absl::Status& status) {
   return ReportFailure(command, code, status);
 }
 
@@ -189,30 +189,30 @@ v1::CreateSessionRequest ScenarioSession(const ReplayScenario& sc, const v1::Sce
 
 int RunScenesCommand(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(argv, WithConnection({{"load"}, {"unload"}, {"info"}}));
-  if (!args.ok()) return Fail("scenes", 2, args.status());
+  if (!args.ok()) return FailRemote("scenes", 2, args.status());
   absl::StatusOr<std::unique_ptr<client::Client>> c = ConnectFromFlags(*args);
-  if (!c.ok()) return Fail("scenes", 2, c.status());
+  if (!c.ok()) return FailRemote("scenes", 2, c.status());
   if (auto name = args->Get("load")) {
     absl::StatusOr<v1::Scene> s = (*c)->LoadScene(*name, true);
-    if (!s.ok()) return Fail("scenes", CodeFor(s.status()), s.status());
+    if (!s.ok()) return FailRemote("scenes", CodeFor(s.status()), s.status());
     std::printf("%s: %s, %llu Gaussians\n", s->name().c_str(), SceneStateName(s->state()),
                 static_cast<unsigned long long>(s->num_gaussians()));
     return 0;
   }
   if (auto name = args->Get("unload")) {
     absl::Status s = (*c)->UnloadScene(*name);
-    return s.ok() ? 0 : Fail("scenes", CodeFor(s), s);
+    return s.ok() ? 0 : FailRemote("scenes", CodeFor(s), s);
   }
   if (auto name = args->Get("info")) {
     absl::StatusOr<v1::Scene> s = (*c)->GetScene(*name);
-    if (!s.ok()) return Fail("scenes", CodeFor(s.status()), s.status());
+    if (!s.ok()) return FailRemote("scenes", CodeFor(s.status()), s.status());
     std::printf("%s\n", s->DebugString().c_str());
     return 0;
   }
   absl::StatusOr<v1::ServerInfo> info = (*c)->GetServerInfo();
-  if (!info.ok()) return Fail("scenes", CodeFor(info.status()), info.status());
+  if (!info.ok()) return FailRemote("scenes", CodeFor(info.status()), info.status());
   absl::StatusOr<std::vector<v1::Scene>> scenes = (*c)->ListScenes();
-  if (!scenes.ok()) return Fail("scenes", CodeFor(scenes.status()), scenes.status());
+  if (!scenes.ok()) return FailRemote("scenes", CodeFor(scenes.status()), scenes.status());
   std::printf("server %s: api %s, %s (%s), %d sessions, %d scenes loaded\n", args->Get("server").value_or("127.0.0.1:50051").c_str(),
               info->api_version().c_str(), info->backend().c_str(), info->device().c_str(),
               info->load().sessions(), info->load().scenes_loaded());
@@ -255,21 +255,21 @@ static std::vector<FlagSpec> JobsFlagSpecs() {
 int RunJobsCommand(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args =
       ParsedArgs::Parse(argv, WithConnection(JobsFlagSpecs()));
-  if (!args.ok()) return Fail("jobs", 2, args.status());
+  if (!args.ok()) return FailRemote("jobs", 2, args.status());
   const std::vector<std::string>& pos = args->positional();
   const std::string verb = pos.empty() ? "list" : pos[0];
   absl::StatusOr<std::unique_ptr<client::Client>> c = ConnectFromFlags(*args);
-  if (!c.ok()) return Fail("jobs", 2, c.status());
+  if (!c.ok()) return FailRemote("jobs", 2, c.status());
   auto watch = [&](const std::string& id) -> int {
     absl::StatusOr<v1::Job> done = (*c)->WatchJob(id, ProgressBar);
     std::fprintf(stderr, "\n");
-    if (!done.ok()) return Fail("jobs", CodeFor(done.status()), done.status());
+    if (!done.ok()) return FailRemote("jobs", CodeFor(done.status()), done.status());
     PrintJob(*done);
     return done->state() == v1::JOB_STATE_SUCCEEDED ? 0 : 1;
   };
   if (verb == "list" && pos.size() <= 1) {
     absl::StatusOr<std::vector<v1::Job>> jobs = (*c)->ListJobs();
-    if (!jobs.ok()) return Fail("jobs", CodeFor(jobs.status()), jobs.status());
+    if (!jobs.ok()) return FailRemote("jobs", CodeFor(jobs.status()), jobs.status());
     for (const v1::Job& j : *jobs) PrintJob(j);
     return 0;
   }
@@ -280,28 +280,28 @@ int RunJobsCommand(const std::vector<std::string>& argv) {
     req.set_request_id(args->Get("request-id").value_or(""));
     if (auto it = args->Get("max-iterations")) {
       int n;
-      if (!absl::SimpleAtoi(*it, &n) || n < 0) return Fail("jobs", 2, absl::InvalidArgumentError("--max-iterations takes an integer >= 0"));
+      if (!absl::SimpleAtoi(*it, &n) || n < 0) return FailRemote("jobs", 2, absl::InvalidArgumentError("--max-iterations takes an integer >= 0"));
       req.mutable_config()->set_max_iterations(n);
     }
-    if (absl::Status s = TrainingConfigFromFlags(*args, req.mutable_config()); !s.ok()) return Fail("jobs", 2, s);
+    if (absl::Status s = TrainingConfigFromFlags(*args, req.mutable_config()); !s.ok()) return FailRemote("jobs", 2, s);
     // No settings and no --max-iterations: the default preset, as `streetsim train` runs it
     // (--max-iterations 0: init only).
     if (!args->Has("max-iterations") && req.config().preset().empty() && req.config().settings().empty()) {
       req.mutable_config()->set_preset(train::config::kDefaultPreset);
     }
     absl::StatusOr<v1::Job> job = (*c)->CreateTrainingJob(req);
-    if (!job.ok()) return Fail("jobs", CodeFor(job.status()), job.status());
+    if (!job.ok()) return FailRemote("jobs", CodeFor(job.status()), job.status());
     PrintJob(*job);
     return args->Has("watch") ? watch(job->job_id()) : 0;
   }
   if ((verb == "watch" || verb == "cancel" || verb == "get") && pos.size() == 2) {
     if (verb == "watch") return watch(pos[1]);
     absl::StatusOr<v1::Job> job = verb == "cancel" ? (*c)->CancelJob(pos[1]) : (*c)->GetJob(pos[1]);
-    if (!job.ok()) return Fail("jobs", CodeFor(job.status()), job.status());
+    if (!job.ok()) return FailRemote("jobs", CodeFor(job.status()), job.status());
     PrintJob(*job);
     return 0;
   }
-  return Fail("jobs", 2, absl::InvalidArgumentError(
+  return FailRemote("jobs", 2, absl::InvalidArgumentError(
       "usage: streetsim jobs [list | train LOG_PATH [--scene-name N] [--request-id R] [--preset NAME] "
       "[--set NAME=VALUE]... [streetsim train's setting flags] [--continue-from SCENE] [--watch] | "
       "watch ID | get ID | cancel ID] [--server HOST:PORT]"));
@@ -310,30 +310,30 @@ int RunJobsCommand(const std::vector<std::string>& argv) {
 // render --server --lidar: one sweep from the scene's log pose at --time-us (docs/server.md).
 static int RunRemoteLidarRender(const ParsedArgs& args) {
   const std::string scene = args.Get("scene").value_or("");
-  if (scene.empty()) return Fail("render", 2, absl::InvalidArgumentError("--scene NAME is required with --server --lidar"));
+  if (scene.empty()) return FailRemote("render", 2, absl::InvalidArgumentError("--scene NAME is required with --server --lidar"));
   absl::StatusOr<std::string> out_range = args.Required("out-range");
-  if (!out_range.ok()) return Fail("render", 2, out_range.status());
+  if (!out_range.ok()) return FailRemote("render", 2, out_range.status());
   v1::RenderRequest req;
   req.set_scene(scene);
   req.set_no_cameras(true);
   if (auto t = args.Get("time-us")) {
     int64_t v;
-    if (!absl::SimpleAtoi(*t, &v)) return Fail("render", 2, absl::InvalidArgumentError("--time-us takes an integer"));
+    if (!absl::SimpleAtoi(*t, &v)) return FailRemote("render", 2, absl::InvalidArgumentError("--time-us takes an integer"));
     req.set_time_us(v);
   }
   int columns = 2048;
   if (auto c = args.Get("columns"); c && !absl::SimpleAtoi(*c, &columns)) {
-    return Fail("render", 2, absl::InvalidArgumentError("--columns takes an integer"));
+    return FailRemote("render", 2, absl::InvalidArgumentError("--columns takes an integer"));
   }
   req.mutable_lidar()->set_columns(columns);  // the server validates the range
   absl::StatusOr<std::unique_ptr<client::Client>> c = ConnectFromFlags(args);
-  if (!c.ok()) return Fail("render", 2, c.status());
+  if (!c.ok()) return FailRemote("render", 2, c.status());
   absl::StatusOr<v1::RenderResponse> resp = (*c)->Render(req);
-  if (!resp.ok()) return Fail("render", CodeFor(resp.status()), resp.status());
+  if (!resp.ok()) return FailRemote("render", CodeFor(resp.status()), resp.status());
   absl::StatusOr<client::DecodedLidar> lidar = client::DecodeLidar(resp->lidar());
-  if (!lidar.ok()) return Fail("render", 1, lidar.status());
+  if (!lidar.ok()) return FailRemote("render", 1, lidar.status());
   if (absl::Status s = WriteFloatTiff(*out_range, lidar->columns, lidar->beams, lidar->range); !s.ok()) {
-    return Fail("render", 1, s);
+    return FailRemote("render", 1, s);
   }
   size_t returns = 0;
   for (float r : lidar->range) returns += r > 0;
@@ -352,35 +352,35 @@ int RunRemoteRenderCommand(const std::vector<std::string>& argv) {
       argv, WithConnection({{"ply"}, {"scene"}, {"camera"}, {"out-rgb"}, {"out-depth"}, {"out-alpha"},
                             {"background"}, {"backend"}, {"time-us"},
                             {"lidar", false}, {"columns"}, {"out-range"}}));
-  if (!args.ok()) return Fail("render", 2, args.status());
+  if (!args.ok()) return FailRemote("render", 2, args.status());
   if (args->Has("lidar")) return RunRemoteLidarRender(*args);
   if (!args->positional().empty()) {
-    return Fail("render", 2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
+    return FailRemote("render", 2, absl::InvalidArgumentError(absl::StrCat("unexpected argument '", args->positional()[0], "'")));
   }
   // --ply with --server names a .ply under the server's data root (its scene name is the path
   // without ".ply"); --scene names any server scene.
   std::string scene = args->Get("scene").value_or("");
   if (auto ply = args->Get("ply")) {
-    if (!scene.empty()) return Fail("render", 2, absl::InvalidArgumentError("give --scene or --ply, not both"));
+    if (!scene.empty()) return FailRemote("render", 2, absl::InvalidArgumentError("give --scene or --ply, not both"));
     scene = *ply;
     if (absl::EndsWith(scene, ".ply")) scene.resize(scene.size() - 4);
   }
-  if (scene.empty()) return Fail("render", 2, absl::InvalidArgumentError("--scene NAME (or --ply) is required with --server"));
+  if (scene.empty()) return FailRemote("render", 2, absl::InvalidArgumentError("--scene NAME (or --ply) is required with --server"));
   absl::StatusOr<std::string> camera_path = args->Required("camera");
-  if (!camera_path.ok()) return Fail("render", 2, camera_path.status());
+  if (!camera_path.ok()) return FailRemote("render", 2, camera_path.status());
   absl::StatusOr<std::string> out_rgb = args->Required("out-rgb");
-  if (!out_rgb.ok()) return Fail("render", 2, out_rgb.status());
+  if (!out_rgb.ok()) return FailRemote("render", 2, out_rgb.status());
   const std::string ext = absl::AsciiStrToLower(fs::path(*out_rgb).extension().string());
   if (ext != ".png" && ext != ".jpg" && ext != ".jpeg") {
-    return Fail("render", 2, absl::InvalidArgumentError(absl::StrCat("--out-rgb ", *out_rgb, ": unsupported extension")));
+    return FailRemote("render", 2, absl::InvalidArgumentError(absl::StrCat("--out-rgb ", *out_rgb, ": unsupported extension")));
   }
   absl::StatusOr<PinholeCamera> camera = ReadCameraJson(*camera_path);
-  if (!camera.ok()) return Fail("render", 2, camera.status());
+  if (!camera.ok()) return FailRemote("render", 2, camera.status());
   v1::RenderRequest req;
   req.set_scene(scene);
   if (auto t = args->Get("time-us")) {
     int64_t v;
-    if (!absl::SimpleAtoi(*t, &v)) return Fail("render", 2, absl::InvalidArgumentError("--time-us takes an integer"));
+    if (!absl::SimpleAtoi(*t, &v)) return FailRemote("render", 2, absl::InvalidArgumentError("--time-us takes an integer"));
     req.set_time_us(v);
   }
   v1::SensorRequest* sensor = req.add_sensors();
@@ -404,7 +404,7 @@ int RunRemoteRenderCommand(const std::vector<std::string>& argv) {
     double v[3];
     if (parts.size() != 3 || !absl::SimpleAtod(parts[0], &v[0]) || !absl::SimpleAtod(parts[1], &v[1]) ||
         !absl::SimpleAtod(parts[2], &v[2])) {
-      return Fail("render", 2, absl::InvalidArgumentError("--background takes R,G,B (three numbers in [0,1])"));
+      return FailRemote("render", 2, absl::InvalidArgumentError("--background takes R,G,B (three numbers in [0,1])"));
     }
     out->mutable_background_rgb()->set_x(v[0]);
     out->mutable_background_rgb()->set_y(v[1]);
@@ -412,16 +412,16 @@ int RunRemoteRenderCommand(const std::vector<std::string>& argv) {
   }
   if (args->Has("backend")) std::fprintf(stderr, "streetsim render: --backend is chosen by the server; ignored\n");
   absl::StatusOr<std::unique_ptr<client::Client>> c = ConnectFromFlags(*args);
-  if (!c.ok()) return Fail("render", 2, c.status());
+  if (!c.ok()) return FailRemote("render", 2, c.status());
   absl::StatusOr<v1::RenderResponse> resp = (*c)->Render(req);
-  if (!resp.ok()) return Fail("render", CodeFor(resp.status()), resp.status());
+  if (!resp.ok()) return FailRemote("render", CodeFor(resp.status()), resp.status());
   const v1::SensorFrame& f = resp->frames(0);
-  if (absl::Status s = checked_file::WriteAtomically(*out_rgb, f.rgb().data()); !s.ok()) return Fail("render", 1, s);
+  if (absl::Status s = checked_file::WriteAtomically(*out_rgb, f.rgb().data()); !s.ok()) return FailRemote("render", 1, s);
   if (auto p = args->Get("out-depth")) {
-    if (absl::Status s = WriteFloatImage(*p, f.depth()); !s.ok()) return Fail("render", 1, s);
+    if (absl::Status s = WriteFloatImage(*p, f.depth()); !s.ok()) return FailRemote("render", 1, s);
   }
   if (auto p = args->Get("out-alpha")) {
-    if (absl::Status s = WriteFloatImage(*p, f.alpha()); !s.ok()) return Fail("render", 1, s);
+    if (absl::Status s = WriteFloatImage(*p, f.alpha()); !s.ok()) return FailRemote("render", 1, s);
   }
   std::fprintf(stderr, "streetsim render: %dx%d of %s on the server: %.1f ms (queue %.1f, render %.1f, encode %.1f), %s\n",
                f.rgb().width(), f.rgb().height(), scene.c_str(), resp->timings().total_ms(),
@@ -440,42 +440,42 @@ int RunRemoteRenderCommand(const std::vector<std::string>& argv) {
 // Writes OUT/frames/step_%05d_<sensor>.png|jpg, OUT/<sensor>.avi (MJPG) and OUT/summary.json.
 int RunReplayCommand(const std::vector<std::string>& argv) {
   absl::StatusOr<ParsedArgs> args = ParsedArgs::Parse(argv, WithConnection({{"out"}}));
-  if (!args.ok()) return Fail("replay", 2, args.status());
+  if (!args.ok()) return FailRemote("replay", 2, args.status());
   if (args->positional().size() != 1) {
-    return Fail("replay", 2,
+    return FailRemote("replay", 2,
                 absl::InvalidArgumentError("usage: streetsim replay SCENARIO.json --out DIR [--server HOST:PORT]"));
   }
   const std::string out_dir = args->Get("out").value_or("replay-out");
   absl::StatusOr<ReplayScenario> sc = ReadReplayScenario(args->positional()[0]);
-  if (!sc.ok()) return Fail("replay", 2, sc.status());
+  if (!sc.ok()) return FailRemote("replay", 2, sc.status());
   ParsedArgs conn = *args;
   if (!args->Has("server") && sc->server) {
     std::vector<std::string> a = {"--server", *sc->server};
     absl::StatusOr<ParsedArgs> parsed = ParsedArgs::Parse(a, kConnectionFlags);
-    if (!parsed.ok()) return Fail("replay", 2, parsed.status());
+    if (!parsed.ok()) return FailRemote("replay", 2, parsed.status());
     conn = *parsed;
   }
   absl::StatusOr<std::unique_ptr<client::Client>> c = ConnectFromFlags(conn);
-  if (!c.ok()) return Fail("replay", 2, c.status());
+  if (!c.ok()) return FailRemote("replay", 2, c.status());
   // A scene lists its actors once loaded: a scenario that edits them loads it first.
   if (!sc->actors.is_null()) {
     absl::StatusOr<v1::Scene> loaded = (*c)->LoadScene(sc->scene, true);
-    if (!loaded.ok()) return Fail("replay", CodeFor(loaded.status()), loaded.status());
+    if (!loaded.ok()) return FailRemote("replay", CodeFor(loaded.status()), loaded.status());
   }
   absl::StatusOr<v1::Scene> info = (*c)->GetScene(sc->scene);
-  if (!info.ok()) return Fail("replay", CodeFor(info.status()), info.status());
+  if (!info.ok()) return FailRemote("replay", CodeFor(info.status()), info.status());
   std::vector<std::string> sensor_ids;
   v1::CreateSessionRequest create = ScenarioSession(*sc, *info, &sensor_ids);
   const int64_t dt = create.step_dt_us();
   const int64_t t0 =
       create.start_time_us() == 0 && info->has_time_range() ? info->start_time_us() : create.start_time_us();
   absl::StatusOr<std::vector<Eigen::Isometry3d>> poses = ScenarioEgoPoses(*sc, *info, t0);
-  if (!poses.ok()) return Fail("replay", 2, poses.status());
+  if (!poses.ok()) return FailRemote("replay", 2, poses.status());
   *create.mutable_initial_t_world_from_ego() = client::ToPose((*poses)[0]);
   std::vector<ScenarioEdit> actor_edits;
   if (!sc->actors.is_null()) {
     absl::StatusOr<std::vector<ScenarioEdit>> e = ScenarioActorEdits(sc->actors, *info, *poses, t0, dt);
-    if (!e.ok()) return Fail("replay", 2, e.status());
+    if (!e.ok()) return FailRemote("replay", 2, e.status());
     actor_edits = std::move(*e);
   }
   // The edits in force at step k: those from a step at or before it.
@@ -488,10 +488,10 @@ int RunReplayCommand(const std::vector<std::string>& argv) {
   };
 
   absl::StatusOr<v1::Session> session = (*c)->CreateSession(create);
-  if (!session.ok()) return Fail("replay", CodeFor(session.status()), session.status());
+  if (!session.ok()) return FailRemote("replay", CodeFor(session.status()), session.status());
   std::error_code ec;
   fs::create_directories(fs::path(out_dir) / "frames", ec);
-  if (ec) return Fail("replay", 2, absl::InvalidArgumentError(absl::StrCat("--out ", out_dir, ": ", ec.message())));
+  if (ec) return FailRemote("replay", 2, absl::InvalidArgumentError(absl::StrCat("--out ", out_dir, ": ", ec.message())));
   std::map<std::string, cv::VideoWriter> videos;
   const double fps = sc->video_fps.value_or(1e6 / dt);
   json steps = json::array();
@@ -511,11 +511,11 @@ int RunReplayCommand(const std::vector<std::string>& argv) {
     const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t_start).count();
     if (!r.ok()) {
       (void)(*c)->CloseSession(session->session_id());
-      return Fail("replay", CodeFor(r.status()), r.status());
+      return FailRemote("replay", CodeFor(r.status()), r.status());
     }
     latencies.push_back(ms);
     absl::StatusOr<json> frames = WriteStepFrames(*r, k, sc->jpeg, out_dir, fps, &videos);
-    if (!frames.ok()) return Fail("replay", 1, frames.status());
+    if (!frames.ok()) return FailRemote("replay", 1, frames.status());
     const auto& tr = r->t_world_from_ego().translation_m();
     steps.push_back({{"step_index", r->step_index()}, {"time_us", r->time_us()},
                      {"ego_xyz_m", {tr.x(), tr.y(), tr.z()}}, {"latency_ms", ms},
@@ -534,7 +534,7 @@ int RunReplayCommand(const std::vector<std::string>& argv) {
   for (auto& [id, vw] : videos) summary["videos"].push_back(id + ".avi");
   if (absl::Status s = checked_file::WriteAtomically((fs::path(out_dir) / "summary.json").string(), summary.dump(1));
       !s.ok()) {
-    return Fail("replay", 1, s);
+    return FailRemote("replay", 1, s);
   }
   std::fprintf(stderr, "streetsim replay: %d steps of %s, step latency p50 %.1f ms p99 %.1f ms; wrote %s/\n",
                sc->num_steps, sc->scene.c_str(), Percentile(latencies, 0.5), Percentile(latencies, 0.99),

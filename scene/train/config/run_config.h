@@ -30,7 +30,7 @@ struct ScheduleStage {
   std::map<std::string, SettingValue> set;
   // The names in `set` the user gave (a resume's changes): checked against the other settings
   // from this stage on, as given values are (Origin::kGiven).
-  std::set<std::string> given;
+  std::set<std::string> given = {};
 };
 
 struct RunConfig {

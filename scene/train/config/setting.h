@@ -32,7 +32,7 @@ struct SettingDef {
   // kInt / kDouble: the inclusive range; min_exclusive makes the low end open ((0, 1]).
   double min = 0, max = 0;
   bool min_exclusive = false;
-  std::vector<std::string> choices;  // kChoice
+  std::vector<std::string> choices = {};  // kChoice
   // kText: a check of its own (e.g. the extended field's module list); nullptr: any text.
   absl::Status (*check_text)(const std::string& text) = nullptr;
   SettingGroup group = SettingGroup::kAdvanced;
