@@ -66,7 +66,9 @@ struct Normaliser {
 // The features of a chunk of Gaussians, F [rows x D] row-major. Plane-major: one plane at a time
 // over every row of the chunk, so that the rows' (independent) cache misses on that plane overlap
 // instead of queueing behind each Gaussian's chain of 24 samples. With taps_out / samples_out
-// (backward), also keeps every plane's taps and sample per row ([row * planes + slot]).
+// (backward), also keeps every plane's taps and sample per row, plane-major ([slot * slot_rows +
+// row]): the backward's scatter then reads each plane's rows as one contiguous run (row-major, a
+// 3 KiB stride between a plane's rows, stalled it on those loads most of its time).
 // `planes`: which planes of a level are sampled (bit c: plane c); F starts from `init` (rows
 // [b, e) of it) or 1.
 constexpr unsigned kAllPlanes = 0x3f, kSpatialPlanes = 0x0b, kTimePlanes = 0x34;  // {xy,xz,yz}, {xt,yt,zt}
@@ -74,11 +76,10 @@ constexpr unsigned kAllPlanes = 0x3f, kSpatialPlanes = 0x0b, kTimePlanes = 0x34;
 template <typename T>
 inline void FeatureChunk(const FieldLayout& L, const T* params, const Normaliser<T>& nm, const T* means,
                          const uint32_t* rows, int64_t b, int64_t e, T* F, PlaneTaps<T>* taps_out,
-                         T* samples_out, std::vector<Tap<T>>& tap_scratch, unsigned planes = kAllPlanes,
-                         const T* init = nullptr) {
+                         T* samples_out, size_t slot_rows, std::vector<Tap<T>>& tap_scratch,
+                         unsigned planes = kAllPlanes, const T* init = nullptr) {
   const int C = L.channels;
   const int D = L.feature_dim();
-  const int NP = L.num_levels * kPlanesPerLevel;
   const int64_t B = e - b;
   if (init) {
     std::copy(init + b * D, init + e * D, F);
@@ -118,10 +119,10 @@ inline void FeatureChunk(const FieldLayout& L, const T* params, const Normaliser
         T* f = F + r * D + l * C;
         if (samples_out) {
           const size_t row = static_cast<size_t>(b + r);  // rows of the backward block
-          T* s = samples_out + (row * NP + slot) * C;
+          T* s = samples_out + (slot * slot_rows + row) * C;
           internal::SamplePlane(plane, pt, C, s);
           for (int k = 0; k < C; ++k) f[k] *= s[k];
-          taps_out[row * NP + slot] = pt;
+          taps_out[slot * slot_rows + row] = pt;
         } else {
           internal::SampleMulPlane(plane, pt, C, f);
         }
@@ -131,10 +132,11 @@ inline void FeatureChunk(const FieldLayout& L, const T* params, const Normaliser
 }
 
 // Backward of FeatureChunk for one Gaussian: turns the kept samples into dL/d(sample) (in place)
-// and returns dL/d(xyz) through the sampling coordinates.
+// and returns dL/d(xyz) through the sampling coordinates. taps / samples: the row's first slot;
+// slot s is slot_rows entries further on (FeatureChunk's plane-major layout).
 template <typename T>
 inline void FeatureRowBackward(const FieldLayout& L, const T* params, const Normaliser<T>& nm, const T* xyz,
-                               const T* dF, const PlaneTaps<T>* taps, T* samples, T* d_xyz) {
+                               const T* dF, const PlaneTaps<T>* taps, T* samples, size_t slot_rows, T* d_xyz) {
   const int C = L.channels;
   T p[3];
   for (int k = 0; k < 3; ++k) p[k] = nm.a[k] * xyz[k] + nm.b[k];
@@ -143,15 +145,18 @@ inline void FeatureRowBackward(const FieldLayout& L, const T* params, const Norm
   for (int l = 0; l < L.num_levels; ++l) {
     const int R = L.level_resolution[l];
     const Tap<T> taps_xyz[3] = {MakeTap(p[0], R), MakeTap(p[1], R), MakeTap(p[2], R)};
-    T* s = samples + static_cast<size_t>(l) * kPlanesPerLevel * C;
+    const size_t slot0 = static_cast<size_t>(l) * kPlanesPerLevel;
+    auto sample = [&](int c) { return samples + (slot0 + c) * slot_rows * C; };
     // Products of all other planes: prefix (times dF) and suffix products, no division (samples
     // can be exactly 0).
     for (int k = 0; k < C; ++k) suf[kPlanesPerLevel - 1][k] = T(1);
-    for (int c = kPlanesPerLevel - 2; c >= 0; --c)
-      for (int k = 0; k < C; ++k) suf[c][k] = suf[c + 1][k] * s[(c + 1) * C + k];
+    for (int c = kPlanesPerLevel - 2; c >= 0; --c) {
+      const T* sn = sample(c + 1);
+      for (int k = 0; k < C; ++k) suf[c][k] = suf[c + 1][k] * sn[k];
+    }
     for (int k = 0; k < C; ++k) pre[k] = dF[l * C + k];
     for (int c = 0; c < kPlanesPerLevel; ++c) {
-      T* sc = s + c * C;
+      T* sc = sample(c);
       for (int k = 0; k < C; ++k) {
         const T g = pre[k] * suf[c][k];
         pre[k] *= sc[k];
@@ -159,7 +164,7 @@ inline void FeatureRowBackward(const FieldLayout& L, const T* params, const Norm
       }
       const int cu = kPlaneCoords[c][0], cv = kPlaneCoords[c][1];
       const PlaneInfo& pi = L.planes[l * kPlanesPerLevel + c];
-      const PlaneTaps<T>& pt = taps[l * kPlanesPerLevel + c];
+      const PlaneTaps<T>& pt = taps[(slot0 + c) * slot_rows];
       const T wu = taps_xyz[cu].w;
       const T wv = cv == 3 ? MakeTap(nm.time, L.time_resolution).w : taps_xyz[cv].w;
       T du = 0, dv = 0;
@@ -292,7 +297,7 @@ void FieldForward(const FieldLayout& L, const T* params, const FieldQuery& query
     ThreadScratch<T>& sc = ws.threads[tid];
     sc.F.resize(e - b, D);
     FeatureChunk(L, params, nm, means, rows, b, e, sc.F.data(), static_cast<PlaneTaps<T>*>(nullptr),
-                 static_cast<T*>(nullptr), sc.taps);
+                 static_cast<T*>(nullptr), 0, sc.taps);
     MlpForward(L, params, sc, dsh != nullptr, dx ? dx + b * 3 : nullptr, dsh ? dsh + b * kShOutputs : nullptr);
   });
 }
@@ -305,7 +310,7 @@ void SpatialFeatures(const FieldLayout& L, const T* params, const FieldQuery& qu
   ForChunks(pool, static_cast<int64_t>(n), kRowsPerChunk, [&](int64_t b, int64_t e, int) {
     std::vector<Tap<T>> taps;
     FeatureChunk(L, params, nm, means, rows, b, e, spatial + b * D, static_cast<PlaneTaps<T>*>(nullptr),
-                 static_cast<T*>(nullptr), taps, kSpatialPlanes);
+                 static_cast<T*>(nullptr), 0, taps, kSpatialPlanes);
   });
 }
 
@@ -321,7 +326,7 @@ void FieldForwardCached(const FieldLayout& L, const T* params, const FieldQuery&
     ThreadScratch<T>& sc = ws.threads[tid];
     sc.F.resize(e - b, D);
     FeatureChunk(L, params, nm, means, rows, b, e, sc.F.data(), static_cast<PlaneTaps<T>*>(nullptr),
-                 static_cast<T*>(nullptr), sc.taps, kTimePlanes, spatial);
+                 static_cast<T*>(nullptr), 0, sc.taps, kTimePlanes, spatial);
     MlpForward(L, params, sc, dsh != nullptr, dx ? dx + b * 3 : nullptr, dsh ? dsh + b * kShOutputs : nullptr);
   });
 }
@@ -352,15 +357,15 @@ void FieldBackward(const FieldLayout& L, const T* params, const FieldQuery& quer
       ThreadScratch<T>& sc = ws.threads[tid];
       sc.F.resize(e - b, D);
       FeatureChunk(L, params, nm, means + b0 * 3, static_cast<const uint32_t*>(nullptr), b, e, sc.F.data(),
-                   ws.taps.data(), ws.samples.data(), sc.taps);
+                   ws.taps.data(), ws.samples.data(), block, sc.taps);
       MlpForward(L, params, sc, d_dsh != nullptr, static_cast<T*>(nullptr), static_cast<T*>(nullptr));
       MlpBackward(L, params, sc, d_dx ? d_dx + (b0 + b) * 3 : nullptr,
                   d_dsh ? d_dsh + (b0 + b) * kShOutputs : nullptr);
       T scratch_xyz[3];
       for (int64_t r = b; r < e; ++r) {
         T* dxyz = d_means ? d_means + (b0 + r) * 3 : scratch_xyz;
-        FeatureRowBackward(L, params, nm, means + (b0 + r) * 3, sc.dF.data() + (r - b) * D, &ws.taps[r * NP],
-                           &ws.samples[r * NP * C], dxyz);
+        FeatureRowBackward(L, params, nm, means + (b0 + r) * 3, sc.dF.data() + (r - b) * D, &ws.taps[r],
+                           &ws.samples[r * C], block, dxyz);
       }
     });
     const auto t1 = Clock::now();
@@ -371,13 +376,13 @@ void FieldBackward(const FieldLayout& L, const T* params, const FieldQuery& quer
         T* grad = d_params + L.planes[pi].offset;
         for (size_t r = 0; r < bn; ++r) {
           if (r + kPrefetchRows < bn) {
-            const PlaneTaps<T>& ahead = ws.taps[(r + kPrefetchRows) * NP + pi];
+            const PlaneTaps<T>& ahead = ws.taps[pi * block + r + kPrefetchRows];
             for (size_t o = 0; o < 2 * C * sizeof(T); o += 64) {
               __builtin_prefetch(reinterpret_cast<const char*>(grad + ahead.off00) + o, 1);
               __builtin_prefetch(reinterpret_cast<const char*>(grad + ahead.off00 + ahead.row) + o, 1);
             }
           }
-          internal::ScatterPlane(grad, ws.taps[r * NP + pi], C, &ws.samples[(r * NP + pi) * C]);
+          internal::ScatterPlane(grad, ws.taps[pi * block + r], C, &ws.samples[(pi * block + r) * C]);
         }
       }
     });
