@@ -84,22 +84,20 @@ std::vector<std::unique_ptr<Object>> GroupObjects(const LevelScan& scan, const M
   // vector per cell).
   VoxelIndex cell_id;
   cell_id.Clear(scan.points.size() / 4);
-  std::vector<VoxelKey> cell_key;
   std::vector<int> cell_of(scan.points.size());
   for (size_t i = 0; i < scan.points.size(); ++i) {
     const VoxelKey k = key_of(scan.points[i]);
     bool inserted = false;
     cell_of[i] = cell_id.FindOrInsert(k, &inserted);
-    if (inserted) cell_key.push_back(k);
   }
-  std::vector<int> first(cell_key.size() + 1, 0);
+  std::vector<int> first(cell_id.size() + 1, 0);
   for (int c : cell_of) ++first[c + 1];
-  for (size_t c = 0; c < cell_key.size(); ++c) first[c + 1] += first[c];
+  for (size_t c = 0; c < cell_id.size(); ++c) first[c + 1] += first[c];
   std::vector<int> members(scan.points.size());
   std::vector<int> fill(first.begin(), first.end() - 1);
   for (size_t i = 0; i < scan.points.size(); ++i) members[fill[cell_of[i]]++] = static_cast<int>(i);
 
-  std::vector<uint8_t> grouped(cell_key.size(), 0);
+  std::vector<uint8_t> grouped(cell_id.size(), 0);
   std::vector<std::unique_ptr<Object>> objects;
   std::vector<int> stack;
   for (size_t i = 0; i < scan.points.size(); ++i) {
@@ -121,7 +119,7 @@ std::vector<std::unique_ptr<Object>> GroupObjects(const LevelScan& scan, const M
       }
       for (int dx = -1; dx <= 1; ++dx) {
         for (int dy = -1; dy <= 1; ++dy) {
-          const int32_t n = cell_id.Find(VoxelKey{cell_key[c].x + dx, cell_key[c].y + dy, 0});
+          const int32_t n = cell_id.Find(VoxelKey{cell_id.key(c).x + dx, cell_id.key(c).y + dy, 0});
           if (n < 0 || grouped[n]) continue;
           grouped[n] = 1;
           stack.push_back(n);

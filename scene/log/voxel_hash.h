@@ -61,6 +61,8 @@ class VoxelIndex {
     return -1;
   }
   size_t size() const { return keys_.size(); }
+  // The key of index i (0 <= i < size(): indices count insertions).
+  const VoxelKey& key(int32_t i) const { return keys_[i]; }
   // Empties it, sized for about `expected` voxels without growing.
   void Clear(size_t expected);
 
