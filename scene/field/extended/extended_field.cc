@@ -68,8 +68,8 @@ struct Scratch {
 template <typename T>
 struct WorkspaceT {
   std::vector<Scratch<T>> threads;
-  std::vector<T> samples;                 // [block * slots * C]
-  std::vector<internal::PlaneTaps<T>> taps;  // [block * slots]
+  std::vector<T> samples;                    // [slots * block * C], slot-major (SlotStore)
+  std::vector<internal::PlaneTaps<T>> taps;  // [slots * block]
   void Reserve(int n) {
     if (static_cast<int>(threads.size()) < n) threads.resize(n);
   }
@@ -425,7 +425,7 @@ absl::StatusOr<double> ExtendedForward(const ExtModel<T>& model, const ExtPass& 
   ForChunks(pool, static_cast<int64_t>(in.n), kRowsPerChunk, [&](int64_t b, int64_t e, int tid) {
     Scratch<T>& sc = ws.threads[tid];
     if (!sc.status.ok()) return;
-    ctx.sampler.Forward(in.means, b, e, &sc.S, &sc.Ftok, sc.taps, sc.tbuf, nullptr, nullptr, &sc.Sdil);
+    ctx.sampler.Forward(in.means, b, e, &sc.S, &sc.Ftok, sc.taps, sc.tbuf, nullptr, &sc.Sdil);
     sc.status = NetForward(ctx, pass, in, b, e, sc, &out);
   });
   double kl = 0;
@@ -463,15 +463,15 @@ absl::StatusOr<double> ExtendedBackward(const ExtModel<T>& model, const ExtPass&
   const size_t block = std::min(kBackwardBlock, std::max<size_t>(n, 1));
   ws.samples.resize(block * slots * C);
   ws.taps.resize(block * slots);
+  const internal::SlotStore<T> keep{ws.taps.data(), ws.samples.data(), block, C};
   for (size_t b0 = 0; b0 < n; b0 += block) {
     const size_t bn = std::min(block, n - b0);
     ForChunks(pool, static_cast<int64_t>(bn), kBackwardRowsPerChunk, [&](int64_t lb, int64_t le, int tid) {
       Scratch<T>& sc = ws.threads[tid];
       if (!sc.status.ok()) return;
       const int64_t b = static_cast<int64_t>(b0) + lb, e = static_cast<int64_t>(b0) + le;
-      T* samples = &ws.samples[static_cast<size_t>(lb) * slots * C];
-      internal::PlaneTaps<T>* taps = &ws.taps[static_cast<size_t>(lb) * slots];
-      ctx.sampler.Forward(in.means, b, e, &sc.S, &sc.Ftok, sc.taps, sc.tbuf, taps, samples, &sc.Sdil);
+      const internal::SlotStore<T> rows = keep.from_row(static_cast<size_t>(lb));
+      ctx.sampler.Forward(in.means, b, e, &sc.S, &sc.Ftok, sc.taps, sc.tbuf, &rows, &sc.Sdil);
       sc.status = NetForward(ctx, pass, in, b, e, sc, static_cast<const ExtOutputs<T>*>(nullptr));  // sums the KL
       if (!sc.status.ok()) return;
       sc.status = NetBackward(ctx, pass, in, d_out, static_cast<T>(kl_weight), b, e, sc, grads);
@@ -479,10 +479,10 @@ absl::StatusOr<double> ExtendedBackward(const ExtModel<T>& model, const ExtPass&
       const T* dS = model.config->encoder ? sc.dX.data() + kEncoderGeometryInputs : nullptr;
       const int64_t dS_stride = model.config->encoder ? sc.dX.cols() : 0;
       const T* dSdil = model.config->vae && model.config->vae_dilation > 0 ? sc.dSdil.data() : nullptr;
-      ctx.sampler.Backward(in.means, b, e, dS, dS_stride, sc.dFtok.data(), taps, samples, grads.d_means, dSdil);
+      ctx.sampler.Backward(in.means, b, e, dS, dS_stride, sc.dFtok.data(), rows, grads.d_means, dSdil);
     });
     for (int t = 0; t < nt; ++t) EXT_RETURN_IF_ERROR(ws.threads[t].status);
-    ctx.sampler.Scatter(bn, ws.taps.data(), ws.samples.data(), grads.d_base, pool);
+    ctx.sampler.Scatter(bn, keep, grads.d_base, pool);
   }
   double kl = 0;
   for (int t = 0; t < nt; ++t) {

@@ -9,9 +9,9 @@
 // multiplied over the 3 planes.
 //
 // The backward keeps every slot's taps and sample per row of a block (slot = level x {3 spatial,
-// 3 x K space-time, 3 x 4 dilated when d > 0}); Scatter then splats the block's dL/d(sample) one
-// plane per task, in row order (no locks, identical plane gradients for any thread count, as
-// FieldBackward does).
+// 3 x K space-time, 3 x 4 dilated when d > 0}), slot-major (SlotStore); Scatter then splats the
+// block's dL/d(sample) one plane per task, in row order (no locks, identical plane gradients for
+// any thread count, as FieldBackward does).
 #pragma once
 
 #include <algorithm>
@@ -29,6 +29,22 @@ inline constexpr int kTimePlaneIds[3] = {2, 4, 5};     // xt, yt, zt
 inline constexpr int kMaxSamplerChannels = 256;
 inline constexpr int64_t kPrefetchRows = 16;  // sampling: prefetch the taps of the row this far ahead
 inline constexpr int kDilatedTaps = 4;        // (u + d, v), (u - d, v), (u, v + d), (u, v - d)
+
+// The backward's kept taps and samples of a block, slot-major: slot s of row r at [s * rows + r]
+// (samples: C values each). Each plane's Scatter task then streams its slots' rows as contiguous
+// runs; row-major, consecutive rows of one slot sat slots_per_row entries apart, and the scatter
+// waited on those loads (field_eval's FieldBackward measured the same, field.md "Speed").
+template <typename T>
+struct SlotStore {
+  PlaneTaps<T>* taps = nullptr;
+  T* samples = nullptr;
+  size_t rows = 0;  // the whole block's rows: the stride between one slot's entries
+  int channels = 0;
+  // The store seen from block row `first` (a chunk's rows): row r of the view is row first + r.
+  SlotStore from_row(size_t first) const { return {taps + first, samples + first * channels, rows, channels}; }
+  PlaneTaps<T>& tap(int slot, int64_t r) const { return taps[static_cast<size_t>(slot) * rows + r]; }
+  T* sample(int slot, int64_t r) const { return samples + (static_cast<size_t>(slot) * rows + r) * channels; }
+};
 
 // Prefetches the two texel rows (2 texels of C values each) a sample at `pt` reads.
 template <typename T>
@@ -74,13 +90,13 @@ class TokenSampler {
   int slots_per_row() const { return L_.num_levels * slots_per_level(); }
 
   // Rows [b, e) of `means`: S [B, D], Ftok [B, K*D], with a dilation Sdil [B, D] (else untouched).
-  // With taps_out / samples_out (the backward's block storage, row 0 = row b), keeps every slot's
-  // taps and sample. Plane-major over the rows with the taps of a row kPrefetchRows ahead
-  // prefetched (field_eval's order: the rows' cache misses on a plane overlap).
+  // With `keep` (the backward's block storage seen from row b), keeps every slot's taps and
+  // sample. Plane-major over the rows with the taps of a row kPrefetchRows ahead prefetched
+  // (field_eval's order: the rows' cache misses on a plane overlap).
   // `taps` and `tbuf` are the calling thread's scratch.
   void Forward(const T* means, int64_t b, int64_t e, nn::Mat<T>* S, nn::Mat<T>* Ftok, std::vector<Tap<T>>& taps,
-               std::vector<T>& tbuf, PlaneTaps<T>* taps_out, T* samples_out, nn::Mat<T>* Sdil = nullptr) const {
-    const int C = L_.channels, D = L_.feature_dim(), NS = slots_per_row(), SL = slots_per_level();
+               std::vector<T>& tbuf, const SlotStore<T>* keep, nn::Mat<T>* Sdil = nullptr) const {
+    const int C = L_.channels, D = L_.feature_dim(), SL = slots_per_level();
     const int64_t B = e - b;
     S->resize(B, D);
     Ftok->resize(B, static_cast<Eigen::Index>(K_) * D);
@@ -100,12 +116,11 @@ class TokenSampler {
         }
         const PlaneTaps<T> pt = MakePlaneTaps(taps[r * 3 + cu], tv(r), pi.width, C);
         T* o = out + r * out_stride;
-        if (samples_out) {
-          const size_t sl = static_cast<size_t>(r) * NS + slot;
-          T* smp = samples_out + sl * C;
+        if (keep) {
+          T* smp = keep->sample(slot, r);
           SamplePlane(plane, pt, C, smp);
           for (int k = 0; k < C; ++k) o[k] *= smp[k];
-          taps_out[sl] = pt;
+          keep->tap(slot, r) = pt;
         } else {
           SampleMulPlane(plane, pt, C, o);
         }
@@ -127,16 +142,17 @@ class TokenSampler {
           for (int k = 0; k < C; ++k) f[k] = sr[k] * tr[k];
         }
       }
-      if (dil_ > 0) DilatedForward(means, b, B, l, Sdil, tbuf, taps_out, samples_out);
+      if (dil_ > 0) DilatedForward(means, b, B, l, Sdil, tbuf, keep);
     }
   }
 
   // Given dL/dS (rows of stride dS_stride; null = zero) and dL/dFtok [B, K*D]: turns the kept
   // samples into dL/d(sample) in place and adds dL/d(means) through the sampling coordinates.
   // dSdil: dL/dS_dil [B, D] (with a dilation; null = zero).
+  // `keep`: the block's storage seen from row b (as Forward kept it).
   void Backward(const T* means, int64_t b, int64_t e, const T* dS, int64_t dS_stride, const T* dFtok,
-                const PlaneTaps<T>* taps, T* samples, T* d_means, const T* dSdil = nullptr) const {
-    const int C = L_.channels, D = L_.feature_dim(), NS = slots_per_row(), SL = slots_per_level();
+                const SlotStore<T>& keep, T* d_means, const T* dSdil = nullptr) const {
+    const int C = L_.channels, D = L_.feature_dim(), SL = slots_per_level();
     T Sv[kMaxSamplerChannels], dSv[kMaxSamplerChannels], Tv[kMaxSamplerChannels], dT[kMaxSamplerChannels];
     for (int64_t r = 0; r < e - b; ++r) {
       const T* x = means + (b + r) * 3;
@@ -145,19 +161,19 @@ class TokenSampler {
         const int R = L_.level_resolution[l];
         const Tap<T> txyz[3] = {MakeTap(nm_a[0] * x[0] + nm_b[0], R), MakeTap(nm_a[1] * x[1] + nm_b[1], R),
                                 MakeTap(nm_a[2] * x[2] + nm_b[2], R)};
-        T* ls = samples + (static_cast<size_t>(r) * NS + l * SL) * C;  // this level's slots
-        const T* s0 = ls;
-        const T* s1 = ls + C;
-        const T* s2 = ls + 2 * C;
+        auto ls = [&](int s) { return keep.sample(l * SL + s, r); };  // this level's slot s
+        const T* s0 = ls(0);
+        const T* s1 = ls(1);
+        const T* s2 = ls(2);
         for (int k = 0; k < C; ++k) {
           Sv[k] = s0[k] * s1[k] * s2[k];
           dSv[k] = dS ? dS[r * dS_stride + l * C + k] : T(0);
         }
         // Space-time slots first (they need S), accumulating dL/dS.
         for (int j = 0; j < K_; ++j) {
-          T* t0 = ls + (3 + j * 3) * C;
-          T* t1 = t0 + C;
-          T* t2 = t1 + C;
+          T* t0 = ls(3 + j * 3);
+          T* t1 = ls(3 + j * 3 + 1);
+          T* t2 = ls(3 + j * 3 + 2);
           const T* df = dFtok + r * static_cast<int64_t>(K_) * D + static_cast<int64_t>(j) * D + l * C;
           for (int k = 0; k < C; ++k) {
             Tv[k] = t0[k] * t1[k] * t2[k];
@@ -173,15 +189,15 @@ class TokenSampler {
             const int cu = kPlaneCoords[c][0];
             const PlaneInfo& pi = L_.planes[l * kPlanesPerLevel + c];
             T du = 0, dv = 0;
-            SampleCoordGrad(params_ + pi.offset, taps[static_cast<size_t>(r) * NS + l * SL + 3 + j * 3 + i],
-                            txyz[cu].w, time_taps_[j].w, C, ls + (3 + j * 3 + i) * C, &du, &dv);
+            SampleCoordGrad(params_ + pi.offset, keep.tap(l * SL + 3 + j * 3 + i, r), txyz[cu].w,
+                            time_taps_[j].w, C, ls(3 + j * 3 + i), &du, &dv);
             dp[cu] += du * txyz[cu].dpx_dp;  // time is not a parameter
           }
         }
         {
-          T* a0 = ls;
-          T* a1 = ls + C;
-          T* a2 = ls + 2 * C;
+          T* a0 = ls(0);
+          T* a1 = ls(1);
+          T* a2 = ls(2);
           for (int k = 0; k < C; ++k) {
             const T a = a0[k], bb = a1[k], cc = a2[k];
             a0[k] = dSv[k] * bb * cc;
@@ -194,12 +210,12 @@ class TokenSampler {
           const int cu = kPlaneCoords[c][0], cv = kPlaneCoords[c][1];
           const PlaneInfo& pi = L_.planes[l * kPlanesPerLevel + c];
           T du = 0, dv = 0;
-          SampleCoordGrad(params_ + pi.offset, taps[static_cast<size_t>(r) * NS + l * SL + i], txyz[cu].w,
-                          txyz[cv].w, C, ls + i * C, &du, &dv);
+          SampleCoordGrad(params_ + pi.offset, keep.tap(l * SL + i, r), txyz[cu].w, txyz[cv].w, C, ls(i), &du,
+                          &dv);
           dp[cu] += du * txyz[cu].dpx_dp;
           dp[cv] += dv * txyz[cv].dpx_dp;
         }
-        if (dil_ > 0) DilatedBackward(x, l, r, dSdil ? dSdil + r * D + l * C : nullptr, taps, samples, dp);
+        if (dil_ > 0) DilatedBackward(x, l, r, dSdil ? dSdil + r * D + l * C : nullptr, keep, dp);
       }
       if (d_means)
         for (int k = 0; k < 3; ++k) d_means[(b + r) * 3 + k] += dp[k] * nm_a[k];
@@ -207,8 +223,8 @@ class TokenSampler {
   }
 
   // Splats rows [0, bn) of the block's dL/d(sample) into the planes of d_base, one plane per task.
-  void Scatter(size_t bn, const PlaneTaps<T>* taps, const T* samples, T* d_base, ThreadPool& pool) const {
-    const int C = L_.channels, NS = slots_per_row(), SL = slots_per_level();
+  void Scatter(size_t bn, const SlotStore<T>& keep, T* d_base, ThreadPool& pool) const {
+    const int C = L_.channels, SL = slots_per_level();
     const int NP = L_.num_levels * kPlanesPerLevel;
     pool.ParallelFor(NP, 1, [&](int64_t pb, int64_t pe, int) {
       for (int64_t p = pb; p < pe; ++p) {
@@ -220,13 +236,13 @@ class TokenSampler {
           if ((time ? kTimePlaneIds[i] : kSpatialPlaneIds[i]) == c) idx = i;
         for (size_t r = 0; r < bn; ++r) {
           for (int j = 0; j < (time ? K_ : 1); ++j) {
-            const size_t slot = r * NS + l * SL + (time ? 3 + j * 3 + idx : idx);
-            ScatterPlane(grad, taps[slot], C, samples + slot * C);
+            const int slot = l * SL + (time ? 3 + j * 3 + idx : idx);
+            ScatterPlane(grad, keep.tap(slot, r), C, keep.sample(slot, r));
           }
           if (dil_ > 0 && !time) {
             for (int q = 0; q < kDilatedTaps; ++q) {
-              const size_t slot = r * NS + l * SL + dilated_slot(idx, q);
-              ScatterPlane(grad, taps[slot], C, samples + slot * C);
+              const int slot = l * SL + dilated_slot(idx, q);
+              ScatterPlane(grad, keep.tap(slot, r), C, keep.sample(slot, r));
             }
           }
         }
@@ -241,8 +257,8 @@ class TokenSampler {
   // Level l of S_dil for rows [b, b + B) (the level's columns of Sdil), optionally keeping the
   // 12 dilated slots' taps and samples.
   void DilatedForward(const T* means, int64_t b, int64_t B, int l, nn::Mat<T>* Sdil, std::vector<T>& acc,
-                      PlaneTaps<T>* taps_out, T* samples_out) const {
-    const int C = L_.channels, D = L_.feature_dim(), NS = slots_per_row(), SL = slots_per_level();
+                      const SlotStore<T>* keep) const {
+    const int C = L_.channels, D = L_.feature_dim(), SL = slots_per_level();
     const int R = L_.level_resolution[l];
     T smp[kMaxSamplerChannels];
     Sdil->middleCols(l * C, C).setOnes();
@@ -273,10 +289,9 @@ class TokenSampler {
           DilatedTaps(pu, pv, R, dil_, q, &tu, &tv);
           const PlaneTaps<T> pt = MakePlaneTaps(tu, tv, pi.width, C);
           T* s = smp;
-          if (samples_out) {
-            const size_t sl = static_cast<size_t>(r) * NS + l * SL + dilated_slot(i, q);
-            s = samples_out + sl * C;
-            taps_out[sl] = pt;
+          if (keep) {
+            s = keep->sample(l * SL + dilated_slot(i, q), r);
+            keep->tap(l * SL + dilated_slot(i, q), r) = pt;
           }
           SamplePlane(plane, pt, C, s);
           for (int k = 0; k < C; ++k) a[k] += s[k];
@@ -292,16 +307,14 @@ class TokenSampler {
 
   // Level l of row r: the 12 dilated slots' samples -> dL/d(sample) in place given dS_dil (null:
   // zero), dL/d(texel coordinates) added to dp (normalised-coordinate units, like the other slots).
-  void DilatedBackward(const T* x, int l, int64_t r, const T* dSd, const PlaneTaps<T>* taps, T* samples,
-                       T* dp) const {
-    const int C = L_.channels, NS = slots_per_row(), SL = slots_per_level();
+  void DilatedBackward(const T* x, int l, int64_t r, const T* dSd, const SlotStore<T>& keep, T* dp) const {
+    const int C = L_.channels, SL = slots_per_level();
     const int R = L_.level_resolution[l];
     T A[3][kMaxSamplerChannels];
-    T* ls = samples + (static_cast<size_t>(r) * NS + l * SL) * C;
     for (int i = 0; i < 3; ++i) {
       for (int k = 0; k < C; ++k) A[i][k] = 0;
       for (int q = 0; q < kDilatedTaps; ++q) {
-        const T* s = ls + dilated_slot(i, q) * C;
+        const T* s = keep.sample(l * SL + dilated_slot(i, q), r);
         for (int k = 0; k < C; ++k) A[i][k] += s[k];
       }
       for (int k = 0; k < C; ++k) A[i][k] *= T(0.25);
@@ -320,13 +333,12 @@ class TokenSampler {
       const T pu = TexelCoord(nm_a[cu] * x[cu] + nm_b[cu], R);
       const T pv = TexelCoord(nm_a[cv] * x[cv] + nm_b[cv], R);
       for (int q = 0; q < kDilatedTaps; ++q) {
-        T* s = ls + dilated_slot(i, q) * C;
+        T* s = keep.sample(l * SL + dilated_slot(i, q), r);
         for (int k = 0; k < C; ++k) s[k] = g[i][k];
         Tap<T> tu, tv;
         DilatedTaps(pu, pv, R, dil_, q, &tu, &tv);
         T du = 0, dv = 0;
-        SampleCoordGrad(params_ + pi.offset, taps[static_cast<size_t>(r) * NS + l * SL + dilated_slot(i, q)], tu.w,
-                        tv.w, C, s, &du, &dv);
+        SampleCoordGrad(params_ + pi.offset, keep.tap(l * SL + dilated_slot(i, q), r), tu.w, tv.w, C, s, &du, &dv);
         dp[cu] += du * tu.dpx_dp;
         dp[cv] += dv * tv.dpx_dp;
       }
